@@ -23,14 +23,14 @@ scenes, for the families that have them).
 from __future__ import annotations
 
 POSE_NAMES: dict[str, tuple[str, ...]] = {
-    "rooms": ("x", "y", "yaw"),
-    "gqn": ("x", "y", "yaw"),
-    "object": ("azimuth", "polar"),
-    "srn_cars": ("azimuth", "polar"),
-    "area": ("x", "y", "yaw"),
-    "gibson": ("x", "y", "yaw"),
-    "scene6dof": ("x", "y", "z", "theta", "phi", "psi"),
-    "seven_scenes": ("x", "y", "z", "theta", "phi", "psi"),
+  "rooms": ("x", "y", "yaw"),
+  "gqn": ("x", "y", "yaw"),
+  "object": ("azimuth", "polar"),
+  "srn_cars": ("azimuth", "polar"),
+  "area": ("x", "y", "yaw"),
+  "gibson": ("x", "y", "yaw"),
+  "scene6dof": ("x", "y", "z", "theta", "phi", "psi"),
+  "seven_scenes": ("x", "y", "z", "theta", "phi", "psi"),
 }
 
 RECORD_KEYS = ("image", "pose", "scene", "view")
