@@ -223,9 +223,9 @@ def init(key: Array, spec: PoseSystemSpec, *, dtype=jnp.float32) -> Params:
     polar continuous: {"grid", "B0": (n_blocks, ...), "C": (n_blocks, ...)}.
   """
   params = {}
+  std = spec.init_stddev
   for i, d in enumerate(spec.dofs):
     kg, kb, kc = jax.random.split(jax.random.fold_in(key, i), 3)
-    std = spec.init_stddev
     grid = std * jax.random.normal(kg, (d.n_grid, spec.dim), dtype)
     gen = lambda k, shape: lie.init_generator(k, shape, spec.block_size, stddev=std, dtype=dtype)
     if isinstance(d, PolarDof):
