@@ -1,0 +1,199 @@
+"""Tests of camrep.data.pipeline: layout, determinism, resume, process shards, pairs, errors."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from camrep.data import pipeline, tfds_builders
+from camrep.data.errors import DataError
+from camrep.data.pipeline import PipelineConfig
+
+NUM_YAWS = 8
+
+
+class RingSource:
+  """Scene s, view v: camera at x = 0.1 s, y = 0, yaw = 2 pi v / 8 (a ring of 8 headings).
+
+  Pixels encode the ids (channel 0 = scene, channel 1 = view) so batches can be checked
+  against their ids; the nearest neighbours of view v in pose are views v +- 1 (mod 8).
+  """
+
+  name = "ring"
+  pose_names = ("x", "y", "yaw")
+  image_size = 4
+  _scenes = {"train": 7, "test": 3}
+
+  def num_scenes(self, split: str) -> int:
+    return self._scenes[split]
+
+  def pose(self, scene: int, view: int) -> np.ndarray:
+    return np.array([0.1 * scene, 0.0, 2 * np.pi * view / NUM_YAWS], np.float32)
+
+  def iter_views(self, split: str):
+    for scene in range(self._scenes[split]):
+      for view in range(NUM_YAWS):
+        image = np.zeros((4, 4, 3), np.uint8)
+        image[..., 0], image[..., 1], image[..., 2] = scene, view, len(split)
+        yield {"image": image, "pose": self.pose(scene, view), "scene": scene, "view": view}
+
+
+def make(config: PipelineConfig, **kwargs) -> pipeline.BatchPipeline:
+  return pipeline.memory_pipeline(RingSource(), "train", config, **kwargs)
+
+
+def assert_batches_equal(a: dict, b: dict):
+  assert a.keys() == b.keys()
+  for k in a:
+    np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+  d = tmp_path_factory.mktemp("tfds")
+  tfds_builders.prepare(RingSource(), d, progress=False)
+  return d
+
+
+@pytest.mark.parametrize("num_devices", [1, 2])
+@pytest.mark.parametrize("mode", ["random", "pairs"])
+def test_layout_and_content(num_devices, mode):
+  cfg = PipelineConfig(
+    num_devices=num_devices, scenes_per_device=3 // num_devices or 1, views_per_scene=4, mode=mode
+  )
+  pipe = make(cfg)
+  batch = pipe.batch(0)
+  d, s = num_devices, cfg.scenes_per_device
+  assert batch["image"].shape == (d, s, 4, 4, 4, 3) and batch["image"].dtype == np.uint8
+  assert batch["pose"].shape == (d, s, 4, 3) and batch["pose"].dtype == np.float32
+  assert batch["scene"].shape == (d, s) and batch["scene"].dtype == np.int32
+  assert batch["view"].shape == (d, s, 4) and batch["view"].dtype == np.int32
+  # Pixels, poses and ids all describe the same view.
+  np.testing.assert_array_equal(
+    batch["image"][..., 0, 0, 0], np.broadcast_to(batch["scene"][..., None], (d, s, 4))
+  )
+  np.testing.assert_array_equal(batch["image"][..., 0, 0, 1], batch["view"])
+  src = RingSource()
+  for idx in np.ndindex(d, s, 4):
+    np.testing.assert_array_equal(
+      batch["pose"][idx], src.pose(batch["scene"][idx[:2]], batch["view"][idx])
+    )
+  if mode == "random":
+    for idx in np.ndindex(d, s):
+      assert len(set(batch["view"][idx].tolist())) == 4
+
+
+def test_tfds_and_memory_pipelines_agree(data_dir):
+  cfg = PipelineConfig(num_devices=2, scenes_per_device=1, views_per_scene=4, mode="pairs")
+  stored = pipeline.tfds_pipeline(data_dir, "ring", "train", cfg)
+  memory = make(cfg)
+  for step in (0, 1, 5):
+    assert_batches_equal(stored.batch(step), memory.batch(step))
+
+
+def test_determinism_by_seed():
+  cfg = PipelineConfig(scenes_per_device=2, views_per_scene=3, seed=7)
+  a, b = make(cfg), make(cfg)
+  for step in range(6):
+    assert_batches_equal(a.batch(step), b.batch(step))
+  other = make(PipelineConfig(scenes_per_device=2, views_per_scene=3, seed=8))
+  assert any(not np.array_equal(a.batch(k)["view"], other.batch(k)["view"]) for k in range(6))
+
+
+def test_restart_at_step_matches_uninterrupted_stream():
+  cfg = PipelineConfig(scenes_per_device=2, views_per_scene=3, seed=3, num_threads=2)
+  full = list(make(cfg).iterator(num_steps=8))
+  assert len(full) == 8
+  resumed = list(make(cfg).iterator(start_step=5, num_steps=3))
+  for a, b in zip(full[5:], resumed, strict=True):
+    assert_batches_equal(a, b)
+  unthreaded = make(PipelineConfig(scenes_per_device=2, views_per_scene=3, seed=3, num_threads=0))
+  for k, batch in enumerate(itertools.islice(iter(unthreaded), 8)):
+    assert_batches_equal(batch, full[k])
+
+
+def test_epochs_draw_scenes_without_replacement():
+  cfg = PipelineConfig(scenes_per_device=3, views_per_scene=2)
+  pipe = make(cfg)
+  assert pipe.steps_per_epoch == 2  # 7 scenes // 3.
+  for epoch in range(3):
+    scenes = np.concatenate([pipe.batch(2 * epoch + k)["scene"].ravel() for k in range(2)])
+    assert len(set(scenes.tolist())) == 6
+  first = [pipe.batch(k)["scene"].ravel().tolist() for k in range(2)]
+  second = [pipe.batch(k)["scene"].ravel().tolist() for k in range(2, 4)]
+  assert first != second  # A new permutation each epoch.
+
+
+@pytest.mark.parametrize("process_count", [2, 3])
+def test_process_shards_disjoint_and_covering(process_count):
+  cfg = PipelineConfig(scenes_per_device=2, views_per_scene=2)
+  pipes = [make(cfg, process_index=p, process_count=process_count) for p in range(process_count)]
+  shards = [set(p.scene_ids.tolist()) for p in pipes]
+  assert set().union(*shards) == set(range(7))
+  assert sum(len(s) for s in shards) == 7
+  assert len({p.steps_per_epoch for p in pipes}) == 1
+  for p, shard in zip(pipes, shards, strict=True):
+    seen = {int(s) for k in range(4) for s in p.batch(k)["scene"].ravel()}
+    assert seen <= shard
+
+
+def test_pairs_are_pose_neighbours_across_the_yaw_seam():
+  cfg = PipelineConfig(scenes_per_device=3, views_per_scene=6, mode="pairs", pair_k=2)
+  pipe = make(cfg)
+  seam = False
+  for step in range(12):
+    views = pipe.batch(step)["view"].reshape(-1, 2)
+    diff = (views[:, 1] - views[:, 0]) % NUM_YAWS
+    assert set(diff.tolist()) <= {1, NUM_YAWS - 1}, views
+    seam |= any({int(a), int(b)} == {0, NUM_YAWS - 1} for a, b in views)
+  assert seam  # Yaw is wrapped: 0 and 7/4 pi are neighbours.
+
+
+def test_pose_distance_wraps_and_normalises():
+  periodic = np.array([False, True])
+  scale = pipeline.pose_scales(np.array([[0.0, 0.1], [2.0, 6.2]]), periodic)
+  np.testing.assert_allclose(scale[0], 1.0)
+  d = pipeline.pose_distance(
+    np.array([0.0, 0.05]), np.array([0.0, 2 * np.pi - 0.05]), scale, periodic
+  )
+  np.testing.assert_allclose(d, 0.1 / scale[1], rtol=1e-6)
+
+
+def test_layout_errors():
+  with pytest.raises(DataError, match="needs 8 scenes per step"):
+    make(PipelineConfig(scenes_per_device=8, views_per_scene=2))
+  with pytest.raises(DataError, match="needs 4 scenes per step"):
+    make(PipelineConfig(scenes_per_device=4, views_per_scene=2), process_index=1, process_count=2)
+  with pytest.raises(DataError, match="needs 9 views in every scene"):
+    make(PipelineConfig(scenes_per_device=1, views_per_scene=9))
+  with pytest.raises(DataError, match="needs 9 views in every scene"):
+    make(PipelineConfig(scenes_per_device=1, views_per_scene=18, mode="pairs"))
+  with pytest.raises(ValueError, match="even views_per_scene"):
+    make(PipelineConfig(views_per_scene=3, mode="pairs"))
+  with pytest.raises(ValueError, match="mode must be one of"):
+    make(PipelineConfig(mode="nearest"))
+  with pytest.raises(ValueError, match="process_index"):
+    make(PipelineConfig(scenes_per_device=1), process_index=2, process_count=2)
+  with pytest.raises(ValueError, match="step must be >= 0"):
+    make(PipelineConfig(scenes_per_device=1, views_per_scene=2)).batch(-1)
+
+
+def test_data_errors(data_dir, tmp_path):
+  cfg = PipelineConfig(scenes_per_device=1, views_per_scene=2)
+  with pytest.raises(DataError, match="does not exist"):
+    pipeline.tfds_pipeline(tmp_path / "missing", "ring", "train", cfg)
+  with pytest.raises(DataError, match="no prepared dataset 'ring'"):
+    pipeline.tfds_pipeline(tmp_path, "ring", "train", cfg)
+  with pytest.raises(DataError, match="unknown split 'test_scenes'"):
+    pipeline.tfds_pipeline(data_dir, "ring", "test_scenes", cfg)
+  with pytest.raises(DataError, match="no split 'test_scenes'"):
+    pipeline.memory_pipeline(RingSource(), "test_scenes", cfg)
+  with pytest.raises(DataError, match="needs 4 scenes per step"):
+    pipeline.tfds_pipeline(data_dir, "ring", "test", PipelineConfig(scenes_per_device=4))
+
+
+def test_config_from_mapping():
+  cfg = PipelineConfig.from_mapping({"scenes_per_device": 5, "mode": "pairs", "other": 1})
+  assert cfg.scenes_per_device == 5 and cfg.mode == "pairs" and cfg.num_devices == 1

@@ -1,0 +1,203 @@
+"""Tests of camrep.data.tfds_builders: exact round trip through tfds ArrayRecord, and errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from camrep.data import gqn, pipeline, prepare, records, tfds_builders
+from camrep.data.errors import DataError
+from camrep.data.tfds_builders import ViewSource
+from tests import readers_fixtures as fx
+
+
+class FakeSource:
+  """A tiny source: random pixels and poses, uneven view counts, splits train/test/test_scenes."""
+
+  name = "fake"
+  pose_names = ("x", "y", "yaw")
+  image_size = (6, 10)
+  _views = {"train": [3, 5, 4], "test": [2, 2, 1], "test_scenes": [4, 4]}
+
+  def num_scenes(self, split: str) -> int:
+    return len(self._views[split])
+
+  def iter_views(self, split: str):
+    rng = np.random.default_rng(len(split))
+    for scene, n in enumerate(self._views[split]):
+      for view in range(n):
+        yield {
+          "image": rng.integers(0, 256, size=(6, 10, 3), dtype=np.uint8),
+          "pose": rng.uniform(0, 6, size=3).astype(np.float32),
+          "scene": scene,
+          "view": view,
+        }
+
+
+@pytest.fixture(scope="module")
+def prepared(tmp_path_factory):
+  data_dir = tmp_path_factory.mktemp("tfds")
+  path = tfds_builders.prepare(
+    FakeSource(), data_dir, config="tiny", metadata={"why": "test"}, progress=False
+  )
+  return data_dir, path
+
+
+def test_fake_source_follows_protocol():
+  assert isinstance(FakeSource(), ViewSource)
+  assert tfds_builders.source_splits(FakeSource()) == ("train", "test", "test_scenes")
+
+
+def test_png_round_trip_exact():
+  img = np.random.default_rng(0).integers(0, 256, size=(7, 5, 3), dtype=np.uint8)
+  np.testing.assert_array_equal(tfds_builders.decode_png(tfds_builders.encode_png(img)), img)
+
+
+@pytest.mark.parametrize("split", ["train", "test", "test_scenes"])
+def test_round_trip_exact(prepared, split):
+  data_dir, path = prepared
+  assert path == data_dir / "fake" / "tiny" / "1.0.0"
+  expected = list(FakeSource().iter_views(split))
+  stored = tfds_builders.load(data_dir, "fake", split)
+  assert len(stored) == len(expected)
+  seen = set()
+  for rec in stored:
+    exp = expected[rec["index"]]
+    seen.add(rec["index"])
+    np.testing.assert_array_equal(rec["image"], exp["image"])
+    assert rec["image"].dtype == np.uint8
+    np.testing.assert_array_equal(rec["pose"], exp["pose"])
+    assert (rec["scene"], rec["view"]) == (exp["scene"], exp["view"])
+  assert seen == set(range(len(expected)))
+
+
+@pytest.mark.parametrize("split", ["train", "test"])
+def test_sidecar_matches_records(prepared, split):
+  data_dir, _ = prepared
+  stored = tfds_builders.load(data_dir, "fake", split, config="tiny", version="1.0.0")
+  expected = list(FakeSource().iter_views(split))
+  idx = stored.index
+  np.testing.assert_array_equal(idx.index, np.arange(len(expected)))
+  np.testing.assert_array_equal(idx.scene, [e["scene"] for e in expected])
+  np.testing.assert_array_equal(idx.view, [e["view"] for e in expected])
+  np.testing.assert_array_equal(idx.pose, np.stack([e["pose"] for e in expected]))
+  images = stored.read_images(idx.record.reshape(-1, 1))
+  assert images.shape == (len(expected), 1, 6, 10, 3)
+  np.testing.assert_array_equal(images[:, 0], np.stack([e["image"] for e in expected]))
+  assert idx.pose_names == ("x", "y", "yaw") and idx.image_shape == (6, 10)
+
+
+def test_metadata(prepared):
+  _, path = prepared
+  meta = json.loads((path / tfds_builders.METADATA_FILE).read_text())
+  assert meta["splits"]["train"] == {"num_views": 12, "num_scenes": 3}
+  assert meta["splits"]["test_scenes"] == {"num_views": 8, "num_scenes": 2}
+  assert meta["image_shape"] == [6, 10] and meta["metadata"] == {"why": "test"}
+
+
+def test_prepare_again_reuses(prepared):
+  data_dir, path = prepared
+  again = tfds_builders.prepare(FakeSource(), data_dir, config="tiny", progress=False)
+  assert again == path
+
+
+def test_load_errors(prepared, tmp_path):
+  data_dir, _ = prepared
+  with pytest.raises(DataError, match="does not exist"):
+    tfds_builders.load(tmp_path / "nope", "fake", "train")
+  with pytest.raises(DataError, match="no prepared dataset 'fake'"):
+    tfds_builders.load(tmp_path, "fake", "train")
+  with pytest.raises(DataError, match="unknown split 'val'"):
+    tfds_builders.load(data_dir, "fake", "val")
+  with pytest.raises(DataError, match="no config 'big'"):
+    tfds_builders.load(data_dir, "fake", "train", config="big")
+  with pytest.raises(DataError, match="no version '9.9.9'"):
+    tfds_builders.load(data_dir, "fake", "train", version="9.9.9")
+
+
+def test_bad_record_is_named(tmp_path):
+  class Broken(FakeSource):
+    name = "broken"
+
+    def iter_views(self, split):
+      for rec in super().iter_views(split):
+        yield {**rec, "image": rec["image"][:, :5]}
+
+  with pytest.raises(DataError, match=r"broken/train #0: image must be uint8"):
+    tfds_builders.prepare(Broken(), tmp_path, progress=False)
+
+
+def test_overwrite_regenerates(tmp_path):
+  class Shifted(FakeSource):
+    def iter_views(self, split):
+      for rec in super().iter_views(split):
+        yield {**rec, "pose": rec["pose"] + 1}
+
+  tfds_builders.prepare(FakeSource(), tmp_path, progress=False)
+  path = tfds_builders.prepare(Shifted(), tmp_path, overwrite=True, progress=False)
+  stored = tfds_builders.load(tmp_path, "fake", "test")
+  expected = np.stack([r["pose"] for r in Shifted().iter_views("test")])
+  np.testing.assert_array_equal(stored.index.pose, expected)
+  assert path == tmp_path / "fake" / "1.0.0"
+
+
+def test_prepare_cli_errors(tmp_path, capsys):
+  with pytest.raises(SystemExit):
+    prepare.main(["--source", "nope", "--data_dir", str(tmp_path)])
+  assert "invalid choice: 'nope'" in capsys.readouterr().err
+  with pytest.raises(SystemExit):
+    prepare.main(["--source", "gqn", "--data_dir", str(tmp_path)])
+  assert "give its root with --input PATH" in capsys.readouterr().err
+  with pytest.raises(SystemExit):
+    prepare.main(["--source", "rooms", "--data_dir", str(tmp_path), "--input", str(tmp_path)])
+  assert "takes no --input" in capsys.readouterr().err
+  with pytest.raises(SystemExit):
+    prepare.main(["--source", "rooms", "--data_dir", str(tmp_path), "--set", "seed"])
+  assert "--set expects key=value" in capsys.readouterr().err
+  with pytest.raises(DataError, match="input path does not exist"):
+    prepare.main(["--source", "gqn", "--data_dir", str(tmp_path), "--input", str(tmp_path / "x")])
+  with pytest.raises(DataError, match="unknown source 'nope'"):
+    prepare.make_source("nope")
+  with pytest.raises(DataError, match="no preset 'huge'"):
+    prepare.make_source("gqn", input_path=tmp_path, preset="huge")
+
+
+def test_parse_set():
+  parsed = prepare.parse_set(["a=3", "b=0.5", "c=(1, 2)", "d=chess", "e=['x']"])
+  assert parsed == {"a": 3, "b": 0.5, "c": (1, 2), "d": "chess", "e": ["x"]}
+
+
+def test_registry_lists_every_family_and_reader():
+  assert set(prepare.SOURCES) == set(records.POSE_NAMES)
+
+
+def test_prepare_cli_real_reader_end_to_end(tmp_path, capsys):
+  """gqn: TFRecords -> prepare CLI -> tfds -> pipeline, pixels equal to the reader's."""
+  root = tmp_path / "gqn"
+  shard = root / gqn.ROOMS / "test"
+  shard.mkdir(parents=True)
+  rng = np.random.default_rng(0)
+  fx.write_gqn_tfrecord(shard / "1-of-1.tfrecord", [fx.gqn_scene(rng, size=16) for _ in range(3)])
+  args = ["--source", "gqn", "--input", str(root), "--data_dir", str(tmp_path / "tfds")]
+  path = prepare.main([*args, "--set", "image_size=16", "--no_progress"])
+  assert f"wrote {path}" in capsys.readouterr().out
+  reader = gqn.GQN(root, image_size=16)
+  for split in ("train", "test"):
+    expected = list(reader.iter_views(split))
+    stored = tfds_builders.load(tmp_path / "tfds", "gqn", split)
+    assert len(stored) == len(expected) == 3 * (9 if split == "train" else 1)
+    for rec in stored:
+      exp = expected[rec["index"]]
+      np.testing.assert_array_equal(rec["image"], exp["image"])
+      np.testing.assert_array_equal(rec["pose"], exp["pose"])
+  cfg = pipeline.PipelineConfig(scenes_per_device=3, views_per_scene=9)
+  batch = pipeline.tfds_pipeline(tmp_path / "tfds", "gqn", "train", cfg).batch(0)
+  assert batch["image"].shape == (1, 3, 9, 16, 16, 3)
+  assert sorted(batch["view"][0, 0].tolist()) == list(range(9))
+  # Same settings again: reused. Other settings into the same directory: refused.
+  prepare.main([*args, "--set", "image_size=16", "--no_progress"])
+  assert "reused" in capsys.readouterr().out
+  with pytest.raises(DataError, match="already prepared with"):
+    prepare.main([*args, "--set", "image_size=16", "--set", "max_scenes=2", "--no_progress"])
