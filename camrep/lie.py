@@ -64,7 +64,7 @@ def _skew_gather_index(s: int) -> np.ndarray:
   return idx
 
 
-def skew(params: Array, block_size: int | None = None) -> Array:
+def skew(params: Array, *, block_size: int | None = None) -> Array:
   """Skew-symmetric blocks from their strict upper triangles ("hat").
 
   Block = U - U^T with U the row-major strict upper triangle filled from `params` (digest 1.1).
@@ -145,7 +145,7 @@ def matvec_blocks(B: Array, v: Array) -> Array:
 # The exponential.
 
 
-def exp_skew(B: Array, t: Array | float = 1.0, *, method: str = "spectral", n_steps: int = 1):
+def exp_skew(B: Array, t: Array | float, *, method: str = "spectral", n_steps: int = 1) -> Array:
   """exp(t B) for skew-symmetric generators (paper eqs. 6-7).
 
   Args:
@@ -232,7 +232,7 @@ def apply_exp_skew(
   return jax.lax.fori_loop(0, n_steps, lambda _, u: step(u), u)
 
 
-def exp_blocks(B: Array, t: Array | float = 1.0, *, method: str = "spectral", n_steps: int = 1):
+def exp_blocks(B: Array, t: Array | float, *, method: str = "spectral", n_steps: int = 1) -> Array:
   """exp(t B) for a block stack: B (..., n, s, s), t (...) -> (..., n, s, s).
 
   The same shift acts on every block (the blocks of one block-diagonal generator).

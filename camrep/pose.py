@@ -263,7 +263,9 @@ def _normalise(v: Array, spec: PoseSystemSpec, *, block_norm: bool) -> Array:
 
 def generator_blocks(params: Params, spec: PoseSystemSpec, name: str) -> dict[str, Array]:
   """The DOF's generators as skew blocks: {"B": (..., n_blocks, s, s), ...} for each generator."""
-  return {k: lie.skew(v, spec.block_size) for k, v in params[name].items() if k != "grid"}
+  return {
+    k: lie.skew(v, block_size=spec.block_size) for k, v in params[name].items() if k != "grid"
+  }
 
 
 # --------------------------------------------------------------------------------------------
@@ -298,11 +300,11 @@ def _rotate_polar(params: Params, spec: PoseSystemSpec, d: PolarDof, disp: Array
   r, theta = _safe_polar(disp)
   method, n_steps = spec.exp_method, spec.n_steps
   if d.variant == "binned":
-    B = lie.skew(params[d.name]["B"], spec.block_size)  # (n_dir, n_b, s, s)
+    B = lie.skew(params[d.name]["B"], block_size=spec.block_size)  # (n_dir, n_b, s, s)
     j = jnp.mod(jnp.round(theta / (TWO_PI / d.n_directions)).astype(jnp.int32), d.n_directions)
     return lie.apply_exp_blocks(B, r, v, method=method, n_steps=n_steps, index=j)
-  C = lie.skew(params[d.name]["C"], spec.block_size)
-  B0 = lie.skew(params[d.name]["B0"], spec.block_size)
+  C = lie.skew(params[d.name]["C"], block_size=spec.block_size)
+  B0 = lie.skew(params[d.name]["B0"], block_size=spec.block_size)
   # exp(r e^{C th} B0 e^{-C th}) = e^{C th} e^{r B0} e^{-C th}.
   u = lie.apply_exp_blocks(C, -theta, v, method=method, n_steps=n_steps)
   u = lie.apply_exp_blocks(B0, r, u, method=method, n_steps=n_steps)
@@ -322,7 +324,7 @@ def rotate(params: Params, spec: PoseSystemSpec, name: str, delta: Array, v: Arr
   d = spec.dof(name)
   if isinstance(d, PolarDof):
     return _rotate_polar(params, spec, d, delta, v)
-  B = lie.skew(params[name]["B"], spec.block_size)
+  B = lie.skew(params[name]["B"], block_size=spec.block_size)
   return lie.apply_exp_blocks(B, delta, v, method=spec.exp_method, n_steps=spec.n_steps)
 
 
@@ -546,8 +548,8 @@ def direction_loss(params: Params, spec: PoseSystemSpec, name: str, *, max_shift
     raise ValueError(f"direction_loss is for polar DOFs; {name!r} is {type(d).__name__}")
   if d.variant == "continuous":
     return jnp.zeros((), params[name]["grid"].dtype)
-  B = lie.skew(params[name]["B"], spec.block_size)  # (n, n_b, s, s)
-  C = lie.skew(params[name]["C"], spec.block_size)  # (n_b, s, s)
+  B = lie.skew(params[name]["B"], block_size=spec.block_size)  # (n, n_b, s, s)
+  C = lie.skew(params[name]["C"], block_size=spec.block_size)  # (n_b, s, s)
   shifts = jnp.arange(1, max_shift + 1)
   dtheta = TWO_PI / d.n_directions
   R = lie.exp_blocks(C, shifts * dtheta, method=spec.exp_method, n_steps=spec.n_steps)
@@ -686,7 +688,7 @@ def decode(
 # Inspection.
 
 
-def gram(params: Params, spec: PoseSystemSpec, name: str, values: Array | None = None) -> Array:
+def gram(params: Params, spec: PoseSystemSpec, name: str, *, values: Array | None = None) -> Array:
   """Inner-product (Gram) matrix V V^T of a DOF's vectors over its range (supplement figure).
 
   Args:

@@ -1,0 +1,1 @@
+"""pytest configuration: make the repository root importable as `tests.*`."""

@@ -1,0 +1,70 @@
+"""Shared test helpers: float64 context, samplers, closeness asserts (in the manner of jaxlie)."""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+
+import jax
+import numpy as np
+import pytest
+
+from camrep import lie
+
+BATCH_SHAPES = ((), (1,), (3, 1, 2))
+REGIMES = ("normal", "large", "near_zero")
+
+
+@contextlib.contextmanager
+def x64():
+  """Run in float64 without touching other test modules (jax.enable_x64 is a context)."""
+  with jax.enable_x64(True):
+    yield
+
+
+def sample_generator(rng: np.random.Generator, batch: tuple[int, ...], s: int, regime: str):
+  """Random skew-symmetric blocks (*batch, s, s) in float64.
+
+  regime: "normal" (spectral norm ~1), "large" (~5), "near_zero" (~1e-7).
+  """
+  params = rng.normal(size=(*batch, lie.num_skew_params(s)))
+  B = np.asarray(lie.skew(params, block_size=s), np.float64)
+  norm = (
+    np.linalg.norm(B, ord=2, axis=(-2, -1), keepdims=True) if B.ndim > 2 else np.linalg.norm(B, 2)
+  )
+  scale = {"normal": 1.0, "large": 5.0, "near_zero": 1e-7}[regime]
+  return B / np.maximum(norm, 1e-30) * scale
+
+
+def assert_close(a, b, *, atol=1e-8, rtol=1e-8):
+  """assert_allclose that also fails on any NaN/inf."""
+  a, b = np.asarray(a), np.asarray(b)
+  assert np.all(np.isfinite(a)), "non-finite values in result"
+  assert np.all(np.isfinite(b)), "non-finite values in reference"
+  np.testing.assert_allclose(a, b, atol=atol, rtol=rtol)
+
+
+def jac_numerical(f, x, eps=1e-6):
+  """Central-difference Jacobian of f: R^n -> R^m at x (float64), shape (m, n)."""
+  x = np.asarray(x, np.float64)
+  cols = []
+  for i in range(x.size):
+    dx = np.zeros(x.size)
+    dx[i] = eps
+    dx = dx.reshape(x.shape)
+    cols.append((np.asarray(f(x + dx)) - np.asarray(f(x - dx))).ravel() / (2 * eps))
+  return np.stack(cols, -1)
+
+
+def general_lie_test(f):
+  """Parametrise a test over exp methods x batch shapes x sampling regimes, run in float64."""
+
+  @pytest.mark.parametrize("method", lie.EXP_METHODS)
+  @pytest.mark.parametrize("batch", BATCH_SHAPES)
+  @pytest.mark.parametrize("regime", REGIMES)
+  @functools.wraps(f)
+  def wrapper(method, batch, regime):
+    with x64():
+      f(method=method, batch=batch, regime=regime)
+
+  return wrapper
