@@ -1,0 +1,572 @@
+"""Checkpointing for the training loop: Orbax `CheckpointManager` plus fault handling.
+
+A checkpoint holds the train state (any pytree of jax/numpy arrays and Python scalars, e.g. a
+flax `TrainState` with the parameter groups, the optax states and the step counter) and a small
+JSON-able `extra` dict (e.g. `{"data_step": 1200, "rng_seed": 0}`). Each step is one Orbax
+composite checkpoint `workdir/checkpoints/<step>/{state,extra}`.
+
+Typical use in the train loop (resume order: latest readable checkpoint in the workdir, else a
+fresh `init_fn()`):
+
+  ckpt = Checkpointer(workdir, max_to_keep=3)
+  state, extra, step = ckpt.restore_or_init(lambda: create_train_state(init_key, config))
+  start_step = 0 if step is None else step
+  with install_signal_handlers() as preempt:
+    for step in range(start_step + 1, total_steps + 1):
+      state, metrics = p_train_step(state, batch, loop_key)
+      if itstime(step, ckpt_every_steps, total_steps) or preempt.requested:
+        ckpt.save(step, state, extra={"data_step": step})
+      if preempt.requested:
+        break
+  ckpt.close()
+
+Faults and what happens:
+
+* A save is atomic: Orbax writes `<step>.orbax-checkpoint-tmp*` and renames it when complete.
+  A killed save leaves only that tmp directory; it is never listed, and it is removed when the
+  next `Checkpointer` opens the directory, or right after a failed save.
+* `restore()` without `step` tries the newest checkpoint first; if it cannot be read (a file
+  truncated or deleted, a sub-item missing) it emits a `CorruptCheckpointWarning` naming the
+  bad step and tries the previous one, and raises `CheckpointError` if none is usable. The next
+  `save()` deletes the steps found bad, so that the resumed run can write them again.
+* A template that does not match the checkpoint (missing/extra leaves, other shapes) raises
+  `CheckpointError` at once, without falling back: older checkpoints would not match either.
+  Dtypes are cast to the template's.
+* An unwritable directory, or an `OSError` during a save (e.g. ENOSPC, disk full), raises
+  `CheckpointError` naming the directory; earlier checkpoints are untouched and the partial
+  one is cleaned up.
+
+Several processes (multi-host): every process must construct the `Checkpointer` and call
+`save`/`restore` with the same steps, because Orbax's saves are collective. Orbax handles
+`jax.process_index()`: each process writes its own array shards, the `extra` JSON, step
+metadata and directory renames/deletions happen only on the primary process (0), and it places
+the barriers. This module writes no files of its own (the writability probe is a per-process
+uniquely named temporary file, removed at once). `extra` must be identical on all processes.
+With several processes, combine `PreemptionHandler.requested` across processes (e.g. an
+all-gather, or `CheckpointManager.reached_preemption`) before deciding to save, since a save
+that only some processes enter would hang. Only one writer may use a directory at a time;
+readers (evaluation jobs) should pass `read_only=True`, which neither cleans up tmp
+directories nor saves.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import logging
+import os
+import shutil
+import signal
+import tempfile
+import threading
+import time
+import warnings
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import orbax.checkpoint as ocp
+
+__all__ = [
+  "CheckpointError",
+  "Checkpointer",
+  "CorruptCheckpointWarning",
+  "PreemptionHandler",
+  "install_signal_handlers",
+]
+
+PyTree = Any
+
+_STATE = "state"
+_EXTRA = "extra"
+CHECKPOINT_SUBDIR = "checkpoints"
+_TMP_SUFFIX = ".orbax-checkpoint-tmp"
+
+
+class CheckpointError(RuntimeError):
+  """A checkpoint could not be written or no usable checkpoint could be read."""
+
+
+class CorruptCheckpointWarning(UserWarning):
+  """The newest checkpoint is unreadable and an older one is used instead."""
+
+
+def _os_error_in_chain(exc: BaseException) -> OSError | None:
+  """Returns the first `OSError` in the cause/context chain of `exc`, or None."""
+  seen = set()
+  while exc is not None and id(exc) not in seen:
+    seen.add(id(exc))
+    if isinstance(exc, OSError):
+      return exc
+    exc = exc.__cause__ or exc.__context__
+  return None
+
+
+def _is_disk_full(exc: BaseException) -> bool:
+  err = _os_error_in_chain(exc)
+  if err is not None and err.errno in (errno.ENOSPC, errno.EDQUOT):
+    return True
+  # Tensorstore reports I/O failures as ValueError carrying the strerror text.
+  return "No space left on device" in str(exc)
+
+
+# Tensorstore status codes/strerror texts of I/O failures (it raises ValueError, not OSError).
+_TENSORSTORE_IO_ERRORS = ("PERMISSION_DENIED", "RESOURCE_EXHAUSTED", "Read-only file system")
+
+
+def _is_io_error(exc: BaseException) -> bool:
+  if _os_error_in_chain(exc) is not None or _is_disk_full(exc):
+    return True
+  return any(code in str(exc) for code in _TENSORSTORE_IO_ERRORS)
+
+
+def _short(exc: BaseException, limit: int = 300) -> str:
+  text = " ".join(str(exc).split())
+  if len(text) > limit:
+    text = text[:limit] + "..."
+  return f"{type(exc).__name__}: {text}"
+
+
+def _to_abstract(x: Any) -> Any:
+  """Maps a template leaf to what `StandardRestore` expects (shape/dtype/sharding)."""
+  if isinstance(x, jax.ShapeDtypeStruct):
+    return x
+  if isinstance(x, jax.Array):
+    return ocp.utils.to_shape_dtype_struct(x)
+  if isinstance(x, np.ndarray | np.generic):
+    return jax.ShapeDtypeStruct(np.shape(x), np.asarray(x).dtype)
+  return x  # Python scalars are restored as such.
+
+
+def _like_template(restored: Any, template: Any) -> Any:
+  """Casts one restored leaf to the container type of its template leaf."""
+  if isinstance(template, np.generic):
+    return template.dtype.type(np.asarray(restored))
+  if isinstance(template, np.ndarray):
+    return np.asarray(restored, dtype=template.dtype)
+  if isinstance(template, jax.Array | jax.ShapeDtypeStruct) and not isinstance(restored, jax.Array):
+    return jnp.asarray(restored, dtype=template.dtype)
+  return restored
+
+
+class Checkpointer:
+  """Saves and restores `(state, extra)` under `workdir/checkpoints` with Orbax.
+
+  Attributes:
+    directory: the checkpoint directory, `workdir/checkpoints`.
+  """
+
+  def __init__(
+    self,
+    workdir: str | os.PathLike[str],
+    *,
+    max_to_keep: int | None = 3,
+    async_save: bool = False,
+    read_only: bool = False,
+  ) -> None:
+    """Opens (and unless `read_only` creates) `workdir/checkpoints`.
+
+    Args:
+      workdir: the experiment's work directory.
+      max_to_keep: number of most recent checkpoints kept; None keeps all.
+      async_save: if True, `save` returns once the arrays are copied to host memory and the
+        files are written in a background thread; errors then surface on the next `save`,
+        `wait_until_finished` or `close`.
+      read_only: open for reading only (evaluation jobs): no directory creation, no tmp
+        directory cleanup, `save` raises.
+
+    Raises:
+      CheckpointError: if the directory cannot be created or written to.
+    """
+    self.directory = os.path.abspath(os.path.join(os.fspath(workdir), CHECKPOINT_SUBDIR))
+    self._max_to_keep = max_to_keep
+    self._async_save = async_save
+    self._read_only = read_only
+    self._bad_steps: set[int] = set()
+    self._pending_step: int | None = None
+    if read_only:
+      if not os.path.isdir(self.directory):
+        raise CheckpointError(f"Checkpoint directory {self.directory} does not exist.")
+    else:
+      self._check_writable()
+      # `<step>.orbax-checkpoint-tmp*` left by a killed save: never listed, but a leftover of
+      # the same step would make the next save of that step fail.
+      self._remove_tmp_dirs()
+    self._manager = self._new_manager()
+
+  def _check_writable(self) -> None:
+    """Creates the directory and writes/removes a probe file, so failures come early."""
+    try:
+      os.makedirs(self.directory, exist_ok=True)
+      fd, probe = tempfile.mkstemp(
+        prefix=f".write-probe-{jax.process_index()}-", dir=self.directory
+      )
+      os.close(fd)
+      os.remove(probe)
+    except OSError as e:
+      raise CheckpointError(
+        f"Checkpoint directory {self.directory} is not writable ({_short(e)})."
+      ) from e
+
+  def _new_manager(self) -> ocp.CheckpointManager:
+    options = ocp.CheckpointManagerOptions(
+      max_to_keep=self._max_to_keep,
+      create=not self._read_only,
+      read_only=self._read_only,
+      # We remove tmp dirs ourselves (`_remove_tmp_dirs`), synchronously and with retries.
+      cleanup_tmp_directories=False,
+      enable_async_checkpointing=self._async_save,
+    )
+    try:
+      return ocp.CheckpointManager(
+        self.directory,
+        options=options,
+        item_handlers={
+          _STATE: ocp.StandardCheckpointHandler(),
+          _EXTRA: ocp.JsonCheckpointHandler(),
+        },
+      )
+    except OSError as e:
+      raise CheckpointError(
+        f"Cannot open checkpoint directory {self.directory} ({_short(e)})."
+      ) from e
+
+  # Listing.
+
+  def all_steps(self) -> list[int]:
+    """Returns the finalized checkpoint steps, ascending (tmp directories are ignored)."""
+    if self._read_only:  # Another process writes: re-read the directory.
+      self._manager.reload()
+    return sorted(self._manager.all_steps())
+
+  def latest_step(self) -> int | None:
+    """Returns the newest finalized step, or None. It may still prove unreadable."""
+    steps = self.all_steps()
+    return steps[-1] if steps else None
+
+  # Saving.
+
+  def save(
+    self,
+    step: int,
+    state: PyTree,
+    *,
+    extra: Mapping[str, Any] | None = None,
+    force: bool = False,
+  ) -> bool:
+    """Saves `state` and `extra` as checkpoint `step`.
+
+    Without `async_save` this returns only once the checkpoint is complete on disk.
+
+    Args:
+      step: the step number (the directory name).
+      state: pytree of jax/numpy arrays and Python scalars.
+      extra: JSON-serialisable dict, e.g. `{"data_step": ..., "rng_seed": ...}`.
+      force: overwrite an existing checkpoint at `step` and save even if `step` is not
+        newer than the latest checkpoint. Without it such a save is skipped (returns False).
+
+    Returns:
+      Whether a checkpoint was written (started, with `async_save`).
+
+    Raises:
+      CheckpointError: on an `OSError` while writing (disk full, permission denied, ...).
+        The partial checkpoint is removed and earlier checkpoints stay loadable.
+      TypeError: if `extra` is not JSON-serialisable.
+    """
+    if self._read_only:
+      raise CheckpointError(f"Checkpointer for {self.directory} is read-only.")
+    extra = dict(extra or {})
+    json.dumps(extra)  # Fail before touching the disk.
+    step = int(step)
+    try:
+      # Surface errors of a previous async save before deleting anything.
+      self._manager.wait_until_finished()
+      self._delete_bad_steps()
+      self._remove_tmp_dirs(step)
+      if force and step in self._manager.all_steps():
+        self._manager.delete(step)
+      if not force and (latest := self._manager.latest_step()) is not None and step <= latest:
+        logging.info("Checkpoint step %d not saved: not newer than step %d.", step, latest)
+        return False
+      self._pending_step = step
+      saved = self._manager.save(
+        step,
+        args=ocp.args.Composite(
+          **{_STATE: ocp.args.StandardSave(state), _EXTRA: ocp.args.JsonSave(extra)}
+        ),
+        force=force,
+      )
+      if not self._async_save:
+        self._manager.wait_until_finished()
+    except Exception as e:
+      self._raise_save_error(e, step)
+    return bool(saved)
+
+  def _delete_bad_steps(self) -> None:
+    for bad in sorted(self._bad_steps & set(self._manager.all_steps())):
+      logging.warning("Deleting unreadable checkpoint step %d in %s.", bad, self.directory)
+      self._manager.delete(bad)
+    self._bad_steps.clear()
+
+  def _raise_save_error(self, exc: Exception, step: int | None) -> None:
+    """Cleans up after a failed save and re-raises, as CheckpointError for I/O errors."""
+    self._recover()
+    if _is_disk_full(exc):
+      raise CheckpointError(
+        f"Disk full while saving checkpoint step {step} in {self.directory}; the partial "
+        f"checkpoint was removed and earlier ones are intact ({_short(exc)})."
+      ) from exc
+    if _is_io_error(exc):
+      raise CheckpointError(
+        f"Could not write checkpoint step {step} in {self.directory}; earlier checkpoints "
+        f"are intact ({_short(exc)})."
+      ) from exc
+    raise exc
+
+  def _recover(self) -> None:
+    """Removes the failed save's tmp directory and replaces the (possibly broken) manager."""
+    try:
+      self._manager.close()
+    except Exception as e:  # The failed save may re-raise here; it is already handled.
+      logging.info("Ignoring error while closing checkpoint manager: %s", _short(e))
+    self._remove_tmp_dirs()
+    self._manager = self._new_manager()
+
+  def _remove_tmp_dirs(self, step: int | None = None) -> None:
+    """Removes unfinalized `<step>.orbax-checkpoint-tmp*` directories (all if step is None).
+
+    Only called when none of our saves is in flight (single writer per directory), and only
+    on the primary process, before any process starts the next collective save.
+    """
+    if jax.process_index() != 0:
+      return
+    prefix = "" if step is None else f"{step}{_TMP_SUFFIX}"
+    for name in os.listdir(self.directory):
+      if _TMP_SUFFIX not in name or not name.startswith(prefix):
+        continue
+      path = os.path.join(self.directory, name)
+      # After a failed save, the other items' writer threads may still be adding files for
+      # a moment, so rmtree can fail or race; retry until the directory is gone.
+      deadline = time.monotonic() + 10.0
+      while os.path.lexists(path):
+        shutil.rmtree(path, ignore_errors=True)
+        if not os.path.lexists(path):
+          break
+        if time.monotonic() > deadline:
+          logging.warning("Could not remove unfinalized checkpoint %s.", path)
+          break
+        time.sleep(0.05)
+
+  def wait_until_finished(self) -> None:
+    """Blocks until a pending async save is complete.
+
+    Raises:
+      CheckpointError: if that save failed with an I/O error.
+    """
+    try:
+      self._manager.wait_until_finished()
+    except Exception as e:
+      self._raise_save_error(e, self._pending_step)
+
+  def close(self) -> None:
+    """Waits for pending saves and releases Orbax's resources."""
+    try:
+      self.wait_until_finished()
+    finally:
+      self._manager.close()
+
+  def __enter__(self) -> Checkpointer:
+    return self
+
+  def __exit__(self, *exc_info: object) -> None:
+    self.close()
+
+  # Restoring.
+
+  def restore(self, state_template: PyTree, *, step: int | None = None) -> tuple[PyTree, dict, int]:
+    """Restores a checkpoint into the structure, shapes and dtypes of `state_template`.
+
+    Args:
+      state_template: a pytree like the saved state; leaves may be arrays or
+        `jax.ShapeDtypeStruct`s (e.g. from `jax.eval_shape`). Non-array pytree fields (a
+        `TrainState`'s `apply_fn`, `tx`) are taken from the template. Leaves come back as
+        the template's type (numpy for numpy, jax.Array for jax), cast to its dtype.
+      step: the step to restore; None means the newest readable one, falling back to older
+        checkpoints (with a `CorruptCheckpointWarning`) when newer ones are unreadable.
+
+    Returns:
+      `(state, extra, step)`.
+
+    Raises:
+      CheckpointError: if there is no checkpoint, the requested step is missing or
+        unreadable, no checkpoint is readable, or the template does not match.
+    """
+    steps = self.all_steps()
+    if not steps:
+      raise CheckpointError(f"No checkpoint in {self.directory}.")
+    if step is not None:
+      if step not in steps:
+        raise CheckpointError(
+          f"No checkpoint for step {step} in {self.directory}; available: {steps}."
+        )
+      candidates = [int(step)]
+    else:
+      candidates = steps[::-1]
+    abstract = jax.tree.map(_to_abstract, state_template)
+    failures = []
+    for s in candidates:
+      try:
+        restored = self._manager.restore(
+          s,
+          args=ocp.args.Composite(
+            **{_STATE: ocp.args.StandardRestore(abstract), _EXTRA: ocp.args.JsonRestore()}
+          ),
+        )
+        state = jax.tree.map(_like_template, restored[_STATE], state_template)
+        extra = restored[_EXTRA]
+        if not isinstance(extra, dict):
+          raise ValueError(f"'extra' is {type(extra).__name__}, not a dict")
+      except Exception as e:
+        mismatch = self._template_mismatch(s, abstract)
+        if mismatch:
+          raise CheckpointError(
+            f"Checkpoint step {s} in {self.directory} does not match the state template: {mismatch}"
+          ) from e
+        if step is not None:
+          raise CheckpointError(
+            f"Checkpoint step {s} in {self.directory} is unreadable (corrupted or partial): "
+            f"{_short(e)}"
+          ) from e
+        self._bad_steps.add(s)
+        failures.append(f"step {s}: {_short(e, 200)}")
+        msg = (
+          f"Checkpoint step {s} in {self.directory} is unreadable (corrupted or partial), "
+          f"skipping it: {_short(e, 200)}"
+        )
+        warnings.warn(msg, CorruptCheckpointWarning, stacklevel=2)
+        logging.warning(msg)
+        continue
+      if s != candidates[0]:
+        logging.warning("Restored checkpoint step %d from %s (fallback).", s, self.directory)
+      return state, extra, s
+    raise CheckpointError(
+      f"No usable checkpoint in {self.directory}: all of steps {steps} are unreadable. "
+      + "; ".join(failures)
+    )
+
+  def _template_mismatch(self, step: int, abstract: PyTree) -> str | None:
+    """Describes how `abstract` differs from checkpoint `step`'s metadata.
+
+    Returns None when the metadata itself is unreadable (a corrupt checkpoint) or matches.
+    """
+    try:
+      tree = self._manager.item_metadata(step)[_STATE].tree
+      saved = {m.name: tuple(m.shape) for m in jax.tree.leaves(tree)}
+    except Exception:
+      return None
+    names = jax.tree.leaves(ocp.tree.get_param_names(abstract, include_empty_nodes=False))
+    wanted = {n: tuple(np.shape(x)) for n, x in zip(names, jax.tree.leaves(abstract), strict=True)}
+    problems = []
+    if missing := sorted(set(wanted) - set(saved)):
+      problems.append(f"not in checkpoint: {missing[:10]}")
+    if unexpected := sorted(set(saved) - set(wanted)):
+      problems.append(f"not in template: {unexpected[:10]}")
+    shapes = [
+      f"{n} {saved[n]} vs {wanted[n]}"
+      for n in sorted(wanted)
+      if saved.get(n, wanted[n]) != wanted[n]
+    ]
+    if shapes:
+      problems.append(f"shape (checkpoint vs template): {shapes[:10]}")
+    return "; ".join(problems) or None
+
+  def restore_or_init(self, init_fn: Callable[[], PyTree]) -> tuple[PyTree, dict, int | None]:
+    """Restores the newest readable checkpoint, or calls `init_fn()` if there is none.
+
+    Args:
+      init_fn: builds the initial state; on resume its result is the restore template
+        (called for real, not traced, so numpy leaves and static fields are kept).
+
+    Returns:
+      `(state, extra, step)`, with `({}, None)` for extra and step on a fresh start.
+
+    Raises:
+      CheckpointError: if checkpoints exist but none is usable (rather than silently
+        restarting from scratch).
+    """
+    if not self.all_steps():
+      logging.info("No checkpoint in %s: initialising.", self.directory)
+      return init_fn(), {}, None
+    state, extra, step = self.restore(init_fn())
+    logging.info("Resumed from checkpoint step %d in %s.", step, self.directory)
+    return state, extra, step
+
+
+class PreemptionHandler:
+  """Records SIGTERM/SIGINT so the train loop can save a checkpoint and stop cleanly.
+
+  The first signal sets `requested` (and `signum`). A second SIGINT raises
+  `KeyboardInterrupt` as usual (press Ctrl-C twice to abort without saving); a second
+  SIGTERM is only logged. Use `install_signal_handlers()` to create one.
+
+  Attributes:
+    requested: True once a signal arrived.
+    signum: the first signal received, or None.
+  """
+
+  def __init__(self, signals: Iterable[int]) -> None:
+    self.requested = False
+    self.signum: int | None = None
+    self._signals = tuple(signals)
+    self._previous: dict[int, Any] = {}
+
+  def _install(self) -> None:
+    if threading.current_thread() is not threading.main_thread():
+      raise RuntimeError("Signal handlers can only be installed from the main thread.")
+    for sig in self._signals:
+      self._previous[sig] = signal.signal(sig, self._handle)
+
+  def _handle(self, signum: int, frame: object) -> None:
+    del frame
+    name = signal.Signals(signum).name
+    if self.requested:
+      if signum == signal.SIGINT:
+        raise KeyboardInterrupt
+      logging.warning("Received %s again; still stopping at the next checkpoint.", name)
+      return
+    self.requested = True
+    self.signum = signum
+    logging.warning("Received %s: will save a checkpoint and stop.", name)
+
+  def uninstall(self) -> None:
+    """Restores the handlers that were active before; safe to call twice."""
+    for sig, previous in self._previous.items():
+      # None means the previous handler was not installed from Python.
+      signal.signal(sig, signal.SIG_DFL if previous is None else previous)
+    self._previous.clear()
+
+  def __enter__(self) -> PreemptionHandler:
+    return self
+
+  def __exit__(self, *exc_info: object) -> None:
+    self.uninstall()
+
+
+def install_signal_handlers(
+  *, signals: Iterable[int] = (signal.SIGTERM, signal.SIGINT)
+) -> PreemptionHandler:
+  """Installs handlers that turn SIGTERM/SIGINT into a `requested` flag.
+
+  Must be called from the main thread. Usable as a context manager, which uninstalls on exit.
+
+  Args:
+    signals: the signals to catch.
+
+  Returns:
+    The installed `PreemptionHandler`.
+  """
+  handler = PreemptionHandler(signals)
+  handler._install()
+  return handler
