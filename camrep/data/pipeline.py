@@ -211,6 +211,8 @@ class BatchPipeline:
     all_ids, starts = np.unique(index.scene[order], return_index=True)
     rows = np.split(order, starts[1:])
     mine = np.arange(process_index, len(all_ids), process_count)
+    self.all_scene_ids = all_ids
+    self._all_rows = dict(zip(all_ids.tolist(), rows, strict=True))
     self.scene_ids = all_ids[mine]
     self._scene_rows = [rows[i] for i in mine]
 
@@ -332,6 +334,28 @@ class BatchPipeline:
   def __iter__(self) -> Iterator[Batch]:
     return self.iterator()
 
+  def num_scene_views(self, scene: int) -> int:
+    """Number of views of one scene of the split (0 for an unknown scene)."""
+    rows = self._all_rows.get(int(scene))
+    return 0 if rows is None else len(rows)
+
+  def scene_views(self, scene: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The first `n` views (by view id) of one scene of the split, any process's shard.
+
+    Returns:
+      images uint8 (n, H, W, 3), poses float32 (n, P).
+
+    Raises:
+      DataError: unknown scene, or fewer than n views.
+    """
+    rows = self._all_rows.get(int(scene))
+    if rows is None:
+      raise DataError(None, f"scene {scene} is not in this split")
+    if len(rows) < n:
+      raise DataError(None, f"scene {scene} has {len(rows)} views, {n} requested")
+    rows = rows[np.argsort(self.index.view[rows], kind="stable")[:n]]
+    return self._read_images(self.index.record[rows]), self.index.pose[rows].astype(np.float32)
+
 
 def views_in_memory(source: ViewSource, split: str) -> tuple[ViewIndex, np.ndarray]:
   """Reads a whole split of a source into memory.
@@ -436,4 +460,131 @@ def tfds_pipeline(
     process_index=process_index,
     process_count=process_count,
     where=stored.path,
+  )
+
+
+class RenderPipeline(BatchPipeline):
+  """`BatchPipeline` over a procedural family that renders each batch's views on demand.
+
+  No index of all views is built (paper-size rooms have 200,000 scenes x 10 views): a scene's
+  poses are computed when the scene is drawn, then only the selected views are rendered. Batches
+  follow the same rules as `BatchPipeline` (epoch permutations of this process's scenes,
+  per-step view choice), so a resumed run sees the same data.
+  """
+
+  def __init__(
+    self,
+    family: Any,
+    split: str,
+    config: PipelineConfig,
+    *,
+    process_index: int = 0,
+    process_count: int = 1,
+  ):
+    config.validate()
+    if not 0 <= process_index < process_count:
+      raise ValueError(
+        f"need 0 <= process_index < process_count, got {process_index}, {process_count}"
+      )
+    if split not in tuple(getattr(family, "splits", ("train", "test"))):
+      raise DataError(None, f"family {family.name!r} has no split {split!r}")
+    self.config = config
+    self.family = family
+    self.split = split
+    self.process_index = process_index
+    self.process_count = process_count
+    self.all_scene_ids = np.asarray(family.scene_ids(split), np.int64)
+    self.scene_ids = self.all_scene_ids[process_index::process_count]
+    need = config.scenes_per_step
+    self.steps_per_epoch = (len(self.all_scene_ids) // process_count) // need
+    where = f"{family.name}/{split}"
+    if self.steps_per_epoch == 0:
+      raise DataError(
+        where,
+        f"batch layout needs {need} scenes per step per process, but the split has "
+        f"{len(self.all_scene_ids)} scenes for {process_count} process(es)",
+      )
+    views = family.num_views(split)
+    need_views = (
+      config.views_per_scene if config.mode == "random" else max(2, config.views_per_scene // 2)
+    )
+    if views < need_views:
+      raise DataError(
+        where, f"{config.mode!r} mode needs {need_views} views per scene, scenes have {views}"
+      )
+    names = tuple(family.pose_names)
+    self._periodic = np.array([n in PERIODIC_POSE_NAMES for n in names], bool)
+    sample = np.concatenate([family.poses(split, int(s)) for s in self.all_scene_ids[:16]])
+    self._scale = pose_scales(sample, self._periodic)
+    self._epoch_cache = {}
+    self.index = None
+
+  def _scene_poses(self, scene: int) -> np.ndarray:
+    return np.asarray(self.family.poses(self.split, int(scene)), np.float32)
+
+  def _select_from(self, poses: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    v = self.config.views_per_scene
+    n = len(poses)
+    if self.config.mode == "random":
+      return rng.choice(n, size=v, replace=False)
+    n_pairs = v // 2
+    anchors = rng.choice(n, size=n_pairs, replace=False)
+    dist = pose_distance(poses[anchors, None], poses[None], self._scale, self._periodic)
+    dist[np.arange(n_pairs), anchors] = np.inf
+    k = min(self.config.pair_k, n - 1)
+    nearest = np.argpartition(dist, k - 1, axis=1)[:, :k]
+    partners = nearest[np.arange(n_pairs), rng.integers(k, size=n_pairs)]
+    return np.stack([anchors, partners], axis=1).reshape(-1)
+
+  def plan(self, step: int) -> tuple[np.ndarray, np.ndarray]:
+    """(view ids (D, S, V), scene ids (D, S)) of the batch at `step`."""
+    if step < 0:
+      raise ValueError(f"step must be >= 0, got {step}")
+    cfg = self.config
+    b = cfg.scenes_per_step
+    epoch, pos = divmod(int(step), self.steps_per_epoch)
+    chosen = self._epoch_order(epoch)[pos * b : (pos + 1) * b]
+    rng = np.random.default_rng([cfg.seed, 1, int(step), self.process_index])
+    scenes = self.scene_ids[chosen]
+    views = np.stack([self._select_from(self._scene_poses(s), rng) for s in scenes])
+    shape = (cfg.num_devices, cfg.scenes_per_device)
+    return views.reshape(*shape, cfg.views_per_scene), scenes.reshape(shape)
+
+  def batch(self, step: int) -> Batch:
+    views, scenes = self.plan(step)
+    flat_v, flat_s = views.reshape(-1, views.shape[-1]), scenes.reshape(-1)
+    images, poses = [], []
+    for s, v in zip(flat_s, flat_v, strict=True):
+      p = self._scene_poses(s)[v]
+      images.append(self.family.render_views(int(s), p))
+      poses.append(p)
+    lead = views.shape
+    return {
+      "image": np.stack(images).reshape(*lead, *images[0].shape[1:]),
+      "pose": np.stack(poses).reshape(*lead, -1).astype(np.float32),
+      "scene": scenes.astype(np.int32),
+      "view": views.astype(np.int32),
+    }
+
+  def num_scene_views(self, scene: int) -> int:
+    return len(self._scene_poses(scene))
+
+  def scene_views(self, scene: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    poses = self._scene_poses(scene)
+    if len(poses) < n:
+      raise DataError(None, f"scene {scene} has {len(poses)} views, {n} requested")
+    return self.family.render_views(int(scene), poses[:n]), poses[:n]
+
+
+def render_pipeline(
+  family: Any,
+  split: str,
+  config: PipelineConfig,
+  *,
+  process_index: int = 0,
+  process_count: int = 1,
+) -> RenderPipeline:
+  """A pipeline that renders a procedural family's views batch by batch (paper-size runs)."""
+  return RenderPipeline(
+    family, split, config, process_index=process_index, process_count=process_count
   )

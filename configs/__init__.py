@@ -1,0 +1,1 @@
+"""Experiment configs (ml_collections), loaded by path: `--config=configs/gqn.py[:quick|:smoke]`."""

@@ -1,0 +1,194 @@
+"""End-to-end tests of view-synthesis training (camrep.train, camrep.main) on :smoke configs."""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+from camrep import pose as P
+from camrep import train, writers
+from configs import gibson, gqn, seven_scenes, shapenet_car
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+CONFIGS = {"gqn": gqn, "shapenet_car": shapenet_car, "gibson": gibson, "seven_scenes": seven_scenes}
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _fast_compile():
+  # Compile time dominates these tiny models; XLA's optimisations would double it.
+  old = jax.config.read("jax_disable_most_optimizations")
+  jax.config.update("jax_disable_most_optimizations", True)
+  yield
+  jax.config.update("jax_disable_most_optimizations", old)
+
+
+@pytest.mark.parametrize("name", sorted(CONFIGS))
+@pytest.mark.parametrize("variant", [None, "quick", "smoke"])
+def test_configs_build(name, variant):
+  config = CONFIGS[name].get_config(variant)
+  spec = train.pose_spec(config)
+  assert spec.pose_dim == {"gqn": 3, "shapenet_car": 2, "gibson": 3, "seven_scenes": 6}[name]
+  for key in ("total_steps", "ckpt_every_steps", "eval_every_steps", "log_every_steps"):
+    assert config[key] > 0
+  model = train.make_model(config, 7)
+  assert model is not None
+  if variant is None:  # paper settings (digest 3)
+    assert config.optax.lr_model == 1e-4
+    assert (
+      config.optax.pose_steps == {"gqn": 0, "shapenet_car": 3, "gibson": 2, "seven_scenes": 2}[name]
+    )
+
+
+def test_config_variant_errors():
+  with pytest.raises(ValueError, match="variant"):
+    gqn.get_config("huge")
+
+
+def test_gqn_smoke_trains_evaluates_and_resumes(tmp_path):
+  config = gqn.get_config("smoke")
+  workdir = str(tmp_path / "w")
+  last = train.train_and_evaluate(config, workdir)
+  for f in ("config.json", "metrics.jsonl", "final_metrics.json"):
+    assert os.path.exists(os.path.join(workdir, f)), f
+  assert sorted(os.listdir(os.path.join(workdir, "checkpoints")))[-1] == "4"
+  rows = writers.read_metrics(workdir)
+  train_rows = [r for r in rows if "train/loss" in r]
+  assert [r["step"] for r in train_rows] == [2, 4]
+  for key in (
+    "train/rec",
+    "train/rot_xy",
+    "train/rot_yaw",
+    "train/dir_xy",
+    "train/grad_norm_model",
+    "train/steps_per_sec",
+  ):
+    assert np.isfinite(train_rows[-1][key]), key
+  evals = [r for r in rows if "eval/psnr" in r]
+  assert evals and {"eval/ssim", "eval/psnr_baseline"} <= set(evals[-1])
+  assert last["eval/psnr"] == evals[-1]["eval/psnr"]
+  assert any(f.endswith(".png") for f in os.listdir(os.path.join(workdir, "images")))
+  assert json.load(open(os.path.join(workdir, "config.json")))["task"] == "gqn"
+  # Resume: the same command with more steps continues from the checkpoint at step 4.
+  config.total_steps = 6
+  train.train_and_evaluate(config, workdir)
+  steps = [r["step"] for r in writers.read_metrics(workdir) if "train/loss" in r]
+  assert steps == [2, 4, 6]
+
+
+@pytest.mark.parametrize("name", ["shapenet_car", "seven_scenes"])
+def test_table_settings_smoke(name, tmp_path):
+  """Pose steps then a decoder step, per-scene tables, rotation losses with data pairs."""
+  config = CONFIGS[name].get_config("smoke")
+  config.total_steps = 2
+  config.eval_every_steps = 2
+  last = train.train_and_evaluate(config, str(tmp_path))
+  assert last["train/finite"] == 1.0
+  spec = train.pose_spec(config)
+  for d in spec.dofs:
+    assert np.isfinite(last[f"train/rot_{d.name}"])
+  assert np.isfinite(last["eval/psnr"]) and np.isfinite(last["eval/psnr_baseline"])
+
+
+def test_train_step_does_not_retrace():
+  config = gqn.get_config("smoke")
+  pipe = train.make_pipeline(config, "train", num_devices=1)
+  spec = train.pose_spec(config)
+  model = train.make_model(config, train.num_train_scenes(pipe))
+  state = train.create_train_state(jax.random.key(0), config, model, spec, pipe.batch(0))
+  traces = []
+
+  def counted(*args, **kw):
+    traces.append(1)
+    return train.train_step(*args, **kw)
+
+  import functools
+
+  fn = functools.partial(counted, model=model, config=config, spec=spec)
+  p_step = jax.pmap(fn, axis_name=train.AXIS, donate_argnums=(0,))
+  pstate = train._replicate(state, 1)
+  keys = jax.vmap(jax.random.wrap_key_data)(
+    train._replicate(jax.random.key_data(jax.random.key(1)), 1)
+  )
+  for step in range(4):
+    b = pipe.batch(step)
+    pstate, _ = p_step(pstate, {k: b[k] for k in ("image", "pose", "scene")}, keys)
+  assert len(traces) == 1
+  assert int(np.asarray(pstate.step)[0]) == 4
+
+
+def test_two_host_devices_match_one(tmp_path):
+  """The pmapped step on 2 forced host devices trains exactly as 1 device with the same global
+  batch: same losses and gradient norms (a pmean/psum mix-up would double them), same parameters
+  up to round-off (entries with zero true gradient, e.g. biases before instance norm, get
+  round-off gradients that Adam normalises to +-lr)."""
+  out = {}
+  for n in (1, 2):
+    path = tmp_path / f"d{n}.npz"
+    r = subprocess.run(
+      [sys.executable, str(ROOT / "tests" / "two_devices_script.py"), str(n), "2", str(path)],
+      capture_output=True,
+      text=True,
+      cwd=ROOT,
+      timeout=600,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    out[n] = dict(np.load(path))
+  a, b = out[1], out[2]
+  assert set(a) == set(b)
+  for k in a:
+    if k.startswith("metric/") and "steps_per_sec" not in k:
+      np.testing.assert_allclose(a[k], b[k], rtol=2e-4, err_msg=k)
+  params = [k for k in a if k.startswith("param/")]
+  close = np.concatenate([np.isclose(a[k], b[k], rtol=1e-4, atol=1e-6).ravel() for k in params])
+  assert close.mean() > 0.99
+  config = gqn.get_config("smoke")
+  bound = 2 * 2 * max(config.optax.lr_model, config.optax.lr_rep)
+  for k in params:
+    assert np.abs(a[k] - b[k]).max() <= bound, k
+
+
+def test_non_finite_stops_and_keeps_last_good_checkpoint(tmp_path):
+  config = gqn.get_config("smoke")
+  workdir = str(tmp_path)
+  train.train_and_evaluate(config, workdir)  # good checkpoint at step 4
+  config.total_steps = 8
+  config.optax.lr_model = float("nan")
+  with pytest.raises(FloatingPointError, match="step 5"):
+    train.train_and_evaluate(config, workdir)
+  assert sorted(os.listdir(os.path.join(workdir, "checkpoints")))[-1] == "4"
+
+
+def test_cli_rejects_unknown_config_key(tmp_path):
+  r = subprocess.run(
+    [
+      sys.executable,
+      "-m",
+      "camrep.main",
+      "--config=configs/gqn.py:smoke",
+      f"--workdir={tmp_path}",
+      "--config.no_such_key=1",
+    ],
+    capture_output=True,
+    text=True,
+    cwd=ROOT,
+    timeout=300,
+  )
+  assert r.returncode != 0
+  assert "no_such_key" in r.stderr
+
+
+def test_pose_spec_matches_paper_grids():
+  spec = train.pose_spec(gqn.get_config())
+  assert spec.dof("xy").n_grid == 441 and spec.dof("xy").n_directions == 144
+  assert spec.dim == 96 and spec.dof("yaw").n_grid == 36
+  s7 = train.pose_spec(seven_scenes.get_config())
+  assert [d.n_grid for d in s7.dofs] == [41, 16, 31, 36, 19, 36] and s7.dim == 32
+  car = train.pose_spec(shapenet_car.get_config())
+  assert isinstance(car.dof("polar"), P.AngularDof) and car.dof("polar").n_grid == 19
