@@ -1,0 +1,162 @@
+"""Tests of camrep.evaluate (noise robustness, Gram maps, CLI) on a 2-step GQN :smoke run."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import orbax.checkpoint as ocp
+import pytest
+
+from camrep import checkpoint as ckpt_lib
+from camrep import evaluate as ev
+from camrep import pose as P
+from camrep import train, writers
+from configs import gibson, gqn, seven_scenes, shapenet_car
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _fast_compile():
+  # Compile time dominates these tiny models; XLA's optimisations would double it.
+  old = jax.config.read("jax_disable_most_optimizations")
+  jax.config.update("jax_disable_most_optimizations", True)
+  yield
+  jax.config.update("jax_disable_most_optimizations", old)
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory, _fast_compile):
+  config = gqn.get_config("smoke")
+  config.total_steps = 2  # checkpoint and eval at step 2
+  wd = str(tmp_path_factory.mktemp("evaluate") / "run")
+  train.train_and_evaluate(config, wd)
+  return wd
+
+
+@pytest.fixture(scope="module")
+def run(workdir):
+  return ev.load_run(workdir)
+
+
+def _train_eval(workdir):
+  return [r for r in writers.read_metrics(workdir) if "eval/psnr" in r][-1]
+
+
+def test_load_run_restores_checkpoint_params(workdir, run):
+  assert run.step == 2 and train.setting(run.config) == "gqn"
+  assert run.config.data.n_context == 3 and run.spec == train.pose_spec(gqn.get_config("smoke"))
+  raw = ocp.PyTreeCheckpointer().restore(os.path.join(workdir, "checkpoints", "2", "state"))
+  want = dict(jax.tree_util.tree_flatten_with_path(raw["params"])[0])
+  got = dict(jax.tree_util.tree_flatten_with_path(run.params)[0])
+  assert want.keys() == got.keys()
+  for k, v in want.items():
+    np.testing.assert_array_equal(np.asarray(got[k]), v, err_msg=jax.tree_util.keystr(k))
+
+
+def test_load_run_errors(workdir, tmp_path):
+  with pytest.raises(FileNotFoundError, match="does not exist"):
+    ev.load_run(str(tmp_path / "nope"))
+  with pytest.raises(FileNotFoundError, match="config.json"):
+    ev.load_run(str(tmp_path))
+  shutil.copy(os.path.join(workdir, "config.json"), tmp_path / "config.json")
+  with pytest.raises(FileNotFoundError, match="no checkpoint"):
+    ev.load_run(str(tmp_path))
+  os.makedirs(tmp_path / "checkpoints")
+  with pytest.raises(FileNotFoundError, match="no checkpoint"):
+    ev.load_run(str(tmp_path))
+  with pytest.raises(ckpt_lib.CheckpointError, match="available"):
+    ev.load_run(workdir, step=7)
+  assert ev.main(["--workdir", str(tmp_path / "nope")]) == 2
+
+
+def test_default_quantisation():
+  configs = {"gqn": gqn, "car": shapenet_car, "gibson": gibson, "seven_scenes": seven_scenes}
+  got = {k: ev.default_quantisation(m.get_config("smoke")) for k, m in configs.items()}
+  assert got == {"gqn": "random", "car": "random", "gibson": "nearest", "seven_scenes": "nearest"}
+
+
+def test_noise_levels(workdir, run):
+  batches = train.eval_batches(run.config, run.train_pipe, run.test_pipe)
+  key = jax.random.key(3)
+  res = ev.noise_robustness(
+    run, key=key, alphas=[0.0, 0.2, 0.2], quantisation="nearest", batches=batches
+  )
+  assert res["step"] == 2 and res["quantisation"] == "nearest"
+  n = sum(len(b["scene"]) for b in batches)
+  assert res["num_images"] == n and res["psnr_per_image"].shape == (3, n)
+  # alpha = 0 with rounding is the training loop's evaluation.
+  evals = _train_eval(workdir)
+  np.testing.assert_allclose(res["psnr"][0], evals["eval/psnr"], rtol=1e-5)
+  np.testing.assert_allclose(res["ssim"][0], evals["eval/ssim"], rtol=1e-4)
+  assert np.all(np.isfinite(res["psnr"])) and np.all(np.isfinite(res["ssim"]))
+  # Fresh noise per level: two levels with the same alpha differ.
+  assert not np.allclose(res["psnr_per_image"][1], res["psnr_per_image"][2])
+  # alpha > 0 changes the predictions.
+  assert not np.allclose(res["psnr_per_image"][0], res["psnr_per_image"][1])
+
+
+def test_beta_and_noise_statistics(run):
+  rep, spec = run.params["rep"], run.spec
+  betas = ev.grid_betas(rep, spec)
+  assert set(betas) == {"xy", "yaw"}
+  for name, beta in betas.items():
+    assert beta.shape == (spec.dim,)
+    grid = np.asarray(P.grid_vectors(rep, spec, name))
+    np.testing.assert_allclose(beta, grid.std(axis=0), rtol=1e-5, atol=1e-7)
+    assert np.all(beta > 0)
+  # The added noise has per-element std alpha * beta_i, is independent per image, and is only
+  # a function of the image's key.
+  n = 4000
+  poses = jnp.tile(jnp.asarray([[[0.13, -0.42, 1.0]]], jnp.float32), (n, 1, 1))
+  _, _, k_noise = ev.image_keys(jax.random.key(0), jnp.arange(n))
+  exact = jax.jit(lambda r, p: ev.pose_vectors(r, spec, p, None, mode="nearest"))(rep, poses)
+  noisy = ev.add_noise(exact, spec, k_noise, alpha=0.3, betas=betas)
+  for name in spec.names:
+    diff = np.asarray(noisy[name] - exact[name])[:, 0]  # (n, d)
+    np.testing.assert_allclose(diff.std(axis=0), 0.3 * betas[name], rtol=0.08)
+    assert abs(np.corrcoef(diff[:, 0], diff[:, 1])[0, 1]) < 0.08
+  zero = ev.add_noise(exact, spec, k_noise, alpha=0.0, betas=betas)
+  for name in spec.names:
+    np.testing.assert_array_equal(zero[name], exact[name])
+
+
+def test_gram_maps(run):
+  grams = ev.gram_maps(run)
+  xy = run.spec.dof("xy")
+  assert grams["xy"].shape == (xy.n_grid, xy.n_grid) == (441, 441)
+  assert grams["yaw"].shape == (360, 360)  # 1-degree vectors over the periodic range
+  for g in grams.values():
+    np.testing.assert_allclose(g, g.T, atol=1e-6)
+  # Yaw vectors have unit norm: exactly at the grid points (every 10 degrees), and up to the
+  # norm error of the Taylor exp (exp_method "taylor2") in between.
+  diag = np.diag(grams["yaw"])
+  np.testing.assert_allclose(diag[::10], 1.0, atol=1e-5)
+  np.testing.assert_allclose(diag, 1.0, atol=1e-2)
+  # Polar with block_norm: every block has norm 1 / n_blocks, so |v|^2 = 1 / n_blocks.
+  assert xy.block_norm and run.spec.n_blocks == 2
+  np.testing.assert_allclose(np.diag(grams["xy"]), 1.0 / run.spec.n_blocks, atol=1e-5)
+
+
+def test_cli_writes_all_files(workdir, tmp_path, capsys):
+  out = str(tmp_path / "eval")
+  assert ev.main(["--workdir", workdir, "--levels", "2", "--out", out]) == 0
+  text = capsys.readouterr().out
+  assert "alpha" in text and "PSNR" in text and "wrote" in text and out in text
+  names = {"noise.json", "noise.png", "gram_xy.png", "gram_yaw.png", "gram.npz"}
+  assert names <= set(os.listdir(out))
+  record = json.load(open(os.path.join(out, "noise.json")))
+  assert record["alphas"] == [0.0, 0.025] and record["step"] == 2
+  assert record["quantisation"] == "random" and len(record["psnr"]) == 2
+  assert record["beta"]["xy"]["d"] == 8 and record["beta"]["yaw"]["mean"] > 0
+  for f in ("noise.png", "gram_xy.png", "gram_yaw.png"):
+    im = cv2.imread(os.path.join(out, f))
+    assert im is not None and im.shape[0] >= 300 and im.shape[1] >= 300, f
+  with np.load(os.path.join(out, "gram.npz")) as z:
+    assert z["yaw"].shape == (360, 360) and z["xy_values"].shape == (441, 2)
+  with pytest.raises(SystemExit):
+    ev.main(["--workdir", workdir, "--what", "loss"])
