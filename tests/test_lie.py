@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -303,3 +304,195 @@ def test_spectral_float32_accuracy():
   t = rng.uniform(-1, 1, size=(50, 1))
   out = lie.exp_skew(B.astype(np.float32), t.astype(np.float32), method="spectral")
   assert np.abs(np.asarray(out, np.float64) - _expm_ref(B, t)).max() < 1e-5
+
+
+# ---------------------------------------------------------------------------- real Schur planes
+
+
+def _rotated_planes(rng, thetas, s):
+  """O diag(theta_k J) O^T for a random orthogonal O (padded with zero planes / a zero row)."""
+  L = np.zeros((s, s))
+  for k, th in enumerate(thetas):
+    L[2 * k, 2 * k + 1], L[2 * k + 1, 2 * k] = -th, th
+  O, _ = np.linalg.qr(rng.normal(size=(s, s)))
+  return O @ L @ O.T
+
+
+_SCHUR_CASES = {
+  "B_zero": [],
+  "random": None,
+  "degenerate": [1.3, 1.3, 1.3, 1.3],
+  "near_degenerate": [1.3, 1.3 + 1e-6, 1.3 - 1e-7, 0.0],
+  "opposite": [0.7, -0.7, 0.7 + 1e-9, 0.2],
+  "tiny": [1e-9, -1e-12, 0.5, 0.0],
+  "null_space": [0.0, 0.0, 0.7, 0.0],
+}
+
+
+def _schur_case(case, s, rng):
+  if _SCHUR_CASES[case] is None:
+    return sample_generator(rng, (), s, "normal")
+  return _rotated_planes(rng, _SCHUR_CASES[case], s)
+
+
+def _plane_lambda(theta):
+  h = theta.shape[-1]
+  L = np.zeros((*theta.shape[:-1], 2 * h, 2 * h))
+  L[..., np.arange(h) + h, np.arange(h)] = theta
+  L[..., np.arange(h), np.arange(h) + h] = -theta
+  return L
+
+
+@pytest.mark.parametrize("case", list(_SCHUR_CASES))
+@pytest.mark.parametrize("dtype", ["float64", "float32"])
+def test_skew_schur_factorisation(case, dtype):
+  """Q orthogonal and B = Q Lam Q^T to rounding, including B = 0 (eigh returns real
+  eigenvectors), degenerate and near-degenerate spectra and (near-)null spaces."""
+  with x64():
+    rng = np.random.default_rng(20)
+    tol = 1e-13 if dtype == "float64" else 2e-6
+    for s in (8, 16):
+      B = _schur_case(case, s, rng)
+      Q, theta = lie.skew_schur(B.astype(dtype))
+      assert Q.dtype == dtype and Q.shape == (s, s) and theta.shape == (s // 2,)
+      Q, theta = np.asarray(Q, np.float64), np.asarray(theta, np.float64)
+      assert_close(Q.T @ Q, np.eye(s), atol=tol)
+      assert_close(Q @ _plane_lambda(theta) @ Q.T, B, atol=tol * max(1.0, np.abs(B).max()))
+      if _SCHUR_CASES[case] is not None:  # the plane angles, up to sign and order
+        ref = np.sort(np.abs(np.pad(_SCHUR_CASES[case], (0, s // 2 - len(_SCHUR_CASES[case])))))
+        assert_close(np.sort(np.abs(theta)), ref, atol=10 * tol)
+
+
+def test_skew_schur_batched_and_odd_size():
+  with x64():
+    rng = np.random.default_rng(21)
+    B = sample_generator(rng, (3, 2), 6, "normal")
+    Q, theta = lie.skew_schur(B)
+    assert Q.shape == (3, 2, 6, 6) and theta.shape == (3, 2, 3)
+    assert_close(Q @ _plane_lambda(np.asarray(theta)) @ np.swapaxes(Q, -1, -2), B, atol=1e-13)
+  with pytest.raises(ValueError, match="even"):
+    lie.skew_schur(np.zeros((5, 5)))
+
+
+def test_plane_pq_split():
+  """X acting on plane l (coordinates l, s/2 + l) is p xi + q conj(xi), xi_l = c_l + i c_{h+l}."""
+  with x64():
+    rng = np.random.default_rng(22)
+    s, h = 10, 5
+    X = rng.normal(size=(2, s, s))
+    c = rng.normal(size=(2, s))
+    p, q = lie.plane_pq_split(X)
+    assert p.shape == q.shape == (2, h, h)
+    xi = c[..., :h] + 1j * c[..., h:]
+    out = np.einsum("bij,bj->bi", X, c)
+    ref = np.einsum("bkl,bl->bk", p, xi) + np.einsum("bkl,bl->bk", q, xi.conj())
+    assert_close(out[..., :h] + 1j * out[..., h:], ref, atol=1e-13)
+    # J = [[0, -1], [1, 0]] on every plane is multiplication by i: p = i I, q = 0.
+    J = np.zeros((s, s))
+    J[np.arange(h) + h, np.arange(h)], J[np.arange(h), np.arange(h) + h] = 1.0, -1.0
+    p, q = lie.plane_pq_split(J)
+    assert_close(p, 1j * np.eye(h), atol=0)
+    assert_close(q, np.zeros((h, h)), atol=0)
+
+
+@pytest.mark.parametrize("s", [7, 8])
+@pytest.mark.parametrize("case", ["random", "degenerate", "near_degenerate", "B_zero"])
+def test_spectral_even_planes_and_odd_fallback_match_expm(s, case):
+  """Even s runs the real-plane path, odd s the complex-eigenbasis fallback: both must give
+  expm's value and gradient (in B, t and v) in float64, with and without `index`."""
+  with x64():
+    rng = np.random.default_rng(23)
+    if case == "random":
+      B = sample_generator(rng, (3,), s, "normal")
+    else:
+      th = {"degenerate": [0.9] * 3, "near_degenerate": [0.9, 0.9 + 1e-7, 0.0], "B_zero": []}
+      B = np.stack([_rotated_planes(rng, th[case], s) for _ in range(3)])
+    P = np.asarray(lie.vee(B))
+    idx = np.array([2, 0, 0, 1, 2])
+    t = rng.uniform(-2, 2, size=(5,))
+    v = rng.normal(size=(5, s))
+    w = rng.normal(size=(5, s))
+
+    def loss(P, t, v, method, index):
+      Bt = lie.skew(P, block_size=s)
+      if index is None:
+        Bt = Bt[idx]
+      return jnp.sum(lie.apply_exp_skew(Bt, t, v, method=method, index=index) * w)
+
+    for index in (None, idx):
+      out = lie.apply_exp_skew(lie.skew(P, block_size=s), t, v, index=idx)
+      assert_close(out, np.einsum("nij,nj->ni", _expm_ref(B[idx], t), v), atol=1e-12)
+      g = jax.grad(loss, argnums=(0, 1, 2))(P, t, v, "spectral", index)
+      ge = jax.grad(loss, argnums=(0, 1, 2))(P, t, v, "expm", None)
+      for a, b in zip(g, ge, strict=True):
+        assert_close(a, b, atol=1e-10)
+
+
+def test_spectral_broadcast_layouts():
+  """The real-plane path rearranges (table rows x elements); mixed broadcasting must agree with
+  expm, e.g. B (3, 1, s, s) with t (1, 4) and v (4, s), and t (2, 3, 1) with B (3, 1, s, s)."""
+  with x64():
+    rng = np.random.default_rng(24)
+    s = 6
+    B = sample_generator(rng, (3, 1), s, "normal")
+    for t_shape, v_shape in [((1, 4), (4, s)), ((2, 3, 1), (s,)), ((), (3, 5, s))]:
+      t = rng.uniform(-1, 1, size=t_shape)
+      v = rng.normal(size=v_shape)
+      out = lie.apply_exp_skew(B, t, v)
+      ref = lie.apply_exp_skew(B, t, v, method="expm")
+      assert out.shape == ref.shape
+      assert_close(out, ref, atol=1e-12)
+
+
+def test_spectral_float32_bench_workload():
+  """The bench's shape (6 blocks of 16 x 16, |B dl| <= 1, float32; fewer pairs): value within
+  2e-6 of float64 and gradient (generator parameters and vectors) within 1e-5 relative."""
+  rng = np.random.default_rng(25)
+  n_blocks, s, pairs = 6, 16, 300
+  B = sample_generator(rng, (n_blocks,), s, "normal")
+  P = np.asarray(lie.vee(B))
+  dl = rng.uniform(-1, 1, size=pairs)
+  v0 = rng.normal(size=(pairs, n_blocks * s))
+  v0 /= np.linalg.norm(v0, axis=-1, keepdims=True)
+  v1 = rng.normal(size=(pairs, n_blocks * s))
+  v1 /= np.linalg.norm(v1, axis=-1, keepdims=True)
+
+  def loss(P, dl, v0, v1, method):
+    moved = lie.apply_exp_blocks(lie.skew(P, block_size=s), dl, v0, method=method)
+    return jnp.mean(jnp.sum((moved - v1) ** 2, -1)), moved
+
+  f32 = [x.astype(np.float32) for x in (P, dl, v0, v1)]
+  (_, y), g = jax.value_and_grad(loss, argnums=(0, 2), has_aux=True)(*f32, "spectral")
+  assert y.dtype == jnp.float32
+  with x64():
+    (_, y64), g64 = jax.value_and_grad(loss, argnums=(0, 2), has_aux=True)(P, dl, v0, v1, "expm")
+  assert np.abs(np.asarray(y, np.float64) - np.asarray(y64)).max() < 2e-6
+  for a, b in zip(g, g64, strict=True):
+    b = np.asarray(b)
+    assert np.abs(np.asarray(a, np.float64) - b).max() / np.abs(b).max() < 1e-5
+
+
+def test_spectral_gradient_has_no_per_element_matrices():
+  """Design goal: reverse mode through the real-plane path keeps per-element arrays at
+  (..., s) size; (s, s) arrays exist only per generator (no `index`)."""
+  n_blocks, s, pairs = 3, 16, 64
+  P = jnp.zeros((n_blocks, lie.num_skew_params(s)))
+  v = jnp.ones((pairs, n_blocks * s))
+  dl = jnp.linspace(-1, 1, pairs)
+
+  def loss(P, v):
+    return jnp.sum(lie.apply_exp_blocks(lie.skew(P, block_size=s), dl, v) ** 2)
+
+  jaxpr = jax.make_jaxpr(jax.grad(loss, argnums=(0, 1)))(P, v)
+  sizes = []
+
+  def walk(jx):
+    for eqn in jx.eqns:
+      sizes.extend(int(np.prod(o.aval.shape)) for o in eqn.outvars if hasattr(o.aval, "shape"))
+      for sub in jax.extend.core.jaxprs_in_params(eqn.params):
+        walk(sub)
+
+  walk(jaxpr.jaxpr)
+  # Per-element vectors: pairs * n_blocks * s (x2 for the stacked near products); a per-element
+  # matrix would be pairs * n_blocks * s * s.
+  assert max(sizes) <= 2 * pairs * n_blocks * s
