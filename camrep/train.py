@@ -152,19 +152,26 @@ def make_source(config, split_hint: str = "train"):
 
 
 def make_pipeline(
-  config, split: str, *, num_devices: int, process_index: int = 0, process_count: int = 1
+  config,
+  split: str,
+  *,
+  num_devices: int,
+  process_index: int = 0,
+  process_count: int = 1,
+  for_eval: bool = False,
 ):
   """Batches of `split` laid out for the pmapped step (see camrep.data.pipeline).
 
   Data comes from `config.data.dir` (a prepared tfds directory) when set; otherwise from the
-  procedural family, held in memory (`data.in_memory`) or rendered batch by batch.
+  procedural family, held in memory (`data.in_memory`) or rendered batch by batch. With
+  `for_eval` the pipeline only serves `scene_views` (a one-scene, one-view layout).
   """
   d = config.data
   pcfg = pipeline_lib.PipelineConfig(
     num_devices=num_devices,
-    scenes_per_device=d.scenes_per_device,
-    views_per_scene=d.views_per_scene,
-    mode=d.mode,
+    scenes_per_device=1 if for_eval else d.scenes_per_device,
+    views_per_scene=1 if for_eval else d.views_per_scene,
+    mode="random" if for_eval else d.mode,
     seed=config.seed,
     num_threads=d.num_threads,
     prefetch=d.prefetch,
@@ -550,21 +557,21 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
   train_pipe = make_pipeline(
     config, "train", num_devices=n_dev, process_index=pidx, process_count=pcount
   )
-  test_pipe = make_pipeline(config, "test", num_devices=1)
+  test_pipe = make_pipeline(config, "test", num_devices=1, for_eval=True)
   spec = pose_spec(config)
   model = make_model(config, num_train_scenes(train_pipe))
   init_key, loop_key = jax.random.split(jax.random.key(config.seed))
 
   checkpointer = ckpt_lib.Checkpointer(workdir, max_to_keep=config.max_to_keep)
 
-  def init_fn():
-    return create_train_state(init_key, config, model, spec, train_pipe.batch(0))
-
-  template = jax.eval_shape(init_fn)
+  # Jitted: eager init of the pose system and model costs seconds of op dispatch.
+  init_fn = jax.jit(lambda k, b: create_train_state(k, config, model, spec, b))
+  batch0 = {k: train_pipe.batch(0)[k] for k in ("image", "pose", "scene")}
   latest = checkpointer.latest_step()
   if latest is None:
-    state, start = init_fn(), 0
+    state, start = init_fn(init_key, batch0), 0
   else:
+    template = jax.eval_shape(init_fn, init_key, batch0)
     state_d, _, start = checkpointer.restore(state_dict(jax.tree.map(_zeros, template)))
     state = flax.serialization.from_state_dict(template, state_d)
     state = jax.tree.map(jnp.asarray, state)

@@ -90,6 +90,9 @@ class RoomsConfig:
   camera_clearance: float = 0.12  # from object footprints
   min_objects: int = 1
   max_objects: int = 4
+  # Value contrast of the two colours of wall and floor textures (0: nearly flat colours, as
+  # in most real GQN rooms; the draws are the same for any range, so scenes keep their layout).
+  texture_contrast: tuple[float, float] = (0.25, 0.5)
   supersample: int = 1
   shadows: bool = True
   batch_size: int = 32  # images per renderer call (one compile)
@@ -476,6 +479,7 @@ class RoomsFamily(SampledPoseFamily):
       freq_range=(3.0, 9.0),
       sat=(0.2, 0.7),
       val=(0.45, 0.9),
+      contrast=tuple(cfg.texture_contrast),
     )
     walls = []
     for _ in range(4):  # each wall slightly tinted, so the four walls differ a little
@@ -490,6 +494,7 @@ class RoomsFamily(SampledPoseFamily):
       freq_range=(3.0, 8.0),
       sat=(0.1, 0.6),
       val=(0.35, 0.8),
+      contrast=tuple(cfg.texture_contrast),
     )
     ceiling = render.material(_hsv(rng.uniform(), 0.1, 0.9))
     b.set_room((-1.0, -1.0, 0.0), (1.0, 1.0, cfg.room_height), walls + [floor, ceiling])
