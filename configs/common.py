@@ -97,3 +97,40 @@ def base() -> ml_collections.ConfigDict:
   # Settings without context views: the baseline is the mean of this many training views.
   c.evals.baseline_views = 16
   return c
+
+
+def quick(c: ml_collections.ConfigDict, *, total_steps: int = 600, every: int = 200):
+  """Shared part of every `:quick` variant: procedural data in memory at the small preset, an
+  eighth of the paper width, a 10x decoder learning rate, and a short schedule."""
+  c.data.in_memory = True
+  c.data.preset = "small"
+  c.model.width = 0.125
+  c.optax.lr_model = 1e-3
+  c.total_steps = total_steps
+  c.log_every_steps = 20
+  c.eval_every_steps = every
+  c.ckpt_every_steps = every
+  return c
+
+
+def smoke(c: ml_collections.ConfigDict, *, n_pairs: int = 16, eval_scenes: int = 2):
+  """Shared part of every `:smoke` variant: a few seconds of training on tiny shapes, for tests."""
+  c.data.in_memory = True
+  c.data.preset = "small"
+  c.data.num_threads = 0
+  c.data.scenes_per_device = 2
+  c.data.views_per_scene = 4
+  c.model.width = 1 / 32
+  c.model.image_size = 64
+  c.rep.n_blocks = 2
+  c.rep.block_size = 4
+  c.rep.n_directions = 12
+  c.loss.n_pairs = n_pairs
+  c.total_steps = 4
+  c.log_every_steps = 2
+  c.eval_every_steps = 4
+  c.ckpt_every_steps = 2
+  c.evals.num_scenes = eval_scenes
+  c.evals.batch_scenes = 2
+  c.evals.grid_scenes = 2
+  return c

@@ -47,8 +47,7 @@ def get_config(arg: str | None = None):
   c.ckpt_every_steps = 3000
   c.eval_every_steps = 5000
   if variant == "quick":
-    c.data.in_memory = True
-    c.data.preset = "small"
+    common.quick(c)
     c.data.family.image_size = 64
     c.data.family.num_scenes = 4
     c.data.family.train_views = 400
@@ -56,34 +55,11 @@ def get_config(arg: str | None = None):
     c.data.scenes_per_device = 4
     c.data.views_per_scene = 8
     c.model.image_size = 64
-    c.model.width = 0.125
     c.loss.n_pairs = 1000
-    c.optax.lr_model = 1e-3
     c.optax.pose_steps = 1
-    c.total_steps = 600
-    c.log_every_steps = 20
-    c.eval_every_steps = 200
-    c.ckpt_every_steps = 200
     c.evals.num_scenes = 4
     c.evals.batch_scenes = 4
   elif variant == "smoke":
-    c.data.in_memory = True
-    c.data.preset = "small"
-    c.data.num_threads = 0
-    c.data.scenes_per_device = 2
-    c.data.views_per_scene = 4
-    c.model.image_size = 64
-    c.model.width = 1 / 32
+    common.smoke(c)
     c.model.scene_dim = 16
-    c.rep.n_blocks = 2
-    c.rep.block_size = 4
-    c.rep.n_directions = 12
-    c.loss.n_pairs = 16
-    c.total_steps = 4
-    c.log_every_steps = 2
-    c.eval_every_steps = 4
-    c.ckpt_every_steps = 2
-    c.evals.num_scenes = 2
-    c.evals.batch_scenes = 2
-    c.evals.grid_scenes = 2
   return c

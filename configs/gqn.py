@@ -50,8 +50,7 @@ def get_config(arg: str | None = None):
   c.eval_every_steps = 10_000
   c.log_every_steps = 100
   if variant == "quick":
-    c.data.in_memory = True
-    c.data.preset = "small"
+    common.quick(c, total_steps=1200, every=300)
     c.data.family.num_train_scenes = 400
     c.data.family.num_test_scenes = 16
     c.data.family.train_views = 10
@@ -59,31 +58,9 @@ def get_config(arg: str | None = None):
     # Nearly flat wall/floor colours, as in most real GQN rooms (see BUILD_NOTES).
     c.data.family.texture_contrast = (0.0, 0.08)
     c.data.scenes_per_device = 8
-    c.model.width = 0.125
     c.loss.n_pairs = 1000
-    c.optax.lr_model = 1e-3
-    c.total_steps = 1200
-    c.log_every_steps = 20
-    c.eval_every_steps = 300
-    c.ckpt_every_steps = 300
     c.evals.num_scenes = 64
   elif variant == "smoke":
-    c.data.in_memory = True
-    c.data.preset = "small"
-    c.data.num_threads = 0
-    c.data.scenes_per_device = 2
-    c.data.views_per_scene = 4
+    common.smoke(c, n_pairs=32, eval_scenes=4)
     c.data.n_context = 3
-    c.model.width = 1 / 32
-    c.rep.n_blocks = 2
-    c.rep.block_size = 4
-    c.rep.n_directions = 12
-    c.loss.n_pairs = 32
-    c.total_steps = 4
-    c.log_every_steps = 2
-    c.eval_every_steps = 4
-    c.ckpt_every_steps = 2
-    c.evals.num_scenes = 4
-    c.evals.batch_scenes = 2
-    c.evals.grid_scenes = 2
   return c

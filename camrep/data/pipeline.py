@@ -252,20 +252,27 @@ class BatchPipeline:
       self._epoch_cache[epoch] = perm
     return perm
 
-  def _select_views(self, rows: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Picks V rows of one scene's views (see the module docstring for the two modes)."""
+  def _choose(self, n: int, rng: np.random.Generator, poses: np.ndarray | None) -> np.ndarray:
+    """Positions of V views among a scene's n views (see the module docstring for the modes).
+
+    `poses` (n, P) is needed in "pairs" mode only.
+    """
     v = self.config.views_per_scene
     if self.config.mode == "random":
-      return rows[rng.choice(len(rows), size=v, replace=False)]
+      return rng.choice(n, size=v, replace=False)
     n_pairs = v // 2
-    anchors = rng.choice(len(rows), size=n_pairs, replace=False)
-    poses = self.index.pose[rows]
+    anchors = rng.choice(n, size=n_pairs, replace=False)
     dist = pose_distance(poses[anchors, None], poses[None], self._scale, self._periodic)
     dist[np.arange(n_pairs), anchors] = np.inf
-    k = min(self.config.pair_k, len(rows) - 1)
+    k = min(self.config.pair_k, n - 1)
     nearest = np.argpartition(dist, k - 1, axis=1)[:, :k]
     partners = nearest[np.arange(n_pairs), rng.integers(k, size=n_pairs)]
-    return rows[np.stack([anchors, partners], axis=1).reshape(-1)]
+    return np.stack([anchors, partners], axis=1).reshape(-1)
+
+  def _select_views(self, rows: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Picks V rows of one scene's views."""
+    poses = None if self.config.mode == "random" else self.index.pose[rows]
+    return rows[self._choose(len(rows), rng, poses)]
 
   def plan(self, step: int) -> tuple[np.ndarray, np.ndarray]:
     """Which views make up the batch at `step` (no image is read).
@@ -522,20 +529,6 @@ class RenderPipeline(BatchPipeline):
   def _scene_poses(self, scene: int) -> np.ndarray:
     return np.asarray(self.family.poses(self.split, int(scene)), np.float32)
 
-  def _select_from(self, poses: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    v = self.config.views_per_scene
-    n = len(poses)
-    if self.config.mode == "random":
-      return rng.choice(n, size=v, replace=False)
-    n_pairs = v // 2
-    anchors = rng.choice(n, size=n_pairs, replace=False)
-    dist = pose_distance(poses[anchors, None], poses[None], self._scale, self._periodic)
-    dist[np.arange(n_pairs), anchors] = np.inf
-    k = min(self.config.pair_k, n - 1)
-    nearest = np.argpartition(dist, k - 1, axis=1)[:, :k]
-    partners = nearest[np.arange(n_pairs), rng.integers(k, size=n_pairs)]
-    return np.stack([anchors, partners], axis=1).reshape(-1)
-
   def plan(self, step: int) -> tuple[np.ndarray, np.ndarray]:
     """(view ids (D, S, V), scene ids (D, S)) of the batch at `step`."""
     if step < 0:
@@ -546,7 +539,7 @@ class RenderPipeline(BatchPipeline):
     chosen = self._epoch_order(epoch)[pos * b : (pos + 1) * b]
     rng = np.random.default_rng([cfg.seed, 1, int(step), self.process_index])
     scenes = self.scene_ids[chosen]
-    views = np.stack([self._select_from(self._scene_poses(s), rng) for s in scenes])
+    views = np.stack([self._choose(len(p), rng, p) for p in map(self._scene_poses, scenes)])
     shape = (cfg.num_devices, cfg.scenes_per_device)
     return views.reshape(*shape, cfg.views_per_scene), scenes.reshape(shape)
 
