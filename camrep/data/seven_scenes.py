@@ -28,6 +28,7 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
+from camrep.data import textio
 from camrep.data.errors import DataError
 from camrep.data.imageio import PathLike, check_image_size, crop_and_resize, read_image
 from camrep.data.records import POSE_NAMES
@@ -314,20 +315,7 @@ def read_pose_file(path: PathLike) -> np.ndarray:
     DataError: if the file is missing, does not hold 16 numbers, is non-finite, or its last row
       is not (0, 0, 0, 1).
   """
-  try:
-    with open(path) as f:
-      text = f.read()
-  except OSError as e:
-    raise DataError(path, f"cannot read pose file ({e.strerror or e})") from e
-  try:
-    vals = [float(v) for v in text.split()]
-  except ValueError as e:
-    raise DataError(path, f"pose file holds a non-number ({e})") from e
-  if len(vals) != 16:
-    raise DataError(path, f"expected 16 numbers (4x4 matrix), got {len(vals)}")
-  m = np.array(vals, dtype=np.float64).reshape(4, 4)
-  if not np.all(np.isfinite(m)):
-    raise DataError(path, "non-finite pose")
+  m = textio.read_matrix_4x4(path)
   if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-6):
     raise DataError(path, f"last row of the pose is {m[3].tolist()}, expected [0, 0, 0, 1]")
   return m

@@ -28,6 +28,7 @@ from collections.abc import Iterator, Mapping
 
 import numpy as np
 
+from camrep.data import textio
 from camrep.data.errors import DataError
 from camrep.data.imageio import PathLike, check_image_size, crop_and_resize, read_image
 from camrep.data.records import POSE_NAMES
@@ -89,21 +90,7 @@ def read_pose(path: PathLike) -> np.ndarray:
   Raises:
     DataError: for a missing file, a count other than 16, or non-finite values.
   """
-  try:
-    with open(path) as f:
-      text = f.read()
-  except OSError as e:
-    raise DataError(path, f"cannot read pose file ({e.strerror or e})") from e
-  try:
-    vals = [float(v) for v in text.split()]
-  except ValueError as e:
-    raise DataError(path, f"pose file holds a non-number ({e})") from e
-  if len(vals) != 16:
-    raise DataError(path, f"expected 16 numbers (4x4 camera-to-world), got {len(vals)}")
-  m = np.array(vals, dtype=np.float64).reshape(4, 4)
-  if not np.all(np.isfinite(m)):
-    raise DataError(path, "non-finite pose")
-  return m
+  return textio.read_matrix_4x4(path)
 
 
 def c2w_to_angles(poses_c2w: np.ndarray) -> np.ndarray:
