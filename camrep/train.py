@@ -566,7 +566,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
 
   # Jitted: eager init of the pose system and model costs seconds of op dispatch.
   init_fn = jax.jit(lambda k, b: create_train_state(k, config, model, spec, b))
-  batch0 = {k: train_pipe.batch(0)[k] for k in ("image", "pose", "scene")}
+  first = train_pipe.batch(0)
+  batch0 = {k: first[k] for k in ("image", "pose", "scene")}
   latest = checkpointer.latest_step()
   if latest is None:
     state, start = init_fn(init_key, batch0), 0

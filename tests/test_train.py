@@ -14,6 +14,7 @@ import pytest
 
 from camrep import pose as P
 from camrep import train, writers
+from camrep.models.synthesis import GQNSynthesis, TableSynthesis
 from configs import gibson, gqn, seven_scenes, shapenet_car
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -38,7 +39,8 @@ def test_configs_build(name, variant):
   for key in ("total_steps", "ckpt_every_steps", "eval_every_steps", "log_every_steps"):
     assert config[key] > 0
   model = train.make_model(config, 7)
-  assert model is not None
+  expected = GQNSynthesis if name == "gqn" else TableSynthesis
+  assert isinstance(model, expected) and config.task == ("gqn" if name == "gqn" else "table")
   if variant is None:  # paper settings (digest 3)
     assert config.optax.lr_model == 1e-4
     assert (

@@ -529,8 +529,8 @@ class RenderPipeline(BatchPipeline):
   def _scene_poses(self, scene: int) -> np.ndarray:
     return np.asarray(self.family.poses(self.split, int(scene)), np.float32)
 
-  def plan(self, step: int) -> tuple[np.ndarray, np.ndarray]:
-    """(view ids (D, S, V), scene ids (D, S)) of the batch at `step`."""
+  def _plan(self, step: int) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """`plan` plus each chosen scene's poses, so `batch` does not compute them again."""
     if step < 0:
       raise ValueError(f"step must be >= 0, got {step}")
     cfg = self.config
@@ -539,16 +539,22 @@ class RenderPipeline(BatchPipeline):
     chosen = self._epoch_order(epoch)[pos * b : (pos + 1) * b]
     rng = np.random.default_rng([cfg.seed, 1, int(step), self.process_index])
     scenes = self.scene_ids[chosen]
-    views = np.stack([self._choose(len(p), rng, p) for p in map(self._scene_poses, scenes)])
+    scene_poses = [self._scene_poses(s) for s in scenes]
+    views = np.stack([self._choose(len(p), rng, p) for p in scene_poses])
     shape = (cfg.num_devices, cfg.scenes_per_device)
-    return views.reshape(*shape, cfg.views_per_scene), scenes.reshape(shape)
+    return views.reshape(*shape, cfg.views_per_scene), scenes.reshape(shape), scene_poses
+
+  def plan(self, step: int) -> tuple[np.ndarray, np.ndarray]:
+    """(view ids (D, S, V), scene ids (D, S)) of the batch at `step`."""
+    views, scenes, _ = self._plan(step)
+    return views, scenes
 
   def batch(self, step: int) -> Batch:
-    views, scenes = self.plan(step)
+    views, scenes, scene_poses = self._plan(step)
     flat_v, flat_s = views.reshape(-1, views.shape[-1]), scenes.reshape(-1)
     images, poses = [], []
-    for s, v in zip(flat_s, flat_v, strict=True):
-      p = self._scene_poses(s)[v]
+    for s, v, all_poses in zip(flat_s, flat_v, scene_poses, strict=True):
+      p = all_poses[v]
       images.append(self.family.render_views(int(s), p))
       poses.append(p)
     lead = views.shape
