@@ -3,6 +3,9 @@
 Kept short on purpose: it parses flags, logs the devices, and calls
 `camrep.train.train_and_evaluate`. Override config fields with `--config.total_steps=...`
 (`lock_config` turns an unknown key into an error, and types are checked).
+
+Exit status: 0 done (or stopped by SIGTERM / Ctrl-C after saving a checkpoint), 1 bad flags,
+2 bad input (workdir, data or checkpoint; the message names it), 3 non-finite training values.
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ from absl import app, flags, logging
 from ml_collections import config_flags
 
 from camrep import train
+from camrep.checkpoint import CheckpointError
+from camrep.data.errors import DataError
 
 _CONFIG = config_flags.DEFINE_config_file(
   "config", None, "Path to a config file (configs/*.py).", lock_config=True
@@ -34,6 +39,9 @@ def main(argv):
   except FloatingPointError as e:
     print(f"error: {e}", file=sys.stderr, flush=True)
     sys.exit(3)
+  except (train.WorkdirError, DataError, CheckpointError) as e:
+    print(f"error: {e}", file=sys.stderr, flush=True)
+    sys.exit(2)
 
 
 if __name__ == "__main__":

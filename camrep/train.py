@@ -26,6 +26,7 @@ import functools
 import json
 import math
 import os
+import tempfile
 import time
 from collections.abc import Mapping
 from typing import Any
@@ -508,6 +509,27 @@ def evaluate(predict, params, batches) -> tuple[dict[str, float], dict[str, np.n
 # The loop.
 
 
+class WorkdirError(RuntimeError):
+  """The workdir cannot be created or written to."""
+
+
+def check_workdir(workdir: str) -> None:
+  """Creates `workdir` and writes / removes a probe file there, so that a bad workdir fails at
+  once with a message naming it, not after minutes of data loading and compilation.
+
+  Raises:
+    WorkdirError: the directory cannot be created or written (permissions, a file in the way,
+      a read-only or full file system).
+  """
+  try:
+    os.makedirs(workdir, exist_ok=True)
+    fd, probe = tempfile.mkstemp(prefix=".write-probe-", dir=workdir)
+    os.close(fd)
+    os.remove(probe)
+  except OSError as e:
+    raise WorkdirError(f"workdir {workdir} cannot be written: {e.strerror or e}") from e
+
+
 def _replicate(tree, n: int):
   """Stacks n copies on a leading device axis, placed as the pmapped step returns its state
   (sharded over the local devices), so the step is traced once, not again on its 2nd call."""
@@ -545,11 +567,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
 
   Raises:
     FloatingPointError: a loss or gradient became non-finite (the last good checkpoint is kept).
+    WorkdirError: the workdir cannot be written.
   """
   from camrep import checkpoint as ckpt_lib
   from camrep import writers
 
-  os.makedirs(workdir, exist_ok=True)
+  check_workdir(workdir)
   writer = writers.MetricWriter(workdir)
   writer.write_config(config)
   n_dev = jax.local_device_count()
@@ -571,6 +594,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
   latest = checkpointer.latest_step()
   if latest is None:
     state, start = init_fn(init_key, batch0), 0
+    writer.truncate_after(0)  # what a run killed before its first checkpoint logged
   else:
     template = jax.eval_shape(init_fn, init_key, batch0)
     state_d, _, start = checkpointer.restore(state_dict(jax.tree.map(_zeros, template)))

@@ -258,9 +258,9 @@ class MetricWriter:
   def truncate_after(self, step: int) -> None:
     """Drops everything logged after `step`, for a run resumed from a checkpoint at `step`.
 
-    Removes metrics.jsonl lines with a larger step (atomically) and image files with a larger
-    step, and writes a TensorBoard "purge" marker so that TensorBoard hides the interrupted run's
-    events after `step`.
+    Removes metrics.jsonl lines with a larger step (atomically), lines cut short by a killed
+    process, and image files with a larger step, and writes a TensorBoard "purge" marker so that
+    TensorBoard hides the interrupted run's events after `step`.
 
     Args:
       step: Step of the restored checkpoint; lines with step <= it are kept.
@@ -269,7 +269,14 @@ class MetricWriter:
     self.flush()
     with open(self._path, encoding="utf-8") as f:
       text = f.read()
-    kept = [line for line in text.split("\n") if line.strip() and json.loads(line)["step"] <= step]
+    kept = []
+    for line in text.split("\n"):
+      try:
+        row = json.loads(line) if line.strip() else None
+      except json.JSONDecodeError:  # a line cut short by a killed process
+        row = None
+      if row is not None and row["step"] <= step:
+        kept.append(line)
     self._file.close()
     with open(self._path + ".tmp", "w", encoding="utf-8") as f:
       f.writelines(line + "\n" for line in kept)

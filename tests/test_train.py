@@ -186,6 +186,32 @@ def test_cli_rejects_unknown_config_key(tmp_path):
   assert "no_such_key" in r.stderr
 
 
+def _main(*args, timeout=300):
+  return subprocess.run(
+    [sys.executable, "-m", "camrep.main", "--config=configs/gqn.py:smoke", *args],
+    capture_output=True,
+    text=True,
+    cwd=ROOT,
+    timeout=timeout,
+  )
+
+
+def test_cli_rejects_wrong_override_type(tmp_path):
+  r = _main(f"--workdir={tmp_path}", "--config.total_steps=abc")
+  assert r.returncode == 1
+  assert "--config.total_steps=abc" in r.stderr and "invalid literal for int()" in r.stderr
+  assert not os.listdir(tmp_path)  # refused before anything was written
+
+
+def test_cli_unwritable_workdir_is_a_clear_error(tmp_path):
+  blocker = tmp_path / "a_file"
+  blocker.write_text("not a directory")
+  r = _main(f"--workdir={blocker}/run")
+  assert r.returncode == 2, r.stderr[-2000:]
+  assert f"error: workdir {blocker}/run cannot be written: Not a directory" in r.stderr
+  assert "Traceback" not in r.stderr
+
+
 def test_pose_spec_matches_paper_grids():
   spec = train.pose_spec(gqn.get_config())
   assert spec.dof("xy").n_grid == 441 and spec.dof("xy").n_directions == 144

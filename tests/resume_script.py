@@ -1,0 +1,36 @@
+"""Helper for tests/test_resume.py: `python -m camrep.main FLAGS` with a fault injected.
+
+Usage: python tests/resume_script.py KILL_IN_SAVE FLAGS...
+
+KILL_IN_SAVE: SIGKILL this process in the middle of saving checkpoint KILL_IN_SAVE: after every
+file of it is written into Orbax's temporary directory, just before the rename that commits it
+(0: no fault). FLAGS are camrep.main's (--config=..., --workdir=..., --config.x=...).
+"""
+
+import os
+import pathlib
+import signal
+import sys
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+
+kill_step = int(sys.argv.pop(1))
+
+if kill_step:
+  from orbax.checkpoint._src.path import atomicity
+
+  _finalize = atomicity.AtomicRenameTemporaryPath.finalize
+
+  async def finalize(self):
+    if self.get_final().name == str(kill_step):
+      print(f"fault: SIGKILL while committing checkpoint {kill_step}", flush=True)
+      os.kill(os.getpid(), signal.SIGKILL)
+    return await _finalize(self)
+
+  atomicity.AtomicRenameTemporaryPath.finalize = finalize
+
+from absl import app  # noqa: E402
+
+from camrep import main  # noqa: E402
+
+app.run(main.main)
