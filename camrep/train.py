@@ -562,6 +562,11 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
 
   Writes to `workdir`: config.json, metrics.jsonl, checkpoints/, images/, tensorboard/.
 
+  Several processes (jax.distributed): each runs this with the same config and workdir; each
+  reads its own shard of the scenes, the pmapped step averages gradients over every device of
+  every process, checkpoints are saved collectively (Orbax), and only process 0 logs, evaluates
+  and writes metrics, images and final_metrics.json.
+
   Returns:
     The last logged scalars (train and eval).
 
@@ -572,11 +577,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
   from camrep import checkpoint as ckpt_lib
   from camrep import writers
 
+  pidx, pcount = jax.process_index(), jax.process_count()
+  lead = pidx == 0  # several processes: only process 0 logs, evaluates and prints
   check_workdir(workdir)
-  writer = writers.MetricWriter(workdir)
+  writer = writers.MetricWriter(workdir) if lead else writers.NullWriter()
   writer.write_config(config)
   n_dev = jax.local_device_count()
-  pidx, pcount = jax.process_index(), jax.process_count()
   train_pipe = make_pipeline(
     config, "train", num_devices=n_dev, process_index=pidx, process_count=pcount
   )
@@ -601,10 +607,11 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
     state = flax.serialization.from_state_dict(template, state_d)
     state = jax.tree.map(jnp.asarray, state)
     writer.truncate_after(start)
-    print(f"resumed from step {start} in {workdir}", flush=True)
+    if lead:
+      print(f"resumed from step {start} in {workdir}", flush=True)
   p_step = make_p_train_step(config, model, spec)
   predict = make_predict(config, model, spec)
-  ebatches = eval_batches(config, train_pipe, test_pipe)
+  ebatches = eval_batches(config, train_pipe, test_pipe) if lead else []
   pstate = _replicate(state, n_dev)
   loop_keys = _replicate(jax.random.key_data(loop_key), n_dev)
   loop_keys = jax.vmap(jax.random.wrap_key_data)(jnp.asarray(loop_keys))
@@ -618,6 +625,15 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
 
   def save(step):
     checkpointer.save(step, state_dict(_unreplicate(pstate)), extra={"step": step}, force=True)
+
+  def stop_requested() -> bool:
+    # Saves are collective: every process must agree to save and stop (any one was signalled).
+    if pcount == 1:
+      return signals.requested
+    from jax.experimental import multihost_utils
+
+    flags = multihost_utils.process_allgather(np.asarray(signals.requested, np.int32))
+    return bool(np.any(flags))
 
   try:
     step = start
@@ -642,9 +658,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
         writer.write_scalars(step, host)
         last.update(host)
       status = progress.update(step)
-      if status:
+      if status and lead:
         print(status, f"loss={float(np.asarray(m['train/loss'])[0]):.4f}", flush=True)
-      if writers.itstime(step, config.eval_every_steps, total):
+      if lead and writers.itstime(step, config.eval_every_steps, total):
         scalars, first = evaluate(predict, _unreplicate(pstate.params), ebatches)
         writer.write_scalars(step, scalars)
         g = config.evals.grid_scenes
@@ -654,17 +670,19 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
         writer.write_images(step, {"eval/grid": grid})
         last.update(scalars)
         print(f"step {step}: " + " ".join(f"{k}={v:.3f}" for k, v in scalars.items()), flush=True)
-      if writers.itstime(step, config.ckpt_every_steps, total) or signals.requested:
+      stop = stop_requested()
+      if writers.itstime(step, config.ckpt_every_steps, total) or stop:
         save(step)
-      if signals.requested:
+      if stop:
         print(f"stopping at step {step} on a signal; checkpoint saved", flush=True)
         break
   finally:
     signals.uninstall()
     checkpointer.close()
     writer.close()
-  with open(os.path.join(workdir, "final_metrics.json"), "w") as f:
-    json.dump({"step": int(step), **last}, f, indent=1)
+  if lead:
+    with open(os.path.join(workdir, "final_metrics.json"), "w") as f:
+      json.dump({"step": int(step), **last}, f, indent=1)
   return last
 
 

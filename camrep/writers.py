@@ -464,6 +464,29 @@ def format_duration(seconds: float) -> str:
   return f"{s}s"
 
 
+class NullWriter:
+  """A `MetricWriter` that writes nothing: what processes other than 0 of a multi-process run
+  use, so that one process owns the workdir's logs."""
+
+  def write_scalars(self, step: int, scalars: Mapping[str, Any]) -> None:
+    del step, scalars
+
+  def write_images(self, step: int, images: Mapping[str, Any], **kwargs: Any) -> None:
+    del step, images, kwargs
+
+  def write_config(self, config: Any) -> None:
+    del config
+
+  def truncate_after(self, step: int) -> None:
+    del step
+
+  def flush(self) -> None:
+    pass
+
+  def close(self) -> None:
+    pass
+
+
 class Progress:
   """Rate-limited one-line progress reports, for logs that are not a terminal (CI, cluster).
 

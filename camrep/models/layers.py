@@ -25,6 +25,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from camrep.models import fastconv
+
 Array = jax.Array
 
 LRELU_SLOPE = 0.2
@@ -90,7 +92,7 @@ def conv(features: int, kernel: int, *, strides: int = 1, name: str) -> nn.Conv:
 
   Also stands in for the authors' stride-1 `conv2d_transpose` layers: with stride 1 a transposed
   conv is a conv with a flipped kernel, which does not matter when training from scratch (digest
-  7.3).
+  7.3). On CPU its kernel gradient is computed as matmuls (`camrep.models.fastconv`).
   """
   return nn.Conv(
     features,
@@ -99,6 +101,7 @@ def conv(features: int, kernel: int, *, strides: int = 1, name: str) -> nn.Conv:
     padding="SAME",
     kernel_init=kernel_init,
     bias_init=bias_init,
+    conv_general_dilated=fastconv.conv_general_dilated,
     name=name,
   )
 

@@ -1,0 +1,313 @@
+"""Benchmark: the GQN-rooms train step (encoder + decoder + rotation losses), and how it scales.
+
+Measures, in one run (these machines are noisy: compare the ratios printed by one run):
+
+  step      the pmapped `camrep.train` step on the paper's batch layout (30 scenes x (6 context
+            + 3 query) views of 64 px = 270 images, 4000 rotation pairs) at `--width`:
+            seconds per step (median), images/s, compile time, FLOPs per step from XLA's cost
+            analysis, achieved FLOP/s, and peak RSS;
+  peak      the fp32 matmul peak of this machine (jnp 2048^3 matmuls), measured in the same run;
+            MFU = achieved FLOP/s / peak;
+  grads     the same step with XLA's own conv weight gradients ("xla") against camrep's matmul
+            weight gradients ("matmul", `camrep.models.fastconv`); with `--bf16`, one conv
+            layer's forward and gradients in bfloat16 against float32;
+  tables    (`--tables`) step time against batch size (GQN step), image size (the car model's
+            step at 64 and 128 px) and forced host device count (subprocesses);
+  decode    (`--tables`) pose decoding throughput, arg-min alone and with refinement.
+
+The last line reads `mfu=<fraction> images_per_s=<number>` (the "step" figures at `--width`).
+
+Commands (2-core CPU):
+
+  .venv/bin/python experiments/bench_train_step.py --width=quick            # ~2 min
+  .venv/bin/python experiments/bench_train_step.py --width=quick --tables   # ~6 min
+  .venv/bin/python experiments/bench_train_step.py --width=paper --steps=2  # ~8 min
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+WIDTHS = {"paper": 1.0, "quick": 0.125}
+
+
+def _parse(argv=None):
+  p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+  p.add_argument("--width", default="quick", help="paper | quick | a number (width multiplier)")
+  p.add_argument("--scenes", type=int, default=30, help="scenes per step (paper 30)")
+  p.add_argument("--steps", type=int, default=3, help="timed steps (median reported)")
+  p.add_argument("--grad_modes", default="matmul,xla", help="conv weight gradients to compare")
+  p.add_argument("--bf16", action="store_true", help="also time a conv layer in bfloat16")
+  p.add_argument("--tables", action="store_true", help="batch / image size / device tables")
+  p.add_argument("--devices", default="1,2", help="forced host device counts for the table")
+  p.add_argument("--child", default="", help=argparse.SUPPRESS)
+  return p.parse_args(argv)
+
+
+def _width(name: str) -> float:
+  return WIDTHS[name] if name in WIDTHS else float(name)
+
+
+def peak_rss_mb() -> float:
+  """Peak resident set size of this process in MiB (Linux reports KiB)."""
+  return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def matmul_peak(n: int = 2048, reps: int = 5, dtype: str = "float32") -> float:
+  """Best FLOP/s of an n x n x n jnp matmul (2 n^3 FLOPs), after one warm-up call."""
+  import jax
+  import jax.numpy as jnp
+
+  a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32).astype(dtype)
+  b = jax.random.normal(jax.random.key(1), (n, n), jnp.float32).astype(dtype)
+  f = jax.jit(jnp.matmul)
+  f(a, b).block_until_ready()
+  best = float("inf")
+  for _ in range(reps):
+    t = time.perf_counter()
+    f(a, b).block_until_ready()
+    best = min(best, time.perf_counter() - t)
+  return 2 * n**3 / best
+
+
+def gqn_config(width: float, scenes: int, *, image_size: int = 64, setting: str = "gqn"):
+  """The paper's config of `setting` at `width`, `scenes` per device, procedural data in memory."""
+  sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+  from configs import gqn, shapenet_car
+
+  c = (gqn if setting == "gqn" else shapenet_car).get_config()
+  c.model.width = width
+  c.model.image_size = image_size
+  c.data.scenes_per_device = scenes
+  c.data.in_memory = True
+  c.data.preset = "small"
+  c.data.num_threads = 0
+  if setting != "gqn":
+    c.data.family.image_size = image_size
+  return c
+
+
+def time_step(config, *, steps: int, num_devices: int = 1) -> dict:
+  """Times the pmapped train step of `config`; returns seconds, FLOPs, compile time, images."""
+  import jax
+  import jax.numpy as jnp
+  import numpy as np
+
+  from camrep import train
+
+  pipe = train.make_pipeline(config, "train", num_devices=num_devices)
+  spec = train.pose_spec(config)
+  model = train.make_model(config, train.num_train_scenes(pipe))
+  init_key, loop_key = jax.random.split(jax.random.key(0))
+  b0 = pipe.batch(0)
+  batch = {k: jnp.asarray(b0[k]) for k in ("image", "pose", "scene")}
+  state = jax.jit(lambda k, b: train.create_train_state(k, config, model, spec, b))(
+    init_key, {k: v[0] for k, v in batch.items()}
+  )
+  pstate = train._replicate(state, num_devices)
+  keys = jax.vmap(jax.random.wrap_key_data)(
+    train._replicate(jax.random.key_data(loop_key), num_devices)
+  )
+  p_step = train.make_p_train_step(config, model, spec)
+  t = time.perf_counter()
+  compiled = p_step.lower(pstate, batch, keys).compile()
+  compile_s = time.perf_counter() - t
+  cost = compiled.cost_analysis()
+  cost = cost[0] if isinstance(cost, list | tuple) else cost
+  flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
+  pstate, m = p_step(pstate, batch, keys)  # warm-up
+  jax.block_until_ready(m)
+  times = []
+  for _ in range(steps):
+    t = time.perf_counter()
+    pstate, m = p_step(pstate, batch, keys)
+    jax.block_until_ready((pstate, m))
+    times.append(time.perf_counter() - t)
+  images = int(np.prod(batch["image"].shape[:3]))
+  sec = float(np.median(times))
+  # cost_analysis() of a pmapped step counts one device's program.
+  return {
+    "sec": sec,
+    "images": images,
+    "images_per_s": images / sec,
+    "flops": flops * num_devices,
+    "flops_per_s": flops * num_devices / sec,
+    "compile_s": compile_s,
+    "finite": float(np.asarray(m["train/finite"])[0]),
+  }
+
+
+def decode_throughput(n: int = 4096) -> dict:
+  """Poses/s of `camrep.pose.decode` on the paper's GQN pose system (arg-min, refined)."""
+  import jax
+  import numpy as np
+
+  from camrep import pose as P
+  from camrep import train
+
+  config = gqn_config(1.0, 1)
+  spec = train.pose_spec(config)
+  params = P.init(jax.random.key(0), spec)
+  rng = np.random.default_rng(0)
+  poses = np.stack(
+    [rng.uniform(-0.8, 0.8, n), rng.uniform(-0.8, 0.8, n), rng.uniform(0, 2 * np.pi, n)], -1
+  ).astype(np.float32)
+  vecs = P.embed(params, spec, poses, mode="nearest")
+  out = {}
+  for name, refine in (("argmin", 0), ("refined", 4)):
+    f = jax.jit(lambda v, r=refine: P.decode(params, spec, v, refine_steps=r))
+    jax.block_until_ready(f(vecs))
+    best = float("inf")
+    for _ in range(3):
+      t = time.perf_counter()
+      jax.block_until_ready(f(vecs))
+      best = min(best, time.perf_counter() - t)
+    out[name] = n / best
+  return out
+
+
+def conv_dtypes(width: float, scenes: int) -> dict:
+  """Seconds of one 3x3 conv layer's forward + input and kernel gradients, fp32 vs bf16.
+
+  The layer is the encoder's block at 16 x 16 (180 context images, 256 -> 128 channels at width
+  1); this stands in for a bfloat16 step, which XLA:CPU would compute in the same emitters.
+  """
+  import jax
+  import jax.numpy as jnp
+
+  from camrep.models import fastconv
+
+  cin, cout = max(1, round(256 * width)), max(1, round(128 * width))
+  out = {}
+  for dtype in (jnp.float32, jnp.bfloat16):
+    x = jax.random.normal(jax.random.key(0), (scenes * 6, 16, 16, cin)).astype(dtype)
+    w = (0.01 * jax.random.normal(jax.random.key(1), (3, 3, cin, cout))).astype(dtype)
+
+    def loss(x, w):
+      y = fastconv.conv_general_dilated(
+        x, w, (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+      )
+      return jnp.sum(y.astype(jnp.float32) ** 2)
+
+    f = jax.jit(jax.grad(loss, argnums=(0, 1)))
+    jax.block_until_ready(f(x, w))
+    best = float("inf")
+    for _ in range(3):
+      t = time.perf_counter()
+      jax.block_until_ready(f(x, w))
+      best = min(best, time.perf_counter() - t)
+    out[jnp.dtype(dtype).name] = best
+  return out
+
+
+def _child(args) -> None:
+  """Runs one measurement in this (fresh) process and prints it as JSON."""
+  spec = json.loads(args.child)
+  config = gqn_config(spec["width"], spec["scenes"])
+  r = time_step(config, steps=spec["steps"], num_devices=spec["devices"])
+  r["rss_mb"] = peak_rss_mb()
+  print("RESULT " + json.dumps(r), flush=True)
+
+
+def _in_subprocess(spec: dict, devices: int) -> dict:
+  env = dict(os.environ)
+  env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
+  out = subprocess.run(
+    [sys.executable, __file__, "--child", json.dumps({**spec, "devices": devices})],
+    env=env,
+    capture_output=True,
+    text=True,
+    check=True,
+  ).stdout
+  return json.loads(next(x for x in out.splitlines() if x.startswith("RESULT "))[7:])
+
+
+def main(argv=None) -> None:
+  args = _parse(argv)
+  if args.child:
+    return _child(args)
+  import jax
+
+  from camrep.models import fastconv
+
+  width = _width(args.width)
+  print(
+    f"JAX {jax.__version__} on {jax.devices()[0].platform}, {os.cpu_count()} CPU cores; GQN-rooms "
+    f"step, width {width}, {args.scenes} scenes x 9 views, 64 px",
+    flush=True,
+  )
+  peak = matmul_peak()
+  print(f"fp32 matmul peak (2048^3): {peak / 1e9:.1f} GFLOP/s", flush=True)
+  config = gqn_config(width, args.scenes)
+  results = {}
+  for mode in args.grad_modes.split(","):
+    with fastconv.weight_grad(mode):
+      r = time_step(config, steps=args.steps)
+    results[mode] = r
+    print(
+      f"  weight grad {mode:6s}: {r['sec']:.3f} s/step  {r['images_per_s']:.1f} images/s  "
+      f"{r['flops'] / 1e9:.1f} GFLOP/step  {r['flops_per_s'] / 1e9:.1f} GFLOP/s  "
+      f"MFU {r['flops_per_s'] / peak:.3f}  compile {r['compile_s']:.1f} s",
+      flush=True,
+    )
+  modes = list(results)
+  if len(modes) == 2:
+    a, b = (results[m] for m in modes)
+    print(f"  ratio {modes[1]}/{modes[0]} step time: {b['sec'] / a['sec']:.2f}x", flush=True)
+  if args.bf16:
+    r = conv_dtypes(width, args.scenes)
+    print(
+      f"  one encoder-sized conv layer (3x3, fwd + both grads): fp32 {r['float32']:.3f} s, "
+      f"bf16 {r['bfloat16']:.3f} s ({r['float32'] / r['bfloat16']:.2f}x); bf16 matmul peak "
+      f"{matmul_peak(dtype='bfloat16') / 1e9:.1f} GFLOP/s",
+      flush=True,
+    )
+  if args.tables:
+    print("\nstep time against batch size (scenes x 9 views, weight grad auto):", flush=True)
+    print("| scenes | images | s/step | images/s | GFLOP/s | MFU |\n|---|---|---|---|---|---|")
+    for s in sorted({max(1, args.scenes // 4), max(1, args.scenes // 2), args.scenes}):
+      r = time_step(gqn_config(width, s), steps=args.steps)
+      print(
+        f"| {s} | {r['images']} | {r['sec']:.3f} | {r['images_per_s']:.1f} | "
+        f"{r['flops_per_s'] / 1e9:.1f} | {r['flops_per_s'] / peak:.3f} |",
+        flush=True,
+      )
+    print("\nstep time against image size (car model, 8 scenes x 10 views):", flush=True)
+    print("| image | s/step | images/s | GFLOP/step |\n|---|---|---|---|")
+    for size in (64, 128):
+      cfg = gqn_config(width, 8, image_size=size, setting="car")
+      r = time_step(cfg, steps=args.steps)
+      print(
+        f"| {size} px | {r['sec']:.3f} | {r['images_per_s']:.1f} | {r['flops'] / 1e9:.1f} |",
+        flush=True,
+      )
+    print("\nstep time against forced host devices (same global batch, subprocesses):")
+    print("| devices | s/step | images/s | peak RSS MiB |\n|---|---|---|---|")
+    for n in (int(x) for x in args.devices.split(",")):
+      spec = {"width": width, "scenes": args.scenes // n, "steps": args.steps}
+      r = _in_subprocess(spec, n)
+      print(
+        f"| {n} | {r['sec']:.3f} | {r['images_per_s']:.1f} | {r['rss_mb']:.0f} |",
+        flush=True,
+      )
+    d = decode_throughput()
+    print(
+      f"\npose decoding (GQN system, 441 + 36 grid, 4096 poses): arg-min {d['argmin']:.0f} "
+      f"poses/s, refined (4 Gauss-Newton steps) {d['refined']:.0f} poses/s",
+      flush=True,
+    )
+  main_r = results[modes[0]]
+  print(f"peak RSS {peak_rss_mb():.0f} MiB", flush=True)
+  print(f"mfu={main_r['flops_per_s'] / peak:.4f} images_per_s={main_r['images_per_s']:.2f}")
+
+
+if __name__ == "__main__":
+  with contextlib.suppress(KeyboardInterrupt):
+    main()

@@ -1,0 +1,51 @@
+"""Helper for tests/test_multiprocess.py: what a 2-process run computes, in ONE process.
+
+Two forced host devices; device p gets the batch that process p of a 2-process run reads (its
+shard of the scenes), and the loop repeats `camrep.train.train_and_evaluate`'s keys and order.
+
+Usage: python tests/multiprocess_reference.py STEPS OUT.npz [--config.key=value ...]
+"""
+
+import os
+import pathlib
+import sys
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+
+from camrep import train  # noqa: E402
+from configs import gqn  # noqa: E402
+
+steps, out = int(sys.argv[1]), sys.argv[2]
+config = gqn.get_config("smoke")
+for arg in sys.argv[3:]:
+  key, value = arg.removeprefix("--config.").split("=")
+  config[key] = type(config[key])(value)
+assert jax.local_device_count() == 2, jax.devices()
+pipes = [
+  train.make_pipeline(config, "train", num_devices=1, process_index=p, process_count=2)
+  for p in range(2)
+]
+spec = train.pose_spec(config)
+model = train.make_model(config, train.num_train_scenes(pipes[0]))
+init_key, loop_key = jax.random.split(jax.random.key(config.seed))
+first = pipes[0].batch(0)
+state = jax.jit(lambda k, b: train.create_train_state(k, config, model, spec, b))(
+  init_key, {k: first[k] for k in ("image", "pose", "scene")}
+)
+pstate = train._replicate(state, 2)
+keys = jax.vmap(jax.random.wrap_key_data)(train._replicate(jax.random.key_data(loop_key), 2))
+p_step = train.make_p_train_step(config, model, spec)
+logged = {}
+for step in range(1, steps + 1):
+  parts = [p.batch(step - 1) for p in pipes]
+  batch = {k: np.concatenate([b[k] for b in parts]) for k in ("image", "pose", "scene")}
+  pstate, m = p_step(pstate, batch, keys)
+  for k, v in train._to_host(m).items():
+    logged[f"metric/{step}/{k}"] = np.asarray(v)
+flat = jax.tree_util.tree_flatten_with_path(train._unreplicate(pstate.params))[0]
+params = {"param/" + jax.tree_util.keystr(k): np.asarray(v) for k, v in flat}
+np.savez(out, **params, **logged)
