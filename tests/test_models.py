@@ -313,3 +313,56 @@ def test_init_is_deterministic_by_key():
   k = np.asarray(a["params"]["conv16"]["kernel"])
   fan_in, fan_out = 4 * 4 * k.shape[2], 4 * 4 * k.shape[3]
   assert np.abs(k).max() <= np.sqrt(6.0 / (fan_in + fan_out))
+
+
+@pytest.mark.parametrize(
+  "kernel,stride,padding",
+  [
+    (1, 1, "SAME"),
+    (2, 2, "SAME"),
+    (3, 1, "SAME"),
+    (4, 1, "SAME"),
+    (4, 2, "SAME"),
+    (3, 1, "VALID"),
+    (4, 2, ((1, 2), (0, 1))),
+  ],
+)
+def test_fastconv_gradients_match_xla(kernel, stride, padding):
+  """The matmul kernel gradient (and the untouched forward / input gradient) equal XLA's own,
+  in float64, for every kernel / stride / padding the models use, and odd spatial sizes."""
+  from camrep.models import fastconv
+
+  def loss(x, w):
+    y = fastconv.conv_general_dilated(
+      x, w, (stride, stride), padding, dimension_numbers=("NHWC", "HWIO", "NHWC")
+    )
+    return jnp.sum(jnp.sin(y)), y
+
+  with x64():
+    rng = np.random.default_rng(kernel * 10 + stride)
+    x = jnp.asarray(rng.normal(size=(3, 11, 10, 5)))
+    w = jnp.asarray(rng.normal(size=(kernel, kernel, 5, 7)))
+    got, want = {}, {}
+    for mode, out in (("matmul", got), ("xla", want)):
+      with fastconv.weight_grad(mode):
+        (_, out["y"]), (out["dx"], out["dw"]) = jax.jit(
+          jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)
+        )(x, w)
+    for k in ("y", "dx", "dw"):
+      assert_close(got[k], want[k], atol=1e-10, rtol=1e-10)
+
+
+def test_fastconv_mode_and_fallbacks():
+  from camrep.models import fastconv
+
+  with pytest.raises(ValueError, match="weight_grad must be one of"):
+    fastconv.set_weight_grad("fast")
+  assert fastconv.get_weight_grad() == "matmul"  # "auto" on the CPU backend
+  with fastconv.weight_grad("xla"):
+    assert fastconv.get_weight_grad() == "xla"
+  assert fastconv.get_weight_grad() == "matmul"
+  # NCHW layout and dilations go to lax unchanged.
+  x, w = jnp.ones((1, 2, 5, 5)), jnp.ones((3, 2, 3, 3))
+  y = fastconv.conv_general_dilated(x, w, (1, 1), "SAME", rhs_dilation=(2, 2))
+  want = jax.lax.conv_general_dilated(x, w, (1, 1), "SAME", rhs_dilation=(2, 2))
+  np.testing.assert_array_equal(y, want)
