@@ -6,11 +6,14 @@ losses and the same parameters in the final checkpoint, which the 2 processes sa
 
 from __future__ import annotations
 
+import json
 import os
 import pathlib
+import signal
 import socket
 import subprocess
 import sys
+import time
 
 import jax
 import numpy as np
@@ -34,19 +37,16 @@ def _env():
   return env
 
 
-def test_two_processes_train_as_one(tmp_path):
-  workdir = tmp_path / "run"
+def _start_two(workdir, *overrides) -> list[subprocess.Popen]:
   port = _free_port()
   flags = [
     "--config=configs/gqn.py:smoke",
-    f"--config.total_steps={STEPS}",
-    "--config.ckpt_every_steps=3",
-    "--config.log_every_steps=1",
+    *overrides,
     f"--workdir={workdir}",
     f"--coordinator_address=localhost:{port}",
     "--num_processes=2",
   ]
-  procs = [
+  return [
     subprocess.Popen(
       [sys.executable, "-m", "camrep.main", *flags, f"--process_id={i}"],
       cwd=ROOT,
@@ -57,6 +57,16 @@ def test_two_processes_train_as_one(tmp_path):
     )
     for i in range(2)
   ]
+
+
+def test_two_processes_train_as_one(tmp_path):
+  workdir = tmp_path / "run"
+  procs = _start_two(
+    workdir,
+    f"--config.total_steps={STEPS}",
+    "--config.ckpt_every_steps=3",
+    "--config.log_every_steps=1",
+  )
   ref = tmp_path / "ref.npz"
   r = subprocess.run(
     [sys.executable, "tests/multiprocess_reference.py", str(STEPS), str(ref)],
@@ -84,3 +94,28 @@ def test_two_processes_train_as_one(tmp_path):
   flat = jax.tree_util.tree_flatten_with_path(run.params)[0]
   for path, value in flat:
     np.testing.assert_array_equal(np.asarray(value), want["param/" + jax.tree_util.keystr(path)])
+
+
+def test_sigterm_to_one_process_stops_both_with_a_checkpoint(tmp_path):
+  workdir = tmp_path / "run"
+  procs = _start_two(
+    workdir,
+    "--config.total_steps=100000",
+    "--config.ckpt_every_steps=100000",
+    "--config.eval_every_steps=100000",
+    "--config.log_every_steps=1",
+  )
+  path = workdir / "metrics.jsonl"
+  deadline = time.monotonic() + 300
+  while not (path.exists() and any('"train/loss"' in x for x in path.read_text().splitlines())):
+    assert time.monotonic() < deadline and all(p.poll() is None for p in procs)
+    time.sleep(0.1)
+  procs[1].send_signal(signal.SIGTERM)  # the other process is not signalled
+  outs = [p.communicate(timeout=300)[0] for p in procs]
+  for p, out in zip(procs, outs, strict=True):
+    assert p.returncode == 0, out[-3000:]
+    assert "checkpoint saved" in out
+  steps = os.listdir(workdir / "checkpoints")
+  assert len(steps) == 1 and int(steps[0]) < 100000
+  last = max(json.loads(x)["step"] for x in path.read_text().splitlines())
+  assert int(steps[0]) == last
