@@ -13,7 +13,9 @@ Measures, in one run (these machines are noisy: compare the ratios printed by on
             layer's forward and gradients in bfloat16 against float32;
   tables    (`--tables`) step time against batch size (GQN step), image size (the car model's
             step at 64 and 128 px) and forced host device count (subprocesses);
-  decode    (`--tables`) pose decoding throughput, arg-min alone and with refinement.
+  decode    (`--tables`) pose decoding throughput, arg-min alone and with refinement;
+  parts     (`--breakdown`) encoder, decoder and rotation losses timed alone (forward +
+            backward), with their FLOPs: where the step's time goes.
 
 The last line reads `mfu=<fraction> images_per_s=<number>` (the "step" figures at `--width`).
 
@@ -46,6 +48,7 @@ def _parse(argv=None):
   p.add_argument("--grad_modes", default="matmul,xla", help="conv weight gradients to compare")
   p.add_argument("--bf16", action="store_true", help="also time a conv layer in bfloat16")
   p.add_argument("--tables", action="store_true", help="batch / image size / device tables")
+  p.add_argument("--breakdown", action="store_true", help="time encoder, decoder, rotation loss")
   p.add_argument("--devices", default="1,2", help="forced host device counts for the table")
   p.add_argument("--child", default="", help=argparse.SUPPRESS)
   return p.parse_args(argv)
@@ -108,9 +111,7 @@ def time_step(config, *, steps: int, num_devices: int = 1) -> dict:
   init_key, loop_key = jax.random.split(jax.random.key(0))
   b0 = pipe.batch(0)
   batch = {k: jnp.asarray(b0[k]) for k in ("image", "pose", "scene")}
-  state = jax.jit(lambda k, b: train.create_train_state(k, config, model, spec, b))(
-    init_key, {k: v[0] for k, v in batch.items()}
-  )
+  state = jax.jit(lambda k, b: train.create_train_state(k, config, model, spec, b))(init_key, batch)
   pstate = train._replicate(state, num_devices)
   keys = jax.vmap(jax.random.wrap_key_data)(
     train._replicate(jax.random.key_data(loop_key), num_devices)
@@ -207,6 +208,67 @@ def conv_dtypes(width: float, scenes: int) -> dict:
   return out
 
 
+def _timed(f, *args, reps: int) -> tuple[float, float]:
+  """(median seconds, XLA cost-analysis FLOPs) of jitted f(*args), after compile + warm-up."""
+  import jax
+  import numpy as np
+
+  compiled = jax.jit(f).lower(*args).compile()
+  cost = compiled.cost_analysis()
+  cost = cost[0] if isinstance(cost, list | tuple) else cost
+  jax.block_until_ready(compiled(*args))
+  times = []
+  for _ in range(reps):
+    t = time.perf_counter()
+    jax.block_until_ready(compiled(*args))
+    times.append(time.perf_counter() - t)
+  return float(np.median(times)), float(cost.get("flops", float("nan")))
+
+
+def breakdown(width: float, scenes: int, reps: int) -> dict[str, tuple[float, float]]:
+  """Forward + backward of each part of the GQN step on its own: (seconds, FLOPs) each.
+
+  Parts: the encoder on the context views, the decoder on the queries (given a scene code), and
+  the rotation + direction losses (4000 pairs per DOF).
+  """
+  import jax
+  import jax.numpy as jnp
+
+  from camrep import pose as P
+  from camrep import train
+  from camrep.models.decoder import ResAdaINDecoder
+  from camrep.models.encoder import SceneEncoder
+
+  config = gqn_config(width, scenes)
+  spec = train.pose_spec(config)
+  rep = P.init(jax.random.key(0), spec)
+  k = jax.random.split(jax.random.key(1), 4)
+  ctx = jax.random.uniform(k[0], (scenes, 6, 64, 64, 3), minval=-1, maxval=1)
+  ctx_vec = jax.random.normal(k[1], (scenes, 6, spec.dim * len(spec.dofs)))
+  q_vec = jax.random.normal(k[2], (scenes, 3, spec.dim * len(spec.dofs)))
+  enc, dec = SceneEncoder(width=width), ResAdaINDecoder(width=width)
+  pe = jax.jit(enc.init)(k[3], ctx, ctx_vec)
+  scene, _ = jax.jit(enc.apply)(pe, ctx, ctx_vec)
+  pd = jax.jit(dec.init)(k[3], scene, q_vec)
+
+  def enc_loss(p):
+    out, _ = enc.apply(p, ctx, ctx_vec)
+    return sum(jnp.sum(v**2) for v in out.values())
+
+  def dec_loss(p):
+    img, _ = dec.apply(p, scene, q_vec)
+    return jnp.sum(img**2)
+
+  def rot_loss(r):
+    return train.rotation_objective(config, spec, r, {}, jax.random.key(2), None)[0]
+
+  return {
+    "encoder (6 context views)": _timed(jax.grad(enc_loss), pe, reps=reps),
+    "decoder (3 queries)": _timed(jax.grad(dec_loss), pd, reps=reps),
+    "rotation + direction losses": _timed(jax.grad(rot_loss), rep, reps=reps),
+  }
+
+
 def _child(args) -> None:
   """Runs one measurement in this (fresh) process and prints it as JSON."""
   spec = json.loads(args.child)
@@ -269,6 +331,14 @@ def main(argv=None) -> None:
       f"{matmul_peak(dtype='bfloat16') / 1e9:.1f} GFLOP/s",
       flush=True,
     )
+  if args.breakdown:
+    print("\nparts of the step, forward + backward each, weight grad auto:", flush=True)
+    print("| part | s | GFLOP | GFLOP/s | of matmul peak |\n|---|---|---|---|---|")
+    for name, (sec, fl) in breakdown(width, args.scenes, args.steps).items():
+      print(
+        f"| {name} | {sec:.3f} | {fl / 1e9:.1f} | {fl / sec / 1e9:.1f} | {fl / sec / peak:.2f} |",
+        flush=True,
+      )
   if args.tables:
     print("\nstep time against batch size (scenes x 9 views, weight grad auto):", flush=True)
     print("| scenes | images | s/step | images/s | GFLOP/s | MFU |\n|---|---|---|---|---|---|")
