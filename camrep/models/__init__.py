@@ -1,4 +1,5 @@
-"""Flax Linen models of camrep: GQN-rooms encoder, decoders and shared layers (digest section 2)."""
+"""Flax Linen models of camrep: GQN-rooms encoder, decoders, shared layers (digest section 2) and
+pose regressors (digest section 4)."""
 
 from camrep.models.decoder import CarDecoder as CarDecoder
 from camrep.models.decoder import CarDecoderTiny as CarDecoderTiny
@@ -24,3 +25,12 @@ from camrep.models.layers import intermediate_shapes as intermediate_shapes
 from camrep.models.layers import lrelu as lrelu
 from camrep.models.layers import param_count as param_count
 from camrep.models.layers import upsample2 as upsample2
+from camrep.models.regressor import GQN_REGRESSION_HEADS as GQN_REGRESSION_HEADS
+from camrep.models.regressor import CarRegressor as CarRegressor
+from camrep.models.regressor import GibsonRegressor as GibsonRegressor
+from camrep.models.regressor import GQNRegressor as GQNRegressor
+from camrep.models.regressor import PoseHeads as PoseHeads
+from camrep.models.regressor import ResNet34Regressor as ResNet34Regressor
+from camrep.models.regressor import ResNetRegressor as ResNetRegressor
+from camrep.models.regressor import ResNetRegressorTiny as ResNetRegressorTiny
+from camrep.models.regressor import load_torchvision_resnet34 as load_torchvision_resnet34

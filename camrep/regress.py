@@ -1,0 +1,419 @@
+"""Pose regression on a frozen pose representation (paper section 4.4; digest section 4).
+
+Plain functions, independent of the view-synthesis trainer (`camrep.train`):
+
+  make_regressor(setting, representation, ...)  the static description: network, heads, loss
+  init(key, regressor, batch, rep_params)       a `RegressionState`
+  train_step(state, batch)                      one Adam step; pure, jit it at the call site:
+                                                `step = jax.jit(regress.train_step)`
+  predict_poses(state, batch)                   network -> heads -> decode -> poses
+  pose_errors(setting, pred, true)              per-example errors (camrep.metrics)
+  evaluate_regression(state, batches)           per-example errors over an eval set
+  summarise_errors(errors)                      mean and median per scene and overall
+
+Batches are dicts of arrays:
+  "image": (..., H, W, 3) uint8 (mapped to [-1, 1]) or float (used as given, e.g. a ResNet's
+           per-scene normalised input);
+  "pose":  (..., P) float poses in the setting's columns (`camrep.targets.POSE_COLUMNS`);
+  "scene": (...) int scene / area index (Gibson's instance-norm tables; per-scene summaries);
+  GQN only, with leading axes (S, Q) of scenes and queries:
+  "context_image": (S, V, H, W, 3) and "context_pose": (S, V, P) of each scene's context views;
+  optional "mask": (...) bool, false for padding (evaluation).
+
+The targets' representation parameters (`rep_params`: the stage-1 pose system for "ours", MLP
+embeddings for "mlp", nothing for the baselines) are part of the state but never trained.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any
+
+import flax.linen as nn
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from camrep import metrics
+from camrep import pose as P
+from camrep import targets as T
+from camrep.models import layers
+from camrep.models import regressor as R
+
+Array = jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class Regressor:
+  """Everything static about one pose regressor (hashable; lives in the state's treedef).
+
+  Attributes:
+    setting: one of `targets.SETTINGS`.
+    representation: one of `targets.REPRESENTATIONS`.
+    module: the Flax network (`camrep.models.regressor`).
+    heads: its output heads (`targets.head_specs`).
+    config: loss, weighting and optimiser settings (`targets.defaults`, maybe overridden).
+    spec: the pose system of a learned representation, else None.
+    refine_steps: Gauss-Newton refinement steps when decoding "ours" (0: plain arg-min).
+  """
+
+  setting: str
+  representation: str
+  module: nn.Module
+  heads: tuple[T.HeadSpec, ...]
+  config: T.RegressionDefaults
+  spec: P.PoseSystemSpec | None = None
+  refine_steps: int = 4
+
+
+def make_regressor(
+  setting: str,
+  representation: str,
+  *,
+  spec: P.PoseSystemSpec | None = None,
+  width: float = 1.0,
+  num_scenes: int = 1,
+  fc_dim: int = 2048,
+  stage_sizes: tuple[int, ...] = R.RESNET34_STAGES,
+  refine_steps: int = 4,
+  **overrides: Any,
+) -> Regressor:
+  """The regressor of a setting and representation at a given width.
+
+  Networks: gqn `GQNRegressor`, car `CarRegressor`, gibson `GibsonRegressor`, seven_scenes
+  `ResNetRegressor`. The baselines' extra dense layer (`config.extra_fc`) is scaled by `width`.
+
+  Args:
+    setting: one of `targets.SETTINGS`.
+    representation: one of `targets.REPRESENTATIONS`.
+    spec: pose system of a learned representation (default `targets.default_spec(setting)`;
+      pass `camrep.train.pose_spec(config)` for a stage-1 run's system).
+    width: channel multiplier (paper 1.0).
+    num_scenes: rows of Gibson's per-area instance-norm tables.
+    fc_dim, stage_sizes: ResNet fc units and blocks per stage (7-Scenes).
+    refine_steps: decoding refinement of "ours".
+    **overrides: fields of `targets.RegressionDefaults` to change (lr, extra_fc, loss, ...).
+
+  Returns:
+    a `Regressor`.
+  """
+  cfg = dataclasses.replace(T.defaults(setting, representation), **overrides)
+  if representation in T.LEARNED:
+    spec = spec or T.default_spec(setting)
+  else:
+    spec = None
+  heads = T.head_specs(representation, setting, spec=spec)
+  extra = layers.scaled(cfg.extra_fc, width) if cfg.extra_fc else None
+  if setting == "gqn":
+    module = R.GQNRegressor(heads, width=width, extra_fc=extra)
+  elif setting == "car":
+    module = R.CarRegressor(heads, width=width, extra_fc=extra)
+  elif setting == "gibson":
+    module = R.GibsonRegressor(heads, num_scenes=num_scenes, width=width, extra_fc=extra)
+  else:
+    module = R.ResNetRegressor(
+      heads, width=width, stage_sizes=tuple(stage_sizes), fc_dim=fc_dim, extra_fc=extra
+    )
+  return Regressor(setting, representation, module, heads, cfg, spec, refine_steps)
+
+
+def make_optimizer(cfg: T.RegressionDefaults) -> optax.GradientTransformation:
+  """Adam(lr) (eps 1e-8, b1 0.9); with weight_decay, coupled L2 added to the gradient first
+  (PyTorch Adam's weight_decay, digest 7.3), which also acts on s_x, s_q."""
+  if cfg.weight_decay:
+    return optax.chain(
+      optax.add_decayed_weights(cfg.weight_decay), optax.scale_by_adam(), optax.scale(-cfg.lr)
+    )
+  return optax.adam(cfg.lr)
+
+
+@flax.struct.dataclass
+class RegressionState:
+  """The regression train state.
+
+  Attributes:
+    step: () int32.
+    params: {"net": network params, "log_var": {"position", "orientation"} learned s (or {})}.
+    batch_stats: batch-norm statistics (ResNet) or {}.
+    opt_state: optimiser state of `params`.
+    rep_params: frozen representation parameters (pose system / MLP / {}).
+    regressor: the static `Regressor`.
+    tx: the optimiser.
+  """
+
+  step: Array
+  params: dict
+  batch_stats: dict
+  opt_state: Any
+  rep_params: Any
+  regressor: Regressor = flax.struct.field(pytree_node=False)
+  tx: optax.GradientTransformation = flax.struct.field(pytree_node=False)
+
+
+def prepare_images(images: Array) -> Array:
+  """uint8 [0, 255] -> float32 [-1, 1] (digest 6.1); float images are returned unchanged."""
+  images = jnp.asarray(images)
+  if jnp.issubdtype(images.dtype, jnp.integer):
+    return images.astype(jnp.float32) * (2.0 / 255.0) - 1.0
+  return images
+
+
+def encode_poses(reg: Regressor, rep_params: Any, poses: Array) -> dict[str, Array]:
+  """Targets of poses (..., P) in the regressor's representation: {head: (..., size)}."""
+  return T.encode(
+    reg.representation,
+    reg.setting,
+    poses,
+    spec=reg.spec,
+    rep_params=rep_params,
+    mode=reg.config.quantisation,
+  )
+
+
+def context_pose_input(reg: Regressor, rep_params: Any, poses: Array) -> Array:
+  """GQN encoder's pose input: the representation's targets of the context poses concatenated
+  in head order (ours: [v_xy || v_yaw], 2 d = 192; baselines: e.g. [x, y, q], 6), (..., P_c)."""
+  enc = encode_poses(reg, rep_params, poses)
+  return jnp.concatenate([enc[h.name] for h in reg.heads], axis=-1)
+
+
+def network_inputs(reg: Regressor, rep_params: Any, batch: Mapping[str, Array]):
+  """(images, keyword arguments) of the network for a batch."""
+  kw = {"scene": batch.get("scene")}
+  if reg.setting == "gqn":
+    kw["context_images"] = prepare_images(batch["context_image"])
+    kw["context_poses"] = context_pose_input(reg, rep_params, batch["context_pose"])
+  return prepare_images(batch["image"]), kw
+
+
+def _variables(params: Mapping, batch_stats: Mapping) -> dict:
+  v = {"params": params["net"]}
+  if batch_stats:
+    v["batch_stats"] = batch_stats
+  return v
+
+
+def init(
+  key: Array, reg: Regressor, batch: Mapping[str, Array], *, rep_params: Any = None
+) -> RegressionState:
+  """Initial state: network parameters for the batch's shapes, s at the table's values.
+
+  Args:
+    key: PRNG key of the network initialisation.
+    reg: from `make_regressor`.
+    batch: an example batch (only shapes matter).
+    rep_params: the frozen representation ("ours": pose-system params, "mlp": `init_mlp`).
+  """
+  if reg.representation in T.LEARNED and rep_params is None:
+    raise ValueError(f"representation {reg.representation!r} needs rep_params")
+  rep_params = {} if rep_params is None else rep_params
+
+  # One compiled initialisation instead of op-by-op dispatch (as flax's examples do).
+  @jax.jit
+  def init_variables(k, rp, b):
+    images, kw = network_inputs(reg, rp, b)
+    return reg.module.init(k, images, **kw, train=False)
+
+  variables = init_variables(key, rep_params, {k: jnp.asarray(v) for k, v in batch.items()})
+  params = {"net": variables["params"], "log_var": T.init_log_vars(reg.config)}
+  tx = make_optimizer(reg.config)
+  return RegressionState(
+    step=jnp.zeros((), jnp.int32),
+    params=params,
+    batch_stats=dict(variables.get("batch_stats", {})),
+    opt_state=tx.init(params),
+    rep_params=rep_params,
+    regressor=reg,
+    tx=tx,
+  )
+
+
+def loss_terms(
+  reg: Regressor, heads: Mapping[str, Array], target: Mapping[str, Array], params: Mapping
+) -> tuple[Array, dict[str, Array]]:
+  """(total loss, {"position": L_pos, "orientation": L_ori}) of predicted vs target heads."""
+  groups = T.group_losses(reg.config.loss, heads, target, reg.heads)
+  return T.total_loss(reg.config, groups, log_vars=params.get("log_var") or None), groups
+
+
+def train_step(
+  state: RegressionState, batch: Mapping[str, Array]
+) -> tuple[RegressionState, dict[str, Array]]:
+  """One optimiser step on the regression loss; pure (jit at the call site).
+
+  Returns:
+    (new state, metrics {"loss", "loss_position", "loss_orientation", "s_position",
+    "s_orientation" (when learned), "grad_norm"}).
+  """
+  reg = state.regressor
+  images, kw = network_inputs(reg, state.rep_params, batch)
+  target = encode_poses(reg, state.rep_params, batch["pose"])
+
+  def loss_fn(params):
+    (heads, _), new_vars = reg.module.apply(
+      _variables(params, state.batch_stats), images, **kw, train=True, mutable=["batch_stats"]
+    )
+    total, groups = loss_terms(reg, heads, target, params)
+    return total, (groups, new_vars.get("batch_stats", {}))
+
+  (total, (groups, batch_stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
+  updates, opt_state = state.tx.update(grads, state.opt_state, state.params)
+  params = optax.apply_updates(state.params, updates)
+  out = {"loss": total, "grad_norm": optax.tree.norm(grads)}
+  out.update({f"loss_{g}": v for g, v in groups.items()})
+  out.update({f"s_{g}": v for g, v in state.params["log_var"].items()})
+  new = state.replace(
+    step=state.step + 1,
+    params=params,
+    batch_stats=dict(batch_stats) if batch_stats else state.batch_stats,
+    opt_state=opt_state,
+  )
+  return new, out
+
+
+def predict_heads(state: RegressionState, batch: Mapping[str, Array]) -> dict[str, Array]:
+  """The network's heads for a batch (inference mode): {name: (..., size)}."""
+  reg = state.regressor
+  images, kw = network_inputs(reg, state.rep_params, batch)
+  heads, _ = reg.module.apply(_variables(state.params, state.batch_stats), images, **kw)
+  return heads
+
+
+def predict_poses(state: RegressionState, batch: Mapping[str, Array]) -> Array:
+  """Predicted poses (..., P): network -> heads -> `targets.decode`."""
+  reg = state.regressor
+  return T.decode(
+    reg.representation,
+    reg.setting,
+    predict_heads(state, batch),
+    spec=reg.spec,
+    rep_params=state.rep_params,
+    mode=reg.config.quantisation,
+    refine_steps=reg.refine_steps,
+  )
+
+
+def pose_errors(setting: str, pred: Array, true: Array) -> dict[str, Array]:
+  """Per-example pose errors of a setting (digest 4.1-4.4), via `camrep.metrics`.
+
+  gqn, gibson: "x_error", "y_error" (|.| in scene units / m), "position_error" (Euclidean),
+    "yaw_error_deg" (wrapped to [0, 180]).
+  car: "rotation_error_deg" = 2 arccos|<q_hat, q>| of the `targets.car_rotation`s,
+    "azimuth_error_deg" (wrapped), "polar_error_deg".
+  seven_scenes: "position_error" (m), "rotation_error_deg" of the sxyz rotations.
+
+  Args:
+    pred, true: (..., P) poses.
+
+  Returns:
+    {name: (...)}.
+  """
+  pos_hat, ang_hat = T.split_pose(setting, pred)
+  pos, ang = T.split_pose(setting, true)
+  out = {}
+  if setting in ("gqn", "gibson"):
+    err = metrics.abs_error(pos_hat, pos)
+    out["x_error"], out["y_error"] = err[..., 0], err[..., 1]
+    out["position_error"] = metrics.translation_error(pos_hat, pos)
+    out["yaw_error_deg"] = metrics.wrapped_angle_error_deg(ang_hat[..., 0], ang[..., 0])
+    return out
+  q_hat, q = T.orientation_quat(setting, pred), T.orientation_quat(setting, true)
+  if setting == "car":
+    out["rotation_error_deg"] = metrics.rotation_error_deg(q_hat, q)
+    out["azimuth_error_deg"] = metrics.wrapped_angle_error_deg(ang_hat[..., 0], ang[..., 0])
+    out["polar_error_deg"] = jnp.rad2deg(metrics.abs_error(ang_hat[..., 1], ang[..., 1]))
+    return out
+  out["position_error"] = metrics.translation_error(pos_hat, pos)
+  out["rotation_error_deg"] = metrics.rotation_error_deg(q_hat, q)
+  return out
+
+
+def evaluate_regression(
+  state: RegressionState,
+  batches: Iterable[Mapping[str, Array]],
+  *,
+  predict_fn: Callable | None = None,
+  setting: str | None = None,
+) -> dict[str, np.ndarray]:
+  """Per-example errors over an evaluation set.
+
+  Args:
+    state: a trained state.
+    batches: batches as described in the module docstring (with "scene"; optional "mask").
+    predict_fn: (state, batch) -> poses; default `jax.jit(predict_poses)`, compiled once here.
+    setting: the setting of the errors; default the state's.
+
+  Returns:
+    flat per-example arrays (N,): the `pose_errors` entries, "scene", plus "pose" and "pred"
+    (N, P). Padding (mask false) is dropped.
+  """
+  predict_fn = predict_fn or jax.jit(predict_poses)
+  setting = setting or state.regressor.setting
+  out = collections.defaultdict(list)
+  for batch in batches:
+    batch = {k: jnp.asarray(v) for k, v in batch.items()}
+    pred = predict_fn(state, batch)
+    true = batch["pose"]
+    lead = true.shape[:-1]
+    errs = pose_errors(setting, pred, true)
+    scene = batch.get("scene")
+    scene = np.zeros(lead, np.int32) if scene is None else np.asarray(scene)
+    scene = np.broadcast_to(scene.reshape(scene.shape + (1,) * (len(lead) - scene.ndim)), lead)
+    mask = np.asarray(batch.get("mask", np.ones(lead, bool)), bool).reshape(-1)
+    for k, v in errs.items():
+      out[k].append(np.asarray(v).reshape(-1)[mask])
+    out["scene"].append(scene.reshape(-1)[mask])
+    out["pose"].append(np.asarray(true).reshape(-1, true.shape[-1])[mask])
+    out["pred"].append(np.asarray(pred).reshape(-1, true.shape[-1])[mask])
+  return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def summarise_errors(errors: Mapping[str, np.ndarray]) -> dict[Any, dict[str, dict[str, float]]]:
+  """Mean and median of every error, per scene and over all examples.
+
+  Args:
+    errors: from `evaluate_regression` (per-example arrays with "scene").
+
+  Returns:
+    {"all" or scene id: {error name: {"mean": float, "median": float}}}; the paper reports means
+    (GQN, car, Gibson) and per-scene medians (7-Scenes).
+  """
+  names = [k for k in errors if k not in ("scene", "pose", "pred")]
+  scene = np.asarray(errors["scene"])
+  groups: dict[Any, np.ndarray] = {"all": np.ones(scene.shape, bool)}
+  for s in np.unique(scene):
+    groups[int(s)] = scene == s
+  return {
+    g: {
+      k: {
+        "mean": float(np.mean(errors[k][m])),
+        "median": float(np.median(errors[k][m])),
+      }
+      for k in names
+    }
+    for g, m in groups.items()
+  }
+
+
+__all__ = [
+  "Regressor",
+  "RegressionState",
+  "context_pose_input",
+  "encode_poses",
+  "evaluate_regression",
+  "init",
+  "loss_terms",
+  "make_optimizer",
+  "make_regressor",
+  "network_inputs",
+  "pose_errors",
+  "predict_heads",
+  "predict_poses",
+  "prepare_images",
+  "summarise_errors",
+  "train_step",
+]

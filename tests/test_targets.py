@@ -1,0 +1,481 @@
+"""Tests of camrep.targets: rotation conversions (vs scipy), round trips, losses, defaults."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from camrep import lie
+from camrep import pose as P
+from camrep import targets as T
+from tests.utils import assert_close, x64
+
+TWO_PI = 2 * math.pi
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _fast_compile():
+  """Cuts XLA compile time (most of this module's run time); restored afterwards."""
+  old = jax.config.read("jax_disable_most_optimizations")
+  jax.config.update("jax_disable_most_optimizations", True)
+  yield
+  jax.config.update("jax_disable_most_optimizations", old)
+
+
+def _wxyz(rot: Rotation) -> np.ndarray:
+  """scipy (x, y, z, w) -> (w, x, y, z) with w >= 0."""
+  q = np.roll(rot.as_quat(), 1, axis=-1)
+  return np.where(q[..., :1] < 0, -q, q)
+
+
+def _rotations(n=200, seed=0) -> Rotation:
+  """Random rotations plus near-identity (1e-9 .. 1e-3 rad) and near-pi (pi - 1e-6 .. - 1e-2)."""
+  rng = np.random.default_rng(seed)
+  axes = rng.normal(size=(20, 3))
+  axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
+  small = np.geomspace(1e-9, 1e-3, 10).repeat(2)[:, None] * axes
+  near_pi = (math.pi - np.geomspace(1e-6, 1e-2, 10).repeat(2))[:, None] * axes
+  rand = Rotation.random(n, random_state=seed).as_rotvec()
+  return Rotation.from_rotvec(np.concatenate([rand, small, near_pi, np.zeros((1, 3))]))
+
+
+def _angle_close(a, b, atol):
+  d = np.mod(np.asarray(a) - np.asarray(b) + math.pi, TWO_PI) - math.pi
+  assert np.all(np.isfinite(d)) and np.max(np.abs(d)) <= atol, np.max(np.abs(d))
+
+
+# ---------------------------------------------------------------------------- conversions
+
+
+def test_quaternion_matrix_conversions_match_scipy():
+  rot = _rotations()
+  with x64():
+    R = jnp.asarray(rot.as_matrix())
+    q = _wxyz(rot)
+    assert_close(T.matrix_to_quat(R), q, atol=1e-12)
+    assert_close(T.quat_to_matrix(jnp.asarray(q)), rot.as_matrix(), atol=1e-12)
+    # Unnormalised and negated inputs give the same rotation.
+    assert_close(T.quat_to_matrix(-3.0 * jnp.asarray(q)), rot.as_matrix(), atol=1e-12)
+    assert np.all(np.asarray(T.matrix_to_quat(R))[:, 0] >= 0)
+
+
+def test_axis_angle_and_log_quaternion_match_scipy():
+  rot = _rotations()
+  with x64():
+    q = jnp.asarray(_wxyz(rot))
+    rv = rot.as_rotvec()  # scipy: angle in [0, pi], the sign of q with w >= 0
+    assert_close(T.quat_to_axis_angle(q), rv, atol=1e-12)
+    assert_close(T.quat_to_axis_angle(-q), rv, atol=1e-12)
+    assert_close(T.quat_log(q), rv / 2, atol=1e-12)
+    assert_close(T.axis_angle_to_quat(jnp.asarray(rv)), q, atol=1e-12)
+    assert_close(T.quat_exp(jnp.asarray(rv / 2)), q, atol=1e-12)
+    # Angles beyond pi wrap to the same rotation.
+    big = rv / np.maximum(np.linalg.norm(rv, axis=-1, keepdims=True), 1e-30) * 4.0
+    assert_close(
+      T.quat_to_matrix(T.axis_angle_to_quat(jnp.asarray(big))),
+      Rotation.from_rotvec(big).as_matrix(),
+      atol=1e-12,
+    )
+
+
+def test_conversions_float32_accuracy():
+  rot = _rotations(seed=1)
+  q = jnp.asarray(_wxyz(rot), jnp.float32)
+  assert_close(T.matrix_to_quat(jnp.asarray(rot.as_matrix(), jnp.float32)), q, atol=2e-6)
+  assert_close(T.quat_to_axis_angle(q), rot.as_rotvec(), atol=2e-6)
+  assert_close(T.axis_angle_to_quat(jnp.asarray(rot.as_rotvec(), jnp.float32)), q, atol=2e-6)
+
+
+def test_rotation_vector_gradients_finite_at_identity():
+  g1 = jax.jit(jax.jacfwd(T.axis_angle_to_quat))(jnp.zeros(3))
+  assert_close(g1, np.concatenate([np.zeros((1, 3)), 0.5 * np.eye(3)]), atol=1e-7)
+  g2 = jax.jit(jax.jacrev(T.quat_to_axis_angle))(jnp.array([1.0, 0.0, 0.0, 0.0]))
+  assert np.all(np.isfinite(np.asarray(g2)))
+  assert_close(np.asarray(g2)[:, 1:], 2 * np.eye(3), atol=1e-6)
+
+
+def test_euler_sxyz_matches_scipy_and_seven_scenes_module():
+  from camrep.data import seven_scenes
+
+  rot = _rotations(seed=2)
+  with x64():
+    e = rot.as_euler("xyz")  # extrinsic x, y, z: R = Rz(psi) Ry(phi) Rx(theta)
+    assert_close(T.euler_sxyz_to_matrix(jnp.asarray(e)), rot.as_matrix(), atol=1e-12)
+    got = T.matrix_to_euler_sxyz(jnp.asarray(rot.as_matrix()))
+    assert_close(got, seven_scenes.matrix_to_euler_sxyz(rot.as_matrix()), atol=1e-12)
+    assert_close(T.euler_sxyz_to_matrix(got), rot.as_matrix(), atol=1e-12)
+    # Gimbal lock: psi = 0 as transforms3d.
+    lock = Rotation.from_euler("xyz", [0.3, math.pi / 2, 0.0]).as_matrix()
+    assert_close(
+      T.matrix_to_euler_sxyz(jnp.asarray(lock)), seven_scenes.matrix_to_euler_sxyz(lock), atol=1e-7
+    )
+
+
+def test_car_rotation_is_intrinsic_zxz_and_inverts():
+  rng = np.random.default_rng(3)
+  az = rng.uniform(0, TWO_PI, 100)
+  pol = rng.uniform(0.01, math.pi - 0.01, 100)
+  with x64():
+    R = T.car_rotation(jnp.asarray(az), jnp.asarray(pol))
+    ref = Rotation.from_euler(
+      "ZXZ", np.stack([az - math.pi / 2, math.pi - pol, np.full(100, math.pi)], -1)
+    )
+    assert_close(R, ref.as_matrix(), atol=1e-12)
+    # The optical axis points at the centre from the camera on the z-up sphere.
+    centre = np.stack([np.sin(pol) * np.cos(az), np.sin(pol) * np.sin(az), np.cos(pol)], -1)
+    assert_close(np.asarray(R)[:, :, 2], -centre, atol=1e-12)
+    assert_close(T.car_angles(R), np.stack([az, pol], -1), atol=1e-9)
+
+
+def test_yaw_quaternion_matches_scipy():
+  yaw = np.linspace(0, TWO_PI, 37)[:-1]
+  with x64():
+    q = T.yaw_to_quat(jnp.asarray(yaw))
+    assert_close(q, _wxyz(Rotation.from_euler("z", yaw[:, None])), atol=1e-12)
+    _angle_close(T.quat_to_yaw(q), yaw, 1e-12)
+    # A tilted rotation decodes to the closest yaw.
+    tilted = Rotation.from_euler("zx", np.stack([yaw, np.full(36, 0.2)], -1))
+    _angle_close(T.quat_to_yaw(jnp.asarray(_wxyz(tilted))), yaw, 1e-9)
+
+
+# ---------------------------------------------------------------------------- poses and targets
+
+
+def _poses(setting, n=64, seed=0):
+  rng = np.random.default_rng(seed)
+  u = lambda lo, hi: rng.uniform(lo, hi, n)
+  cols = {
+    "gqn": [u(-0.95, 0.95), u(-0.95, 0.95), u(0, TWO_PI)],
+    "gibson": [u(0.05, 1.95), u(0.05, 1.95), u(0, TWO_PI)],
+    "car": [u(0, TWO_PI), u(0.05, math.pi - 0.05)],
+    # Euler phi strictly inside (0, pi): outside gimbal lock the sxyz angles are unique.
+    "seven_scenes": [
+      u(0.1, 3.9),
+      u(0.1, 1.4),
+      u(0.1, 2.9),
+      u(0, TWO_PI),
+      u(0.2, 2.9),
+      u(0, TWO_PI),
+    ],
+  }[setting]
+  return np.stack(cols, -1).astype(np.float32)
+
+
+def _check_poses_close(setting, got, want, *, pos_atol, ang_atol):
+  k = T.POSITION_DIM[setting]
+  got, want = np.asarray(got), np.asarray(want)
+  assert got.shape == want.shape
+  if k:
+    assert_close(got[..., :k], want[..., :k], atol=pos_atol, rtol=0)
+  _angle_close(got[..., k:], want[..., k:], ang_atol)
+
+
+@pytest.mark.parametrize("setting", T.SETTINGS)
+def test_baseline_round_trip(setting):
+  poses = _poses(setting)
+
+  @jax.jit
+  def round_trip(p):
+    enc = {rep: T.encode(rep, setting, p) for rep in T.BASELINES}
+    return enc, {rep: T.decode(rep, setting, enc[rep]) for rep in T.BASELINES}
+
+  enc, dec = round_trip(poses)
+  for rep in T.BASELINES:
+    heads = T.head_specs(rep, setting)
+    assert sorted(h.name for h in heads) == sorted(enc[rep])
+    for h in heads:
+      assert enc[rep][h.name].shape == (64, h.size) and h.norm == "none"
+    _check_poses_close(setting, dec[rep], poses, pos_atol=1e-6, ang_atol=2e-3)
+
+
+def test_baseline_target_values():
+  poses = np.array([[0.1, -0.2, 3 * math.pi / 2]], np.float32)
+  enc = T.encode("sincos", "gqn", poses)
+  assert_close(enc["position"], [[0.1, -0.2]], atol=1e-7)
+  assert_close(enc["orientation"], [[-1.0, 0.0]], atol=1e-6)
+  # 270 degrees about z: w = cos(135) < 0 is flipped, so q = (sin 45, 0, 0, -cos 45).
+  h = math.sqrt(0.5)
+  assert_close(T.encode("quat", "gqn", poses)["orientation"], [[h, 0, 0, -h]], atol=1e-6)
+  assert_close(
+    T.encode("axis_angle", "gqn", poses)["orientation"], [[0, 0, -math.pi / 2]], atol=1e-6
+  )
+  assert_close(T.encode("logq", "gqn", poses)["orientation"], [[0, 0, -math.pi / 4]], atol=1e-6)
+  assert_close(T.encode("euler", "gqn", poses)["orientation"], [[3 * math.pi / 2]], atol=1e-6)
+  # Predictions outside the range decode into it.
+  dec = T.decode("euler", "car", {"orientation": jnp.array([[-0.5, 4.0]])})
+  assert_close(dec, [[TWO_PI - 0.5, math.pi]], atol=1e-6)
+
+
+def test_orientation_quat_seven_scenes_matches_dofs_to_c2w():
+  from camrep.data import seven_scenes
+
+  poses = _poses("seven_scenes", n=16, seed=4).astype(np.float64)
+  with x64():
+    c2w = seven_scenes.dofs_to_c2w(poses, np.zeros(3))
+    q = T.orientation_quat("seven_scenes", jnp.asarray(poses))
+    assert_close(q, _wxyz(Rotation.from_matrix(c2w[:, :3, :3])), atol=1e-12)
+
+
+def _integer_planes(rng, n_blocks, s, freqs):
+  """Q (per block) and per-plane frequencies: blocks Q diag(f_k J) Q^T."""
+  Qs = [np.linalg.qr(rng.normal(size=(s, s)))[0] for _ in range(n_blocks)]
+  return Qs, freqs
+
+
+def _skew_from_planes(Qs, f):
+  blocks = []
+  for b, Q in enumerate(Qs):
+    s = Q.shape[0]
+    D = np.zeros((s, s))
+    for k in range(s // 2):
+      D[2 * k, 2 * k + 1], D[2 * k + 1, 2 * k] = -f[b, k], f[b, k]
+    blocks.append(Q @ D @ Q.T)
+  return np.stack(blocks)
+
+
+def consistent_params(spec, seed=0):
+  """Pose-system params whose grid vectors lie on orbits exp(B (x - low)) v0.
+
+  Angles: integer frequencies (orbits close after 2 pi); bounded ranges: slow enough that the
+  orbit does not close. Polar: commuting generators B_x, B_y in shared planes, and the binned
+  direction table B_j = cos(theta_j) B_x + sin(theta_j) B_y.
+  """
+  rng = np.random.default_rng(seed)
+  nb, s = spec.n_blocks, spec.block_size
+  params = {}
+  for d in spec.dofs:
+    Qs = [np.linalg.qr(rng.normal(size=(s, s)))[0] for _ in range(nb)]
+    v0 = rng.normal(size=(nb, s))
+    v0 /= np.linalg.norm(v0, axis=-1, keepdims=True)
+    v0 = v0.reshape(-1)
+    if isinstance(d, P.PolarDof):
+      scale = 1.2 / (d.high - d.low)
+      fx = rng.uniform(-1, 1, (nb, s // 2)) * scale
+      fy = rng.uniform(-1, 1, (nb, s // 2)) * scale
+      Bx, By = _skew_from_planes(Qs, fx), _skew_from_planes(Qs, fy)
+      ax = d.low + d.spacing * np.arange(d.n_side)
+      gx, gy = np.meshgrid(ax - d.low, ax - d.low, indexing="ij")
+      gen = gx.reshape(-1, 1, 1, 1) * Bx + gy.reshape(-1, 1, 1, 1) * By
+      grid = lie.apply_exp_blocks(
+        gen, 1.0, np.broadcast_to(v0, (d.n_grid, spec.dim)), method="expm"
+      )
+      th = np.arange(d.n_directions) * TWO_PI / d.n_directions
+      table = np.cos(th)[:, None, None, None] * Bx + np.sin(th)[:, None, None, None] * By
+      params[d.name] = {
+        "grid": jnp.asarray(grid, jnp.float32),
+        "B": lie.vee(jnp.asarray(table)).astype(jnp.float32),
+        "C": jnp.zeros((nb, lie.num_skew_params(s)), jnp.float32),
+      }
+      continue
+    f = rng.integers(1, 3, (nb, s // 2)).astype(float)
+    if not (isinstance(d, P.AngularDof) and d.periodic):
+      f = f * (1.2 / (d.high - d.low))
+    B = _skew_from_planes(Qs, f)
+    k = np.arange(d.n_grid) * d.spacing
+    grid = lie.apply_exp_blocks(B, k, np.broadcast_to(v0, (d.n_grid, spec.dim)), method="expm")
+    params[d.name] = {
+      "grid": jnp.asarray(grid, jnp.float32),
+      "B": lie.vee(jnp.asarray(B)).astype(jnp.float32),
+    }
+  return params
+
+
+SMALL = dict(n_blocks=2, block_size=4, exp_method="taylor2")
+
+
+@pytest.mark.parametrize("setting", T.SETTINGS)
+def test_ours_round_trip_refines_below_candidate_spacing(setting):
+  spec = T.default_spec(setting, **SMALL)
+  params = consistent_params(spec, seed=1)
+  poses = _poses(setting, n=32, seed=5)
+  enc = jax.jit(lambda p: T.encode("ours", setting, p, spec=spec, rep_params=params))(poses)
+  heads = T.head_specs("ours", setting, spec=spec)
+  assert sorted(enc) == sorted(spec.names) and [h.name for h in heads] == list(spec.names)
+  for h in heads:
+    norm = np.asarray(T.normalise_head(enc[h.name], h))
+    # Targets satisfy the head's normalisation, up to the Taylor exp's norm drift d^4 B^4 / 4.
+    assert_close(norm, enc[h.name], atol=2e-3)
+  dec = jax.jit(lambda e: T.decode("ours", setting, e, spec=spec, rep_params=params))(enc)
+  # Candidates every 0.25 degrees and 0.25 grid units. Refinement gets far below that for
+  # typical values; the worst case stays within one candidate step (the Taylor exp is slightly
+  # discontinuous at cell boundaries). Polar positions: the binned direction of B(theta) makes the
+  # embedding non-smooth (flat in one direction on grid lines), so refinement cannot improve on
+  # the arg-min there and only the candidate-step bound is checked.
+  k = T.POSITION_DIM[setting]
+  cand = np.array(
+    [0.25 * (0.05 if setting == "gibson" else 0.1)] * k
+    + [math.radians(0.25)] * (poses.shape[-1] - k)
+  )
+  err = np.abs(np.asarray(dec) - poses)
+  err[:, k:] = np.abs(np.mod(err[:, k:] + math.pi, TWO_PI) - math.pi)
+  assert np.all(err <= cand), err.max(0)
+  refined = np.median(err, axis=0) <= cand / 100
+  assert np.all(refined[k:]) and (setting in ("gqn", "gibson") or np.all(refined)), err
+
+
+def test_ours_targets_are_frozen_embeddings():
+  spec = T.default_spec("car", **SMALL)
+  params = P.init(jax.random.key(0), spec)
+  poses = _poses("car", n=8)
+
+  @jax.jit
+  def run(p):
+    enc = T.encode("ours", "car", poses, spec=spec, rep_params=p)
+    ref = P.embed(p, spec, poses, mode="floor")  # car inference: floor quantisation
+    total = lambda q: sum(
+      jnp.sum(v) for v in T.encode("ours", "car", poses, spec=spec, rep_params=q).values()
+    )
+    return enc, ref, jax.grad(total)(p)
+
+  enc, ref, g = run(params)
+  for k in ref:
+    assert_close(enc[k], ref[k], atol=0)
+  assert all(float(jnp.max(jnp.abs(x))) == 0 for x in jax.tree.leaves(g))  # stop_gradient
+  assert T.defaults("gibson", "ours").quantisation == "nearest"
+
+
+def test_mlp_embedding_round_trip():
+  spec = T.default_spec("car")
+  mlp = T.init_mlp(jax.random.key(3), spec)
+  assert set(mlp) == {"azimuth", "polar"}
+  assert mlp["azimuth"]["hidden"]["kernel"].shape == (1, 128)
+  assert mlp["azimuth"]["out"]["kernel"].shape == (128, 96)
+  poses = _poses("car", n=32, seed=6)
+  enc = jax.jit(lambda p: T.encode("mlp", "car", p, spec=spec, rep_params=mlp))(poses)
+  assert_close(jnp.linalg.norm(enc["azimuth"], axis=-1), np.ones(32), atol=1e-5)
+  dec = jax.jit(lambda e: T.decode("mlp", "car", e, spec=spec, rep_params=mlp))(enc)
+  # Arg-min over 0.25-degree candidates, no refinement: a random MLP is poorly conditioned.
+  _check_poses_close("car", dec, poses, pos_atol=0, ang_atol=math.radians(0.5))
+
+
+def test_normalise_head_matches_pose_system():
+  spec = T.default_spec("gqn")
+  params = P.init(jax.random.key(1), spec)
+  heads = {h.name: h for h in T.head_specs("ours", "gqn", spec=spec)}
+  assert heads["xy"].norm == "block" and heads["xy"].n_blocks == 6
+  assert heads["yaw"].norm == "unit"
+  for name in ("xy", "yaw"):
+    raw = params[name]["grid"]
+    assert_close(T.normalise_head(raw, heads[name]), P.grid_vectors(params, spec, name), atol=1e-7)
+
+
+def test_head_sizes():
+  sizes = lambda rep, s, spec=None: {h.name: h.size for h in T.head_specs(rep, s, spec=spec)}
+  assert sizes("ours", "gqn") == {"xy": 96, "yaw": 96}
+  assert sizes("ours", "car") == {"azimuth": 96, "polar": 96}
+  assert sizes("ours", "seven_scenes") == dict.fromkeys(("x", "y", "z", "theta", "phi", "psi"), 32)
+  assert sizes("euler", "gqn") == {"position": 2, "orientation": 1}
+  assert sizes("sincos", "gqn") == {"position": 2, "orientation": 2}
+  assert sizes("quat", "gibson") == {"position": 2, "orientation": 4}
+  assert sizes("logq", "seven_scenes") == {"position": 3, "orientation": 3}
+  assert sizes("axis_angle", "car") == {"orientation": 3}
+  assert sizes("sincos", "car") == {"orientation": 4}
+  assert sizes("euler", "seven_scenes") == {"position": 3, "orientation": 3}
+  groups = {h.name: h.group for h in T.head_specs("ours", "seven_scenes")}
+  assert [groups[k] for k in ("x", "y", "z")] == ["position"] * 3
+  assert [groups[k] for k in ("theta", "phi", "psi")] == ["orientation"] * 3
+
+
+def test_invalid_inputs():
+  with pytest.raises(ValueError, match="columns"):
+    T.encode("quat", "gqn", np.zeros((2, 2)))
+  with pytest.raises(ValueError, match="representation"):
+    T.encode("rotation6d", "gqn", np.zeros((2, 3)))
+  with pytest.raises(ValueError, match="setting"):
+    T.head_specs("quat", "kitti")
+  with pytest.raises(ValueError, match="rep_params"):
+    T.encode("ours", "gqn", np.zeros((2, 3)))
+  with pytest.raises(ValueError, match="do not match"):
+    T.head_specs("ours", "gqn", spec=T.default_spec("seven_scenes"))
+
+
+# ---------------------------------------------------------------------------- losses and table
+
+
+def test_head_losses_hand_computed():
+  pred = jnp.array([[1.0, 2.0], [0.0, 0.0]])
+  tgt = jnp.array([[0.0, 0.0], [0.0, 3.0]])
+  # squared L2 distances 5 and 9: mean 7; MSE (1 + 4 + 0 + 9) / 4; L1 (1 + 2 + 0 + 3) / 4.
+  assert float(T.head_loss("l2", pred, tgt)) == pytest.approx(7.0)
+  assert float(T.head_loss("mse", pred, tgt)) == pytest.approx(3.5)
+  assert float(T.head_loss("l1", pred, tgt)) == pytest.approx(1.5)
+  with pytest.raises(ValueError, match="unknown loss"):
+    T.head_loss("huber", pred, tgt)
+  heads = T.head_specs(
+    "ours", "seven_scenes", spec=T.default_spec("seven_scenes", n_blocks=1, block_size=2)
+  )
+  p = {h.name: jnp.zeros((1, 2)) for h in heads}
+  t = {h.name: jnp.full((1, 2), i + 1.0) for i, h in enumerate(heads)}
+  g = T.group_losses("l1", p, t, heads)
+  assert float(g["position"]) == pytest.approx(1 + 2 + 3)
+  assert float(g["orientation"]) == pytest.approx(4 + 5 + 6)
+
+
+def test_total_loss_weighting():
+  groups = {"position": jnp.asarray(2.0), "orientation": jnp.asarray(0.5)}
+  gqn = T.defaults("gqn", "ours")
+  s = T.init_log_vars(gqn)
+  assert float(s["position"]) == pytest.approx(-math.log(20)) and float(
+    s["orientation"]
+  ) == pytest.approx(-math.log(5))
+  want = 20 * 2.0 - math.log(20) + 5 * 0.5 - math.log(5)
+  assert float(T.total_loss(gqn, groups, log_vars=s)) == pytest.approx(want, rel=1e-6)
+  assert float(T.total_loss(gqn, groups)) == pytest.approx(want, rel=1e-6)  # s held at init_s
+  gib = T.defaults("gibson", "ours")
+  assert T.init_log_vars(gib) == {}
+  assert float(T.total_loss(gib, groups)) == pytest.approx(20 * 2.0 + 10 * 0.5)
+  seven = T.defaults("seven_scenes", "ours")
+  s7 = T.init_log_vars(seven)
+  want7 = math.exp(3) * 2.0 + 3 * -3.0 + math.exp(3) * 0.5 + 3 * -3.0
+  assert float(T.total_loss(seven, groups, log_vars=s7)) == pytest.approx(want7, rel=1e-6)
+  # Car has no position group; only the orientation term counts.
+  car = T.defaults("car", "quat")
+  assert float(
+    T.total_loss(car, {"orientation": jnp.asarray(0.5)}, log_vars=T.init_log_vars(car))
+  ) == (pytest.approx(math.exp(3) * 0.5 - 3, rel=1e-6))
+
+
+def test_homoscedastic_gradient_wrt_s():
+  dl_ds = jax.grad(T.homoscedastic, argnums=1)
+  for factor in (1.0, 3.0):
+    for s in (-3.0, 0.0, 1.5):
+      g = dl_ds(jnp.asarray(0.7), jnp.asarray(s), factor=factor)
+      assert float(g) == pytest.approx(factor - math.exp(-s) * 0.7, rel=1e-5)
+    # Stationary at s* = log(L / factor).
+    s_star = jnp.asarray(math.log(0.7 / factor))
+    assert float(dl_ds(jnp.asarray(0.7), s_star, factor=factor)) == pytest.approx(0.0, abs=1e-6)
+  # Through total_loss: the gradient reaches each group's s.
+  cfg = T.defaults("gqn", "quat")
+  groups = {"position": jnp.asarray(2.0), "orientation": jnp.asarray(0.5)}
+  g = jax.grad(lambda lv: T.total_loss(cfg, groups, log_vars=lv))(T.init_log_vars(cfg))
+  assert float(g["position"]) == pytest.approx(1 - 2.0, rel=1e-6)
+  assert float(g["orientation"]) == pytest.approx(1 - math.exp(3) * 0.5, rel=1e-6)
+
+
+def test_defaults_table():
+  assert set(T.DEFAULTS) == {(s, r) for s in T.SETTINGS for r in T.REPRESENTATIONS}
+  assert T.defaults("gqn", "ours").init_s == pytest.approx((-math.log(20), -math.log(5)))
+  assert T.defaults("gibson", "ours").weights == (20.0, 10.0)
+  assert T.defaults("car", "ours").weighting == "fixed" and T.defaults("car", "ours").weights == (
+    1.0,
+    1.0,
+  )
+  s7 = T.defaults("seven_scenes", "ours")
+  assert (s7.loss, s7.init_s, s7.s_factor, s7.lr, s7.weight_decay) == (
+    "l1",
+    (-3.0, -3.0),
+    3.0,
+    5e-5,
+    5e-4,
+  )
+  for s, fc in (("gqn", 196), ("car", 256), ("gibson", 192), ("seven_scenes", None)):
+    assert T.defaults(s, "ours").extra_fc is None
+    for r in T.BASELINES:
+      cfg = T.defaults(s, r)
+      assert cfg.extra_fc == fc and cfg.init_s == (0.0, -3.0) and cfg.weighting == "homoscedastic"
+      assert cfg.loss == ("mse" if r in ("euler", "sincos") else "l1")
