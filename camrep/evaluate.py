@@ -178,9 +178,29 @@ def load_run(workdir: str, *, step: int | None = None) -> Run:
 # Noise robustness.
 
 
-def grid_betas(params_rep: dict, spec: P.PoseSystemSpec) -> dict[str, np.ndarray]:
-  """beta per DOF: {name: (d,)} std of each element over the DOF's normalised grid vectors."""
-  return {n: np.asarray(P.grid_std(params_rep, spec, n)) for n in spec.names}
+def dof_poses(spec: P.PoseSystemSpec, name: str, values: Array) -> Array:
+  """Poses (K, pose_dim) whose DOF `name` takes `values` ((K,) or (K, 2)), other columns 0."""
+  values = jnp.asarray(values, jnp.float32)
+  cols = values if values.ndim == 2 else values[:, None]
+  poses = jnp.zeros((cols.shape[0], spec.pose_dim), jnp.float32)
+  return poses.at[:, spec.columns(name)].set(cols)
+
+
+def grid_betas(params_rep: dict, spec: P.PoseSystemSpec, config=None) -> dict[str, np.ndarray]:
+  """beta per DOF: {name: (d,)} std of each element over the DOF's normalised grid vectors.
+
+  With a config whose `rep.kind` is not the learned grid ("lowdim", "mlp"), the population is
+  the same grid points (`P.candidates` at the grid spacing) pushed through that pose input, so
+  every kind is noised relative to its own spread over the same poses.
+  """
+  if config is None or train.rep_kind(config) == "grid":
+    return {n: np.asarray(P.grid_std(params_rep, spec, n)) for n in spec.names}
+  out = {}
+  for d in spec.dofs:
+    poses = dof_poses(spec, d.name, P.candidates(spec, d.name, d.spacing))
+    v = train.pose_vectors(config, spec, params_rep, poses)[d.name]
+    out[d.name] = np.asarray(jnp.std(v, axis=0))
+  return out
 
 
 def pose_vectors(
@@ -190,12 +210,16 @@ def pose_vectors(
   keys: Array | None,
   *,
   mode: str,
+  config=None,
 ) -> dict[str, Array]:
   """Vectors of exact poses, one quantisation key per image: (E, V, P) -> {name: (E, V, d)}.
 
   Args:
     keys: (E,) PRNG keys, used (and required) only for mode="random".
+    config: the run's config; its `rep.kind` picks the pose input (default: the learned grid).
   """
+  if config is not None and train.rep_kind(config) != "grid":
+    return train.pose_vectors(config, spec, params_rep, poses)
   if mode == "random":
     if keys is None:
       raise ValueError("quantisation 'random' needs per-image keys")
@@ -263,11 +287,12 @@ def make_noisy_predict(config, model, spec: P.PoseSystemSpec, mode: str):
 
   def predict(params, b, key, alpha, betas, image_ids):
     k_ctx, k_query, k_noise = image_keys(key, image_ids)
-    query = pose_vectors(params["rep"], spec, b["target_pose"], k_query, mode=mode)
+    query = pose_vectors(params["rep"], spec, b["target_pose"], k_query, mode=mode, config=config)
     q = P.concat(add_noise(query, spec, k_noise, alpha=alpha, betas=betas), spec)
     if config.task == "gqn":
       ctx = train.to_float_images(b["context_image"])
-      c = P.concat(pose_vectors(params["rep"], spec, b["context_pose"], k_ctx, mode=mode), spec)
+      c = pose_vectors(params["rep"], spec, b["context_pose"], k_ctx, mode=mode, config=config)
+      c = P.concat(c, spec)
       pred, _ = model.apply({"params": params["model"]}, ctx, c, q)
     else:
       pred, _ = model.apply({"params": params["model"]}, b["scene"], q)
@@ -306,7 +331,7 @@ def noise_robustness(
   mode = quantisation or default_quantisation(run.config)
   if batches is None:
     batches = train.eval_batches(run.config, run.train_pipe, run.test_pipe)
-  betas = grid_betas(run.params["rep"], run.spec)
+  betas = grid_betas(run.params["rep"], run.spec, run.config)
   betas_j = {n: jnp.asarray(b) for n, b in betas.items()}
   predict = make_noisy_predict(run.config, run.model, run.spec, mode)
   dev_batches = [{k: jnp.asarray(v) for k, v in b.items()} for b in batches]
@@ -367,6 +392,14 @@ def gram_maps(run: Run) -> dict[str, np.ndarray]:
   grid points); a polar DOF with block_norm has 1 / n_blocks.
   """
   rep = run.params["rep"]
+  if train.rep_kind(run.config) != "grid":  # the same map of another pose input's vectors
+    out = {}
+    for n in run.spec.names:
+      v = train.pose_vectors(
+        run.config, run.spec, rep, dof_poses(run.spec, n, gram_values(run.spec, n))
+      )[n]
+      out[n] = np.asarray(v @ v.T)
+    return out
   return {
     n: np.asarray(_jit_gram(rep, run.spec, n, values=gram_values(run.spec, n)))
     for n in run.spec.names

@@ -123,6 +123,81 @@ def pose_spec(config) -> P.PoseSystemSpec:
   )
 
 
+# The decoder's pose input (config.rep.kind): camrep's learned system (the paper's method), or a
+# comparison input for the noise-robustness figure (issue 5): GQN's low-dimensional pose vector,
+# or the supplement's MLP embedding (one 128 -> d MLP per DOF, trained with the decoder).
+REP_KINDS = ("grid", "lowdim", "mlp")
+
+
+def rep_kind(config) -> str:
+  kind = config.rep.get("kind", "grid")
+  if kind not in REP_KINDS:
+    raise ValueError(f"unknown rep.kind {kind!r}; choose one of {REP_KINDS}")
+  return kind
+
+
+def lowdim_constants(config) -> tuple[float, float]:
+  """(camera height, pitch) of the GQN-rooms procedural family: the constant z and pitch of GQN's
+  low-dimensional pose vector."""
+  from camrep.data import procedural
+
+  rooms = procedural.RoomsConfig()
+  fam = config.data.family
+  return float(fam.get("camera_height", rooms.camera_height)), float(fam.get("pitch", rooms.pitch))
+
+
+def lowdim_vectors(config, spec: P.PoseSystemSpec, poses: Array) -> dict[str, Array]:
+  """GQN's low-dimensional pose input, split by DOF: {name: (..., k)}.
+
+  GQN rooms (Eslami et al. 2018): (x, y, z, sin yaw, cos yaw, sin pitch, cos pitch), with the
+  procedural rooms' constant camera height and pitch: "xy" -> (x, y, z), "yaw" -> (sin yaw,
+  cos yaw, sin pitch, cos pitch). Other settings: polar / linear DOFs raw, angles (sin, cos).
+  """
+  gqn = setting(config) == "gqn"
+  z, pitch = lowdim_constants(config) if gqn else (0.0, 0.0)
+  out = {}
+  for d in spec.dofs:
+    cols = poses[..., spec.columns(d.name)]
+    ones = jnp.ones(cols.shape[:-1] + (1,), cols.dtype)
+    if isinstance(d, P.AngularDof):
+      v = jnp.concatenate([jnp.sin(cols), jnp.cos(cols)], -1)
+      if gqn:
+        v = jnp.concatenate([v, math.sin(pitch) * ones, math.cos(pitch) * ones], -1)
+    else:
+      v = jnp.concatenate([cols, z * ones], -1) if gqn and isinstance(d, P.PolarDof) else cols
+    out[d.name] = v
+  return out
+
+
+def init_rep(key: Array, config, spec: P.PoseSystemSpec) -> dict:
+  """Parameters of the pose-input group ("rep"): the learned system, the MLPs, or none."""
+  kind = rep_kind(config)
+  if kind == "grid":
+    return P.init(key, spec)
+  if kind == "mlp":
+    from camrep import targets
+
+    return targets.init_mlp(key, spec)
+  return {}
+
+
+def pose_vectors(
+  config, spec: P.PoseSystemSpec, rep, poses: Array, *, mode: str = "nearest", key=None
+) -> dict[str, Array]:
+  """Per-DOF decoder inputs of poses (..., P) for the config's `rep.kind`: {name: (..., k)}.
+
+  `mode` and `key` (quantisation of the learned system) are ignored by the other kinds.
+  """
+  kind = rep_kind(config)
+  if kind == "grid":
+    return P.embed(rep, spec, poses, mode=mode, key=key)
+  if kind == "mlp":
+    from camrep import targets
+
+    return targets.mlp_embed(rep, spec, poses)
+  return lowdim_vectors(config, spec, poses)
+
+
 def make_model(config, num_scenes: int):
   """The view-synthesis model of the config's setting."""
   m = config.model
@@ -233,9 +308,9 @@ def init_params(
 ) -> dict:
   """Initial parameters of both groups, shaped from one device's slice of a batch."""
   k_model, k_rep = jax.random.split(key)
-  rep = P.init(k_rep, spec)
+  rep = init_rep(k_rep, config, spec)
   images = to_float_images(jnp.asarray(batch["image"][0]))
-  vecs = P.concat(P.embed(rep, spec, jnp.asarray(batch["pose"][0])), spec)
+  vecs = P.concat(pose_vectors(config, spec, rep, jnp.asarray(batch["pose"][0])), spec)
   if config.task == "gqn":
     c = config.data.n_context
     variables = jax.jit(model.init)(k_model, images[:, :c], vecs[:, :c], vecs[:, c:])
@@ -265,12 +340,12 @@ def _scene_keys(key: Array, num_scenes: int) -> Array:
   return jax.vmap(lambda i: jax.random.fold_in(key, i))(start + jnp.arange(num_scenes))
 
 
-def _pose_vectors(rep, spec, poses, keys, mode):
+def _pose_vectors(config, rep, spec, poses, keys, mode):
   """(S, V, P) poses -> (S, V, n_dofs * d) with one key per scene."""
-  if mode == "random":
+  if mode == "random" and rep_kind(config) == "grid":
     f = lambda p, k: P.concat(P.embed(rep, spec, p, mode=mode, key=k), spec)
     return jax.vmap(f)(poses, keys)
-  return P.concat(P.embed(rep, spec, poses, mode=mode), spec)
+  return P.concat(pose_vectors(config, spec, rep, poses, mode=mode), spec)
 
 
 def reconstruction(model, config, spec, params_model, params_rep, batch, keys, mode):
@@ -280,7 +355,7 @@ def reconstruction(model, config, spec, params_model, params_rep, batch, keys, m
     (loss, (prediction, target)); images in [-1, 1].
   """
   images = to_float_images(batch["image"])
-  vecs = _pose_vectors(params_rep, spec, batch["pose"], keys, mode)
+  vecs = _pose_vectors(config, params_rep, spec, batch["pose"], keys, mode)
   if config.task == "gqn":
     c = config.data.n_context
     pred, _ = model.apply({"params": params_model}, images[:, :c], vecs[:, :c], vecs[:, c:])
@@ -299,6 +374,8 @@ def rotation_objective(config, spec, params_rep, batch, key_pairs, keys):
   batch's image pairs) use per-scene keys and are averaged over devices by the caller's pmean.
   """
   L = config.loss
+  if rep_kind(config) != "grid":  # no generators: nothing to tie nearby poses together
+    return jnp.zeros((), jnp.float32), {}
   mode = config.rep.quantisation
   extra = P.rotation_losses(key_pairs, params_rep, spec, n_pairs=L.n_pairs, mode=mode)
   terms = {}
@@ -458,7 +535,7 @@ def make_predict(config, model, spec):
   """jit(params, batch) -> (prediction, baseline), images (E, 1, H, W, 3) in [-1, 1]."""
 
   def predict(params, b):
-    vec = lambda p: P.concat(P.embed(params["rep"], spec, p, mode="nearest"), spec)
+    vec = lambda p: P.concat(pose_vectors(config, spec, params["rep"], p, mode="nearest"), spec)
     ctx = to_float_images(b["context_image"])
     if config.task == "gqn":
       pred, _ = model.apply(

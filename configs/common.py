@@ -54,6 +54,9 @@ def base() -> ml_collections.ConfigDict:
   c.model.gamma_init_one = False
 
   c.rep = ml_collections.ConfigDict()
+  # The decoder's pose input: "grid" (the paper's learned system), or for comparisons "lowdim"
+  # (GQN's low-dimensional pose vector) or "mlp" (the supplement's MLP embedding per DOF).
+  c.rep.kind = "grid"
   c.rep.n_blocks = 6
   c.rep.block_size = 16
   # exp(B t): "taylor2" (authors), "spectral" (exact, cheap), "expm" (reference).

@@ -160,3 +160,39 @@ def test_cli_writes_all_files(workdir, tmp_path, capsys):
     assert z["yaw"].shape == (360, 360) and z["xy_values"].shape == (441, 2)
   with pytest.raises(SystemExit):
     ev.main(["--workdir", workdir, "--what", "loss"])
+
+
+@pytest.mark.parametrize("kind", ["lowdim", "mlp"])
+def test_other_pose_inputs_train_and_take_noise(kind, tmp_path):
+  """The noise figure's comparison inputs (issue 5): GQN's low-dimensional pose vector and the
+  supplement's MLP embedding train in the same loop and go through the same noise evaluation."""
+  config = gqn.get_config("smoke")
+  config.rep.kind = kind
+  config.total_steps = 2
+  last = train.train_and_evaluate(config, str(tmp_path))
+  assert last["train/finite"] == 1.0 and "train/rot_xy" not in last
+  run = ev.load_run(str(tmp_path))
+  spec = run.spec
+  poses = jnp.asarray([[0.1, -0.2, 1.0], [0.5, 0.3, 4.0]], jnp.float32)
+  vecs = train.pose_vectors(run.config, spec, run.params["rep"], poses)
+  betas = ev.grid_betas(run.params["rep"], spec, run.config)
+  if kind == "lowdim":
+    assert run.params["rep"] == {}
+    z, pitch = train.lowdim_constants(run.config)
+    np.testing.assert_allclose(vecs["xy"], [[0.1, -0.2, z], [0.5, 0.3, z]], atol=1e-7)
+    np.testing.assert_allclose(
+      vecs["yaw"][0], [np.sin(1.0), np.cos(1.0), np.sin(pitch), np.cos(pitch)], atol=1e-6
+    )
+    # The constants (camera height, pitch) do not vary over the grid: no noise on them.
+    assert betas["xy"][2] < 1e-6 and np.all(betas["yaw"][2:] < 1e-6)
+    assert np.all(betas["xy"][:2] > 0) and np.all(betas["yaw"][:2] > 0)
+  else:
+    assert {d.name for d in spec.dofs} == set(run.params["rep"])
+    for name in spec.names:
+      assert vecs[name].shape == (2, spec.dim) and np.all(betas[name] > 0)
+      np.testing.assert_allclose(np.linalg.norm(vecs[name], axis=-1), 1.0, rtol=1e-5)
+  result = ev.noise_robustness(run, key=jax.random.key(0), alphas=[0.0, 0.3])
+  assert result["psnr"][0] == pytest.approx(_train_eval(str(tmp_path))["eval/psnr"], abs=1e-4)
+  assert result["psnr"][1] != result["psnr"][0]
+  grams = ev.gram_maps(run)
+  assert set(grams) == set(spec.names)
