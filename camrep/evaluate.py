@@ -444,9 +444,12 @@ def _fmt(v: float, step: float) -> str:
   return f"{v:.{decimals}f}"
 
 
+SERIES_COLORS = ((31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14))
+
+
 def line_plot(
   x: Sequence[float] | np.ndarray,
-  y: Sequence[float] | np.ndarray,
+  y: Sequence[float] | np.ndarray | Mapping[str, Sequence[float]],
   *,
   title: str,
   xlabel: str,
@@ -457,20 +460,31 @@ def line_plot(
   """A line plot with markers, axes, ticks, grid, labels and a title.
 
   Args:
-    x, y: (n,) values; non-finite y values are left out.
+    x: (n,) values.
+    y: (n,) values, or {label: (n,) values} for several series with a legend (colours from
+      `SERIES_COLORS`); non-finite values are left out.
     size: (width, height) in pixels.
-    color: RGB line colour.
+    color: RGB line colour of a single series.
 
   Returns:
     (height, width, 3) uint8 RGB image.
   """
-  x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+  x = np.asarray(x, np.float64)
+  series = (
+    {k: np.asarray(v, np.float64) for k, v in y.items()}
+    if isinstance(y, Mapping)
+    else {"": np.asarray(y, np.float64)}
+  )
+  colors = (
+    dict(zip(series, SERIES_COLORS * 4, strict=False)) if isinstance(y, Mapping) else {"": color}
+  )
   width, height = size
   img = np.full((height, width, 3), 255, np.uint8)
   left, right, top, bottom = 70, 20, 40, 55
   pw, ph = width - left - right, height - top - bottom
-  ok = np.isfinite(y)
-  ylo, yhi = (float(y[ok].min()), float(y[ok].max())) if ok.any() else (0.0, 1.0)
+  every = np.concatenate(list(series.values()))
+  ok = np.isfinite(every)
+  ylo, yhi = (float(every[ok].min()), float(every[ok].max())) if ok.any() else (0.0, 1.0)
   pad = 0.08 * (yhi - ylo) if yhi > ylo else max(abs(yhi) * 0.05, 0.05)
   yt = _nice_ticks(ylo - pad, yhi + pad)
   xt = _nice_ticks(float(x.min()), float(x.max()))
@@ -489,12 +503,19 @@ def line_plot(
     cv2.line(img, (left - 5, Y), (left, Y), _BLACK, 1)
     _text(img, _fmt(v, yt[1] - yt[0]), (left - 8, Y + 5), anchor="right")
   cv2.rectangle(img, (left, top), (left + pw, top + ph), _BLACK, 1)
-  pts = np.array([[px(a), py(b)] for a, b in zip(x[ok], y[ok], strict=True)])
-  if len(pts):
-    pts_i = np.round(pts).astype(np.int32)
-    cv2.polylines(img, [pts_i.reshape(-1, 1, 2)], False, color, 2, cv2.LINE_AA)
-    for p in pts_i:
-      cv2.circle(img, (int(p[0]), int(p[1])), 4, color, -1, cv2.LINE_AA)
+  for i, (label, yv) in enumerate(series.items()):
+    ok = np.isfinite(yv)
+    c = colors[label]
+    pts = np.array([[px(a), py(b)] for a, b in zip(x[ok], yv[ok], strict=True)])
+    if len(pts):
+      pts_i = np.round(pts).astype(np.int32)
+      cv2.polylines(img, [pts_i.reshape(-1, 1, 2)], False, c, 2, cv2.LINE_AA)
+      for p in pts_i:
+        cv2.circle(img, (int(p[0]), int(p[1])), 4, c, -1, cv2.LINE_AA)
+    if label:  # legend, top right inside the axes
+      ly = top + 18 + 20 * i
+      cv2.line(img, (left + pw - 150, ly - 4), (left + pw - 125, ly - 4), c, 2, cv2.LINE_AA)
+      _text(img, label, (left + pw - 118, ly))
   _text(img, title, (width // 2, 25), scale=0.6, anchor="center")
   _text(img, xlabel, (left + pw // 2, height - 12), scale=0.5, anchor="center")
   # Rotated y label: draw horizontally on a strip, rotate, paste left of the tick labels.

@@ -196,3 +196,34 @@ def test_other_pose_inputs_train_and_take_noise(kind, tmp_path):
   assert result["psnr"][1] != result["psnr"][0]
   grams = ev.gram_maps(run)
   assert set(grams) == set(spec.names)
+
+
+def test_noise_figure_script(tmp_path):
+  """experiments/noise_figure.py reads workdirs only and writes the figure and table."""
+  import importlib.util
+
+  spec = importlib.util.spec_from_file_location(
+    "noise_figure", os.path.join(os.path.dirname(__file__), "..", "experiments", "noise_figure.py")
+  )
+  nf = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(nf)
+  alphas = [0.0, 0.15, 0.3]
+  runs = []
+  for kind, psnr in (("grid", [20.0, 19.5, 19.0]), ("lowdim", [20.5, 17.0, 14.0])):
+    wd = tmp_path / kind
+    (wd / "eval").mkdir(parents=True)
+    (wd / "config.json").write_text(json.dumps({"rep": {"kind": kind}}))
+    noise = {"setting": "gqn", "step": 10, "alphas": alphas, "psnr": psnr, "num_images": 4}
+    noise["ssim"] = [0.5, 0.4, 0.3]
+    (wd / "eval" / "noise.json").write_text(json.dumps(noise))
+    runs.append(str(wd))
+  png, md = tmp_path / "out" / "noise.png", tmp_path / "out" / "noise.md"
+  assert nf.main(["--runs", *runs, "--png", str(png), "--md", str(md)]) == 0
+  img = cv2.imread(str(png))
+  assert img is not None and img.shape == (420, 1120, 3)
+  text = md.read_text()
+  assert "| 0.300 | 19.00 / 0.300 | 14.00 / 0.300 |" in text
+  assert "ours (learned) 1.00 dB, GQN low-dim pose 6.50 dB" in text
+  # A run without its noise curve is a clear error.
+  (tmp_path / "grid" / "eval" / "noise.json").unlink()
+  assert nf.main(["--runs", *runs, "--png", str(png), "--md", str(md)]) == 2

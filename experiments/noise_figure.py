@@ -1,0 +1,131 @@
+"""The paper's PSNR-vs-noise figure (section 4.3), from view-synthesis workdirs.
+
+Each workdir is a `python -m camrep.main` run whose noise curve `python -m camrep.evaluate
+--workdir=W --what=noise` has written to W/eval/noise.json. The runs differ only in the decoder's
+pose input (`--config.rep.kind`): the learned representation ("grid"), GQN's low-dimensional
+pose vector ("lowdim") and the supplement's MLP embedding ("mlp"). Noise N(0, (alpha beta_i)^2)
+is added to every element of the query pose input, beta_i being the element's std over the pose
+grid (camrep.evaluate.grid_betas), alpha = 0 .. 0.3.
+
+Writes a PNG (PSNR and SSIM against alpha, one curve per run) and a Markdown table:
+
+  .venv/bin/python experiments/noise_figure.py --runs /tmp/cmp/synthesis/gqn_grid \\
+      /tmp/cmp/synthesis/gqn_lowdim /tmp/cmp/synthesis/gqn_mlp \\
+      --png results/noise_gqn.png --md results/noise_gqn.md
+
+Reads workdirs only (config.json, eval/noise.json); seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import cv2
+import numpy as np
+
+from camrep import evaluate
+
+LABELS = {
+  "grid": "ours (learned)",
+  "lowdim": "GQN low-dim pose",
+  "mlp": "MLP embedding",
+}
+
+
+def load(workdir: str) -> dict:
+  """{label, kind, setting, step, alphas, psnr, ssim, psnr_std, num_images} of one run."""
+  with open(os.path.join(workdir, "config.json"), encoding="utf-8") as f:
+    config = json.load(f)
+  path = os.path.join(workdir, evaluate.EVAL_SUBDIR, "noise.json")
+  if not os.path.exists(path):
+    raise FileNotFoundError(
+      f"{path} does not exist: run `python -m camrep.evaluate --workdir={workdir} --what=noise`"
+    )
+  with open(path, encoding="utf-8") as f:
+    noise = json.load(f)
+  kind = config.get("rep", {}).get("kind", "grid")
+  return {
+    "label": LABELS.get(kind, kind),
+    "kind": kind,
+    "workdir": workdir,
+    **{k: noise[k] for k in ("setting", "step", "alphas", "psnr", "ssim", "num_images")},
+    "psnr_std": noise.get("psnr_std"),
+  }
+
+
+def markdown(runs: list[dict]) -> str:
+  alphas = runs[0]["alphas"]
+  head = "| alpha | " + " | ".join(f"{r['label']} PSNR / SSIM" for r in runs) + " |"
+  lines = [head, "|---" * (len(runs) + 1) + "|"]
+  for j, a in enumerate(alphas):
+    cells = [f"{r['psnr'][j]:.2f} / {r['ssim'][j]:.3f}" for r in runs]
+    lines.append(f"| {a:.3f} | " + " | ".join(cells) + " |")
+  drop = [r["psnr"][0] - r["psnr"][-1] for r in runs]
+  lines += [
+    "",
+    "PSNR lost from alpha = 0 to alpha = "
+    + f"{alphas[-1]:g}: "
+    + ", ".join(f"{r['label']} {d:.2f} dB" for r, d in zip(runs, drop, strict=True)),
+    "",
+    "Runs: "
+    + "; ".join(
+      f"{r['label']}: `{r['workdir']}` step {r['step']}, {r['num_images']} held-out views"
+      for r in runs
+    ),
+  ]
+  return "\n".join(lines) + "\n"
+
+
+def figure(runs: list[dict]) -> np.ndarray:
+  alphas = runs[0]["alphas"]
+  setting = runs[0]["setting"]
+  left = evaluate.line_plot(
+    alphas,
+    {r["label"]: r["psnr"] for r in runs},
+    title=f"PSNR vs pose noise ({setting})",
+    xlabel="alpha",
+    ylabel="PSNR (dB)",
+  )
+  right = evaluate.line_plot(
+    alphas,
+    {r["label"]: r["ssim"] for r in runs},
+    title=f"SSIM vs pose noise ({setting})",
+    xlabel="alpha",
+    ylabel="SSIM",
+  )
+  return np.concatenate([left, right], axis=1)
+
+
+def main(argv=None) -> int:
+  p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+  p.add_argument("--runs", nargs="+", required=True, help="view-synthesis workdirs")
+  p.add_argument("--png", required=True, help="output figure")
+  p.add_argument("--md", required=True, help="output Markdown table")
+  args = p.parse_args(argv)
+  try:
+    runs = [load(w) for w in args.runs]
+  except FileNotFoundError as e:
+    print(f"error: {e}", file=sys.stderr)
+    return 2
+  if len({r["setting"] for r in runs}) != 1:
+    print("error: the runs are of different settings", file=sys.stderr)
+    return 2
+  if any(not np.allclose(r["alphas"], runs[0]["alphas"]) for r in runs):
+    print("error: the runs' noise levels differ", file=sys.stderr)
+    return 2
+  for path in (args.png, args.md):
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+  table = markdown(runs)
+  with open(args.md, "w", encoding="utf-8") as f:
+    f.write(table)
+  cv2.imwrite(args.png, cv2.cvtColor(figure(runs), cv2.COLOR_RGB2BGR))
+  print(table)
+  print(f"wrote {args.png} and {args.md}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
