@@ -22,6 +22,9 @@ import pytest
 
 from camrep import evaluate, writers
 
+# One xdist worker runs the module, so the reference run is made once.
+pytestmark = pytest.mark.xdist_group("resume")
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "tests" / "resume_script.py"
 TOTAL, EVERY = 60, 10
