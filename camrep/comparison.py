@@ -1,0 +1,253 @@
+"""From regression results (results.json of `camrep.regression` runs) to the paper's Tables 1 and 2.
+
+Pure Python and NumPy (no JAX), shared by `experiments/table1.py`, `experiments/table2.py` and
+`experiments/run_comparison.py`:
+
+  load_results(patterns)      results.json files (or run directories) matching glob patterns
+  validation_score(s, summ)   the scalar that picks the learning rate (lower is better)
+  select(results)             per (setting, representation): the chosen lr and its runs
+  seed_stats(runs, ...)       mean, sample std and count over seeds of one test statistic
+
+Learning-rate choice: per (setting, representation), each lr's score is the mean of
+`validation_score` over the seeds that every lr of the grid has (all seeds when they share none);
+the lowest score wins (ties: the smaller lr). The score is the mean over the setting's table
+columns of (validation error / the paper's error of "ours" in that column), so position and
+angle errors count alike: car mean rotation error / 2.85 deg; gqn mean (x / 0.053, y / 0.053,
+yaw / 4.07 deg); gibson mean (x / 0.021, y / 0.020, yaw / 0.87 deg); seven_scenes median
+(position / 0.21 m, rotation / 7.92 deg), all over the whole validation set.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import glob
+import json
+import math
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+RESULTS_FILE = "results.json"
+
+# (column key, header, setting, error name): the paper's Table 1 columns (mean test errors).
+TABLE1_COLUMNS = (
+  ("car", "car rotation (deg)", "car", "rotation_error_deg"),
+  ("gqn_x", "rooms x", "gqn", "x_error"),
+  ("gqn_y", "rooms y", "gqn", "y_error"),
+  ("gqn_ori", "rooms yaw (deg)", "gqn", "yaw_error_deg"),
+  ("gibson_x", "area x (m)", "gibson", "x_error"),
+  ("gibson_y", "area y (m)", "gibson", "y_error"),
+  ("gibson_ori", "area yaw (deg)", "gibson", "yaw_error_deg"),
+)
+TABLE1_ROWS = ("euler", "axis_angle", "sincos", "quat", "logq", "mlp", "ours")
+ROW_LABELS = {
+  "euler": "(x, y, α) Euler",
+  "axis_angle": "(x, y, axis-angle)",
+  "sincos": "(x, y, sin α, cos α)",
+  "quat": "(x, y, q)",
+  "logq": "(x, y, log q)",
+  "mlp": "MLP embedding",
+  "ours": "ours",
+}
+
+PAPER_TABLE1: dict[str, dict[str, float]] = {
+  "euler": dict(
+    car=7.75, gqn_x=0.069, gqn_y=0.071, gqn_ori=12.00, gibson_x=0.043, gibson_y=0.041,
+    gibson_ori=7.03,
+  ),
+  "axis_angle": dict(car=11.29),
+  "sincos": dict(
+    car=7.29, gqn_x=0.108, gqn_y=0.104, gqn_ori=16.46, gibson_x=0.033, gibson_y=0.034,
+    gibson_ori=1.19,
+  ),
+  "quat": dict(
+    car=4.28, gqn_x=0.050, gqn_y=0.048, gqn_ori=5.34, gibson_x=0.043, gibson_y=0.042,
+    gibson_ori=1.21,
+  ),
+  "logq": dict(
+    car=5.35, gqn_x=0.051, gqn_y=0.051, gqn_ori=7.44, gibson_x=0.028, gibson_y=0.027,
+    gibson_ori=1.17,
+  ),
+  "mlp": dict(car=3.63),  # the supplement's MLP embedding (car only)
+  "ours": dict(
+    car=2.85, gqn_x=0.053, gqn_y=0.053, gqn_ori=4.07, gibson_x=0.021, gibson_y=0.020,
+    gibson_ori=0.87,
+  ),
+}  # fmt: skip
+"""The paper's Table 1 (digest 4.5): mean errors on real data at paper size."""
+
+PAPER_TABLE2: dict[str, tuple[float, float]] = {
+  "chess": (0.12, 4.83),
+  "fire": (0.27, 8.91),
+  "heads": (0.16, 12.84),
+  "office": (0.19, 6.64),
+  "pumpkin": (0.22, 5.45),
+  "redkitchen": (0.24, 6.10),
+  "stairs": (0.29, 10.70),
+  "average": (0.21, 7.92),
+}
+"""The paper's Table 2, ours (digest 4.4): median position (m) / rotation (deg) error per scene
+of the real 7-Scenes data."""
+
+TABLE2_ROWS = ("ours", "quat", "logq")
+
+# Per setting: (error, statistic, the paper's "ours" value) averaged into the validation score.
+SELECTION_METRICS: dict[str, tuple[tuple[str, str, float], ...]] = {
+  "car": (("rotation_error_deg", "mean", 2.85),),
+  "gqn": (("x_error", "mean", 0.053), ("y_error", "mean", 0.053), ("yaw_error_deg", "mean", 4.07)),
+  "gibson": (
+    ("x_error", "mean", 0.021),
+    ("y_error", "mean", 0.020),
+    ("yaw_error_deg", "mean", 0.87),
+  ),
+  "seven_scenes": (("position_error", "median", 0.21), ("rotation_error_deg", "median", 7.92)),
+}
+
+
+def load_results(patterns: Iterable[str]) -> list[dict[str, Any]]:
+  """results.json files matching glob patterns (a run directory stands for its results.json).
+
+  Directories without results.json (unfinished runs) are skipped. Each result gets "_path".
+  """
+  paths = set()
+  for pattern in patterns:
+    for p in glob.glob(pattern):
+      if os.path.isdir(p):
+        p = os.path.join(p, RESULTS_FILE)
+      if os.path.basename(p) == RESULTS_FILE and os.path.isfile(p):
+        paths.add(os.path.abspath(p))
+  out = []
+  for p in sorted(paths):
+    with open(p, encoding="utf-8") as f:
+      r = json.load(f)
+    r["_path"] = p
+    out.append(r)
+  return out
+
+
+def validation_score(setting: str, summary: Mapping[str, Any]) -> float:
+  """The learning-rate selection score of a validation summary (see the module docstring)."""
+  terms = [summary["all"][err][stat] / ref for err, stat, ref in SELECTION_METRICS[setting]]
+  return float(np.mean(terms))
+
+
+@dataclasses.dataclass
+class Selection:
+  """The chosen learning rate of one (setting, representation).
+
+  Attributes:
+    setting, representation: the group.
+    lr: the chosen learning rate.
+    runs: the results at that lr, one per seed (sorted by seed).
+    scores: {lr: (validation score, seeds it was averaged over)} for every lr of the grid.
+  """
+
+  setting: str
+  representation: str
+  lr: float
+  runs: list[dict[str, Any]]
+  scores: dict[float, tuple[float, tuple[int, ...]]]
+
+  @property
+  def seeds(self) -> tuple[int, ...]:
+    return tuple(r["seed"] for r in self.runs)
+
+
+def select(results: Sequence[Mapping[str, Any]]) -> dict[tuple[str, str], Selection]:
+  """Groups results by (setting, representation) and picks each group's learning rate.
+
+  A repeated (setting, representation, lr, seed) keeps the last file in path order.
+  """
+  groups: dict[tuple[str, str], dict[float, dict[int, Any]]] = collections.defaultdict(
+    lambda: collections.defaultdict(dict)
+  )
+  for r in results:
+    groups[r["setting"], r["representation"]][float(r["lr"])][int(r["seed"])] = r
+  out = {}
+  for (setting, rep), by_lr in sorted(groups.items()):
+    common = set.intersection(*(set(s) for s in by_lr.values()))
+    scores = {}
+    for lr, by_seed in sorted(by_lr.items()):
+      seeds = tuple(sorted(common or by_seed))
+      vals = [validation_score(setting, by_seed[s]["validation"]) for s in seeds]
+      scores[lr] = (float(np.mean(vals)), seeds)
+    best = min(scores, key=lambda lr: (scores[lr][0], lr))
+    runs = [by_lr[best][s] for s in sorted(by_lr[best])]
+    out[setting, rep] = Selection(setting, rep, best, runs, scores)
+  return out
+
+
+def seed_stats(
+  runs: Sequence[Mapping[str, Any]], error: str, stat: str = "mean", scene: str = "all"
+) -> tuple[float, float, int]:
+  """(mean, sample std (NaN for one run), n) over runs of test[scene][error][stat]."""
+  vals = [r["test"][scene][error][stat] for r in runs if scene in r["test"]]
+  if not vals:
+    return math.nan, math.nan, 0
+  std = float(np.std(vals, ddof=1)) if len(vals) > 1 else math.nan
+  return float(np.mean(vals)), std, len(vals)
+
+
+def digits_for(value: float) -> int:
+  """Decimals that show a value with about three significant digits (at most 4)."""
+  if not math.isfinite(value) or value == 0:
+    return 2
+  return int(min(4, max(0, 2 - math.floor(math.log10(abs(value))))))
+
+
+def fmt_mean_std(mean: float, std: float, *, digits: int | None = None) -> str:
+  """ "1.23 ± 0.04" ("1.23" for one seed, "–" for none)."""
+  if not math.isfinite(mean):
+    return "–"
+  d = digits_for(mean) if digits is None else digits
+  if not math.isfinite(std):
+    return f"{mean:.{d}f}"
+  return f"{mean:.{d}f} ± {std:.{d}f}"
+
+
+def fmt_lr(lr: float) -> str:
+  return f"{lr:.0e}".replace("e-0", "e-")
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+  """A GitHub Markdown table."""
+  lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+  lines += ["| " + " | ".join(r) + " |" for r in rows]
+  return "\n".join(lines)
+
+
+def selection_table(selections: Mapping[tuple[str, str], Selection]) -> str:
+  """The learning-rate choice of every group: grid with scores, chosen lr, seeds, sizes."""
+  rows = []
+  for (setting, rep), sel in selections.items():
+    grid = ", ".join(
+      f"{fmt_lr(lr)}: {score:.3g} (seeds {','.join(map(str, seeds))})"
+      for lr, (score, seeds) in sel.scores.items()
+    )
+    r0 = sel.runs[0]
+    rows.append(
+      [
+        setting,
+        ROW_LABELS.get(rep, rep),
+        grid,
+        fmt_lr(sel.lr),
+        ",".join(map(str, sel.seeds)),
+        str(r0.get("steps", "?")),
+        str(r0.get("params", "?")),
+        str(r0.get("variant", "?")),
+      ]
+    )
+  header = [
+    "setting",
+    "representation",
+    "lr: validation score (seeds)",
+    "chosen lr",
+    "test seeds",
+    "steps",
+    "params",
+    "size",
+  ]
+  return markdown_table(header, rows)

@@ -1,0 +1,377 @@
+"""Launch the whole pose-regression comparison (paper Tables 1 and 2; issue 5) as subprocesses.
+
+  python experiments/run_comparison.py --size quick --out DIR [--dry_run]
+  python experiments/run_comparison.py --size paper --out DIR [--dry_run]   # for a GPU
+
+Steps, one subprocess at a time (each logs to DIR/logs/<name>.log; finished steps are skipped,
+so an interrupted launch resumes where it stopped):
+
+  1. view-synthesis runs (`python -m camrep.main --config=configs/<setting>.py[:quick]
+     --workdir=DIR/synthesis/<setting>`) for gqn, car, gibson, seven_scenes, plus car_mlp (the
+     supplement's MLP embedding trained by view synthesis, `--config.rep.kind=mlp`) when the
+     trainer supports rep.kind; a run with final_metrics.json is done, otherwise it is started
+     or resumed from its checkpoint;
+  2. regression runs (`python -m camrep.regression --config=configs/regression.py[:quick]`) into
+     DIR/regression/<setting>/<representation>/lr<lr>_seed<seed>: phase 1 trains seed 0 at every
+     learning rate of the setting's grid; phase 2 trains the other seeds at the lr that seed 0's
+     validation errors chose (`camrep.comparison.select`), or at every lr with --full_grid;
+     a run with results.json is done. Rendered data and restored pose systems are cached in
+     DIR/cache;
+  3. tables: experiments/table1.py -> DIR/table1.md, experiments/table2.py -> DIR/table2.md;
+  4. figures: `python -m camrep.evaluate --workdir DIR/synthesis/<name>` (noise robustness
+     and Gram maps into each workdir's eval/), then, if experiments/noise_figure.py exists, one
+     noise figure per setting with several pose inputs: DIR/noise_car.{png,md} (learned system
+     vs MLP embedding) and, with --noise_runs (two more GQN synthesis runs, rep.kind lowdim and
+     mlp), DIR/noise_gqn.{png,md}.
+
+Representations: car all seven (ours, mlp, euler, axis_angle, sincos, quat, logq); gqn and
+gibson ours, euler, sincos, quat, logq (axis-angle and MLP are car-only in the paper);
+seven_scenes ours, quat, logq (Table 2).
+
+Budget: --dry_run prints every command with an estimated time and the total. The quick size is
+planned for about 2 hours on 2 CPU cores (estimates measured on a shared 2-core machine); the
+paper size is for a GPU (days of view synthesis per setting, as in the paper).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import shlex
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+
+from camrep import comparison as C
+from camrep import writers
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SETTINGS = ("gqn", "car", "gibson", "seven_scenes")
+SYNTHESIS_CONFIGS = {
+  "gqn": "configs/gqn.py",
+  "car": "configs/shapenet_car.py",
+  "gibson": "configs/gibson.py",
+  "seven_scenes": "configs/seven_scenes.py",
+}
+REPRESENTATIONS = {
+  "car": ("ours", "mlp", "euler", "axis_angle", "sincos", "quat", "logq"),
+  "gqn": ("ours", "euler", "sincos", "quat", "logq"),
+  "gibson": ("ours", "euler", "sincos", "quat", "logq"),
+  "seven_scenes": ("ours", "quat", "logq"),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+  """Sizes and time estimates of one launch size.
+
+  Attributes:
+    variant: config variant ("quick" or "" for paper size).
+    seeds: regression seeds.
+    lrs: learning-rate grid per setting.
+    synthesis_s: estimated seconds per view-synthesis run, per setting.
+    regression_s: estimated seconds per regression run (data cached), per setting.
+    data_s: one-time rendering of a setting's regression data, seconds.
+    evaluate_s: `camrep.evaluate` of one synthesis run, seconds.
+  """
+
+  variant: str
+  seeds: tuple[int, ...]
+  lrs: dict[str, tuple[float, ...]]
+  synthesis_s: dict[str, float]
+  regression_s: dict[str, float]
+  data_s: dict[str, float]
+  evaluate_s: float
+
+
+PLANS = {
+  "quick": Plan(
+    variant="quick",
+    seeds=(0, 1),
+    lrs={
+      "car": (1e-3, 3e-3),
+      "gqn": (3e-4, 1e-3),
+      "gibson": (1e-3, 3e-3),
+      "seven_scenes": (3e-4, 1e-3),
+    },
+    synthesis_s={"gqn": 600, "car": 600, "gibson": 540, "seven_scenes": 540},
+    regression_s={"gqn": 85, "car": 50, "gibson": 65, "seven_scenes": 55},
+    data_s={"gqn": 45, "car": 30, "gibson": 30, "seven_scenes": 20},
+    evaluate_s=120,
+  ),
+  # Paper size: the authors' learning rates x (1/3, 1, 3) (the paper tuned baselines but gives
+  # no values); times are rough guesses for one modern GPU.
+  "paper": Plan(
+    variant="",
+    seeds=(0, 1, 2),
+    lrs={
+      "car": (3e-4, 1e-3, 3e-3),
+      "gqn": (3e-5, 1e-4, 3e-4),
+      "gibson": (3e-4, 1e-3, 3e-3),
+      "seven_scenes": (1.5e-5, 5e-5, 1.5e-4),
+    },
+    synthesis_s={"gqn": 4 * 86400, "car": 2 * 86400, "gibson": 5 * 86400, "seven_scenes": 86400},
+    regression_s={"gqn": 6 * 3600, "car": 3 * 3600, "gibson": 3600, "seven_scenes": 2 * 3600},
+    data_s={"gqn": 1800, "car": 1800, "gibson": 3600, "seven_scenes": 600},
+    evaluate_s=600,
+  ),
+}
+
+
+@dataclasses.dataclass
+class Job:
+  """One subprocess: a name (its log file), argv, the file that marks it done, and an estimate."""
+
+  name: str
+  argv: list[str]
+  done_file: str
+  estimate_s: float
+
+  def done(self) -> bool:
+    return bool(self.done_file) and os.path.exists(self.done_file)
+
+  def command(self) -> str:
+    return shlex.join(self.argv)
+
+
+def mlp_synthesis_supported() -> bool:
+  """Whether the view-synthesis trainer has config.rep.kind (the MLP pose input)."""
+  sys.path.insert(0, ROOT)
+  from configs import common
+
+  return "kind" in common.base().rep
+
+
+def lr_tag(lr: float) -> str:
+  return f"lr{lr:.0e}".replace("e-0", "e-")
+
+
+def synthesis_jobs(out: str, plan: Plan, names: Sequence[str], py: str) -> list[Job]:
+  """View-synthesis runs: "<setting>" (the learned system) or "<setting>_<kind>" (another pose
+  input, `--config.rep.kind=<kind>`), into DIR/synthesis/<name>."""
+  suffix = f":{plan.variant}" if plan.variant else ""
+  jobs = []
+  for name in names:
+    setting = next(x for x in SETTINGS if name == x or name.startswith(f"{x}_"))
+    kind = name[len(setting) + 1 :]
+    wd = os.path.join(out, "synthesis", name)
+    argv = [py, "-m", "camrep.main", f"--config={SYNTHESIS_CONFIGS[setting]}{suffix}"]
+    argv.append(f"--workdir={wd}")
+    if kind:
+      argv.append(f"--config.rep.kind={kind}")
+    est = plan.synthesis_s[setting]
+    jobs.append(Job(f"synthesis_{name}", argv, os.path.join(wd, "final_metrics.json"), est))
+  return jobs
+
+
+def regression_job(
+  out: str, plan: Plan, setting: str, rep: str, lr: float | None, seed: int, py: str
+) -> Job:
+  """One regression run's job (lr None: a placeholder "<LR>", for --dry_run's phase 2)."""
+  suffix = f":{plan.variant}" if plan.variant else ""
+  tag = "lr<LR>" if lr is None else lr_tag(lr)
+  wd = os.path.join(out, "regression", setting, rep, f"{tag}_seed{seed}")
+  argv = [
+    py,
+    "-m",
+    "camrep.regression",
+    f"--config=configs/regression.py{suffix}",
+    f"--workdir={wd}",
+    f"--config.setting={setting}",
+    f"--config.representation={rep}",
+    f"--config.seed={seed}",
+    f"--config.optax.lr={'<LR>' if lr is None else format(lr, 'g')}",
+    f"--config.data.cache_dir={os.path.join(out, 'cache')}",
+  ]
+  syn = os.path.join(out, "synthesis", setting)
+  if rep == "ours":
+    argv.append(f"--config.synthesis_workdir={syn}")
+  elif rep == "mlp" and mlp_synthesis_supported():
+    argv.append(f"--config.synthesis_workdir={syn}_mlp")
+  name = f"regression_{setting}_{rep}_{tag}_seed{seed}"
+  return Job(name, argv, os.path.join(wd, C.RESULTS_FILE), plan.regression_s[setting])
+
+
+def table_jobs(out: str, py: str, settings: Sequence[str]) -> list[Job]:
+  runs = os.path.join(out, "regression", "*", "*", "*")
+  jobs = []
+  if set(settings) & {"car", "gqn", "gibson"}:
+    argv = [py, "experiments/table1.py", "--runs", runs, "--out", os.path.join(out, "table1.md")]
+    jobs.append(Job("table1", argv, "", 3))
+  if "seven_scenes" in settings:
+    argv = [py, "experiments/table2.py", "--runs", runs, "--out", os.path.join(out, "table2.md")]
+    jobs.append(Job("table2", argv, "", 3))
+  return jobs
+
+
+def figure_jobs(out: str, plan: Plan, synth: Sequence[Job], py: str) -> list[Job]:
+  """Noise robustness and Gram maps of every synthesis run (`camrep.evaluate`), then one noise
+  figure per setting with several pose inputs (experiments/noise_figure.py, if present)."""
+  jobs = []
+  names = [j.name.removeprefix("synthesis_") for j in synth]
+  for name in names:
+    wd = os.path.join(out, "synthesis", name)
+    argv = [py, "-m", "camrep.evaluate", "--workdir", wd]
+    done = os.path.join(wd, "eval", "noise.json")
+    jobs.append(Job(f"evaluate_{name}", argv, done, plan.evaluate_s))
+  script = os.path.join("experiments", "noise_figure.py")
+  if os.path.exists(os.path.join(ROOT, script)):
+    for setting in SETTINGS:
+      group = [n for n in names if n == setting or n.startswith(f"{setting}_")]
+      if setting not in group or len(group) < 2:
+        continue
+      argv = [py, script, "--runs", *(os.path.join(out, "synthesis", n) for n in group)]
+      argv += ["--png", os.path.join(out, f"noise_{setting}.png")]
+      argv += ["--md", os.path.join(out, f"noise_{setting}.md")]
+      jobs.append(Job(f"noise_figure_{setting}", argv, "", 10))
+  return jobs
+
+
+def run_job(job: Job, logs: str, *, index: str) -> bool:
+  """Runs a job (stdout and stderr to logs/<name>.log); True on success."""
+  os.makedirs(logs, exist_ok=True)
+  log_path = os.path.join(logs, f"{job.name}.log")
+  print(f"[{index}] {job.name} (est. {writers.format_duration(job.estimate_s)}) ...", flush=True)
+  t0 = time.perf_counter()
+  with open(log_path, "w", encoding="utf-8") as log:
+    log.write(f"$ {job.command()}\n")
+    log.flush()
+    rc = subprocess.call(job.argv, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+  took = writers.format_duration(time.perf_counter() - t0)
+  if rc == 0:
+    print(f"    done in {took}", flush=True)
+    return True
+  with open(log_path, encoding="utf-8") as f:
+    tail = f.read().splitlines()[-8:]
+  print(f"    FAILED (exit {rc}) after {took}; {log_path}:", flush=True)
+  for line in tail:
+    print(f"      {line}", flush=True)
+  return False
+
+
+def chosen_lr(out: str, setting: str, rep: str, plan: Plan) -> float | None:
+  """The lr that the phase-1 (seed 0) validation errors choose, or None without results."""
+  pattern = os.path.join(out, "regression", setting, rep, f"*_seed{plan.seeds[0]}")
+  results = [r for r in C.load_results([pattern]) if float(r["lr"]) in plan.lrs[setting]]
+  sel = C.select(results).get((setting, rep))
+  return None if sel is None else sel.lr
+
+
+def plan_regression(
+  out: str,
+  plan: Plan,
+  settings: Sequence[str],
+  reps: dict[str, tuple[str, ...]],
+  py: str,
+  *,
+  full_grid: bool,
+) -> tuple[list[Job], list[tuple[str, str, int]]]:
+  """(phase-1 jobs, phase-2 (setting, rep, seed) whose lr is chosen after phase 1)."""
+  first, later = [], []
+  seeds = plan.seeds if full_grid else plan.seeds[:1]
+  for s in settings:
+    for rep in reps[s]:
+      for seed in seeds:
+        for lr in plan.lrs[s]:
+          first.append(regression_job(out, plan, s, rep, lr, seed, py))
+      if not full_grid:
+        later += [(s, rep, seed) for seed in plan.seeds[1:]]
+  return first, later
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument("--size", choices=sorted(PLANS), default="quick")
+  p.add_argument("--out", required=True, help="output directory (synthesis/, regression/, ...)")
+  p.add_argument("--dry_run", action="store_true", help="print the commands and estimates only")
+  p.add_argument("--settings", default=",".join(SETTINGS), help="comma-separated subset")
+  p.add_argument(
+    "--representations", default="", help="comma-separated subset (default: per setting)"
+  )
+  p.add_argument("--full_grid", action="store_true", help="every seed at every learning rate")
+  p.add_argument("--skip_figures", action="store_true", help="no camrep.evaluate / noise figure")
+  p.add_argument(
+    "--noise_runs",
+    action="store_true",
+    help="also train gqn_lowdim and gqn_mlp synthesis runs for the GQN noise figure (+~20 min)",
+  )
+  p.add_argument("--python", default=sys.executable, help="interpreter of the subprocesses")
+  args = p.parse_args(argv)
+  plan = PLANS[args.size]
+  settings = [s.strip() for s in args.settings.split(",") if s.strip()]
+  bad = set(settings) - set(SETTINGS)
+  if bad:
+    p.error(f"unknown settings {sorted(bad)}; choose from {SETTINGS}")
+  only = {r.strip() for r in args.representations.split(",") if r.strip()}
+  reps = {s: tuple(r for r in REPRESENTATIONS[s] if not only or r in only) for s in settings}
+  out, py = os.path.abspath(args.out), args.python
+  logs = os.path.join(out, "logs")
+
+  kinds = mlp_synthesis_supported()
+  names = [s for s in settings if "ours" in reps[s]]
+  if kinds and "mlp" in reps.get("car", ()):
+    names.append("car_mlp")
+  if kinds and args.noise_runs and "gqn" in settings:
+    names += [n for n in ("gqn", "gqn_lowdim", "gqn_mlp") if n not in names]
+  synth = synthesis_jobs(out, plan, names, py)
+  first, later = plan_regression(out, plan, settings, reps, py, full_grid=args.full_grid)
+  tables = table_jobs(out, py, settings)
+  figures = [] if args.skip_figures else figure_jobs(out, plan, synth, py)
+
+  todo_first = [j for j in synth + first if not j.done()]
+  n_later = len(later)
+  est = sum(j.estimate_s for j in todo_first) + sum(plan.regression_s[s] for s, _, _ in later)
+  est += sum(plan.data_s[s] for s in settings if not os.path.isdir(os.path.join(out, "cache")))
+  est += sum(j.estimate_s for j in tables + figures if not j.done())
+  n_runs = len(first) + n_later
+  print(
+    f"{args.size} comparison into {out}: {len(synth)} view-synthesis runs, {n_runs} regression "
+    f"runs ({len(first)} in phase 1, {n_later} in phase 2), {len(tables)} tables, "
+    f"{len(figures)} figure steps; estimated {writers.format_duration(est)} for what is not "
+    f"done yet{' (on 2 CPU cores)' if args.size == 'quick' else ' (GPU; rough guess)'}.",
+    flush=True,
+  )
+  if args.dry_run:
+    for j in synth + first:
+      state = "done" if j.done() else f"~{writers.format_duration(j.estimate_s)}"
+      print(f"[{state}] {j.command()}")
+    for s, rep, seed in later:
+      job = regression_job(out, plan, s, rep, None, seed, py)
+      print(f"[~{writers.format_duration(plan.regression_s[s])}, phase 2] {job.command()}")
+    print("  (phase 2: <LR> = the lr chosen on seed 0's validation errors)")
+    for j in tables + figures:
+      print(f"[~{writers.format_duration(j.estimate_s)}] {j.command()}")
+    return 0
+
+  failed = []
+  t0 = time.perf_counter()
+  total_first = len(synth) + len(first)
+  for i, job in enumerate(synth + first):
+    if job.done():
+      continue
+    if not run_job(job, logs, index=f"{i + 1}/{total_first}"):
+      failed.append(job.name)
+  for i, (s, rep, seed) in enumerate(later):
+    lr = chosen_lr(out, s, rep, plan)
+    if lr is None:
+      print(f"[phase 2] {s}/{rep} seed {seed}: no phase-1 results; skipped", flush=True)
+      failed.append(f"regression_{s}_{rep}_seed{seed}")
+      continue
+    job = regression_job(out, plan, s, rep, lr, seed, py)
+    if not job.done() and not run_job(job, logs, index=f"phase 2: {i + 1}/{n_later}"):
+      failed.append(job.name)
+  for job in tables + figures:
+    if not job.done() and not run_job(job, logs, index=job.name):
+      failed.append(job.name)
+  took = writers.format_duration(time.perf_counter() - t0)
+  if failed:
+    print(f"finished in {took} with {len(failed)} failures: {', '.join(failed)}", flush=True)
+    return 1
+  print(f"finished in {took}; tables in {out}/table1.md and {out}/table2.md", flush=True)
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
