@@ -541,6 +541,9 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
 
   config = resolve_config(config)
   train_lib.check_workdir(workdir)
+  path = os.path.join(workdir, RESULTS_FILE)
+  if os.path.exists(path):  # a rerun: a stale file would mark an unfinished run as done
+    os.remove(path)
   t0 = time.perf_counter()
   spec, rep_params, rep_info = representation_params(config)
   data = make_data(config)
@@ -624,7 +627,6 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
     "test": summaries[config.evals.test_split],
     "extra": extra,
   }
-  path = os.path.join(workdir, RESULTS_FILE)
   with open(path + ".tmp", "w", encoding="utf-8") as f:
     json.dump(results, f, indent=1)
   os.replace(path + ".tmp", path)

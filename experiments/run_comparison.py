@@ -97,7 +97,7 @@ PLANS = {
       "seven_scenes": (3e-4, 1e-3),
     },
     synthesis_s={"gqn": 600, "car": 600, "gibson": 540, "seven_scenes": 540},
-    regression_s={"gqn": 85, "car": 50, "gibson": 65, "seven_scenes": 55},
+    regression_s={"gqn": 100, "car": 50, "gibson": 65, "seven_scenes": 55},
     data_s={"gqn": 45, "car": 30, "gibson": 30, "seven_scenes": 20},
     evaluate_s=120,
   ),
