@@ -295,11 +295,22 @@ class TrainState:
   opt_rep: Any
 
 
+def learning_rate(config, lr: float):
+  """The config's schedule of one group's learning rate: "constant" (the paper) or "cosine"
+  (decay to 1% of `lr` over `total_steps`, a camrep option for short runs)."""
+  schedule = config.optax.get("schedule", "constant")
+  if schedule == "constant":
+    return lr
+  if schedule == "cosine":
+    return optax.cosine_decay_schedule(lr, max(int(config.total_steps), 1), alpha=0.01)
+  raise ValueError(f"unknown optax.schedule {schedule!r}; choose 'constant' or 'cosine'")
+
+
 def make_optimizers(config) -> tuple[optax.GradientTransformation, optax.GradientTransformation]:
   """Separate Adams per group (digest 3; TF defaults eps 1e-8, b1 0.9, b2 0.999)."""
   o = config.optax
-  return optax.adam(o.lr_model, b1=0.9, b2=0.999, eps=1e-8), optax.adam(
-    o.lr_rep, b1=0.9, b2=0.999, eps=1e-8
+  return optax.adam(learning_rate(config, o.lr_model), b1=0.9, b2=0.999, eps=1e-8), optax.adam(
+    learning_rate(config, o.lr_rep), b1=0.9, b2=0.999, eps=1e-8
   )
 
 

@@ -84,6 +84,8 @@ def base() -> ml_collections.ConfigDict:
   c.optax = ml_collections.ConfigDict()
   c.optax.lr_model = 1e-4
   c.optax.lr_rep = 1e-2
+  # "constant" (the paper) or "cosine" (both rates decay to 1% over total_steps; short runs).
+  c.optax.schedule = "constant"
   # Pose-system steps per decoder step on the same batch; 0: one simultaneous step (GQN).
   c.optax.pose_steps = 0
 

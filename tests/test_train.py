@@ -220,3 +220,16 @@ def test_pose_spec_matches_paper_grids():
   assert [d.n_grid for d in s7.dofs] == [41, 16, 31, 36, 19, 36] and s7.dim == 32
   car = train.pose_spec(shapenet_car.get_config())
   assert isinstance(car.dof("polar"), P.AngularDof) and car.dof("polar").n_grid == 19
+
+
+def test_learning_rate_schedules():
+  config = gqn.get_config("smoke")
+  assert train.learning_rate(config, 1e-3) == 1e-3  # the paper's constant rate
+  config.optax.schedule = "cosine"
+  config.total_steps = 100
+  lr = train.learning_rate(config, 1e-3)
+  assert float(lr(0)) == pytest.approx(1e-3) and float(lr(100)) == pytest.approx(1e-5)
+  assert float(lr(50)) == pytest.approx(1e-3 * (0.01 + 0.99 * 0.5), rel=1e-5)
+  config.optax.schedule = "linear"
+  with pytest.raises(ValueError, match="unknown optax.schedule 'linear'"):
+    train.make_optimizers(config)
