@@ -10,8 +10,9 @@ lambda_2 100, lambda_4 0.8, 4000 extra rotation pairs, 6 blocks of 16, 21 x 21 p
     and trains (far too slowly to finish). Expected: the paper's GQN PSNR (not reported in full
     text) and pose-regression targets of Table 1 (x, y errors 0.053, yaw 4.07 degrees).
   python -m camrep.main --config=configs/gqn.py:quick --workdir=/tmp/gqn_quick
-    quarter... eighth width, 400 in-memory scenes, a few hundred steps: ~10 minutes on 2 CPU
-    cores; held-out-view PSNR should beat the mean-of-context baseline.
+    eighth width, 400 in-memory scenes, 3 context + 6 query views, 2000 steps: ~12 minutes on
+    2 CPU cores. Measured: held-out-view PSNR 20.78 dB against 19.12 dB for the mean of the 3
+    context views (+1.7 dB; still rising, short of the +3 dB aimed at; see BUILD_NOTES).
   python -m camrep.main --config=configs/gqn.py:smoke --workdir=/tmp/gqn_smoke
     seconds; for tests.
 """
@@ -50,7 +51,7 @@ def get_config(arg: str | None = None):
   c.eval_every_steps = 10_000
   c.log_every_steps = 100
   if variant == "quick":
-    common.quick(c, total_steps=1200, every=300)
+    common.quick(c, total_steps=2000, every=500)
     c.data.family.num_train_scenes = 400
     c.data.family.num_test_scenes = 16
     c.data.family.train_views = 10
@@ -58,7 +59,11 @@ def get_config(arg: str | None = None):
     # Nearly flat wall/floor colours, as in most real GQN rooms (see BUILD_NOTES).
     c.data.family.texture_contrast = (0.0, 0.08)
     c.data.scenes_per_device = 8
-    c.loss.n_pairs = 1000
+    # 3 context + 6 queries: half the encoder's work and twice the decoder's signal per step
+    # (measured better at this budget than the paper's 6 + 3; BUILD_NOTES).
+    c.data.n_context = 3
+    # At 1000 pairs the rotation losses took roughly a third of the quick step (BUILD_NOTES).
+    c.loss.n_pairs = 250
     c.evals.num_scenes = 64
   elif variant == "smoke":
     common.smoke(c, n_pairs=32, eval_scenes=4)
