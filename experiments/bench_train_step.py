@@ -92,6 +92,8 @@ def gqn_config(width: float, scenes: int, *, image_size: int = 64, setting: str 
   c.data.in_memory = True
   c.data.preset = "small"
   c.data.num_threads = 0
+  c.data.family.num_train_scenes = max(scenes, 4)  # one batch's worth, rendered once
+  c.data.family.num_test_scenes = 2
   if setting != "gqn":
     c.data.family.image_size = image_size
   return c
