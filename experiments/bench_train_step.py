@@ -80,7 +80,9 @@ def matmul_peak(n: int = 2048, reps: int = 5, dtype: str = "float32") -> float:
   return 2 * n**3 / best
 
 
-def gqn_config(width: float, scenes: int, *, image_size: int = 64, setting: str = "gqn"):
+def gqn_config(
+  width: float, scenes: int, *, image_size: int = 64, setting: str = "gqn", devices: int = 1
+):
   """The paper's config of `setting` at `width`, `scenes` per device, procedural data in memory."""
   sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
   from configs import gqn, shapenet_car
@@ -92,7 +94,7 @@ def gqn_config(width: float, scenes: int, *, image_size: int = 64, setting: str 
   c.data.in_memory = True
   c.data.preset = "small"
   c.data.num_threads = 0
-  c.data.family.num_train_scenes = max(scenes, 4)  # one batch's worth, rendered once
+  c.data.family.num_train_scenes = max(scenes * devices, 4)  # one batch's worth, rendered once
   c.data.family.num_test_scenes = 2
   if setting != "gqn":
     c.data.family.image_size = image_size
@@ -274,7 +276,7 @@ def breakdown(width: float, scenes: int, reps: int) -> dict[str, tuple[float, fl
 def _child(args) -> None:
   """Runs one measurement in this (fresh) process and prints it as JSON."""
   spec = json.loads(args.child)
-  config = gqn_config(spec["width"], spec["scenes"])
+  config = gqn_config(spec["width"], spec["scenes"], devices=spec["devices"])
   r = time_step(config, steps=spec["steps"], num_devices=spec["devices"])
   r["rss_mb"] = peak_rss_mb()
   print("RESULT " + json.dumps(r), flush=True)
