@@ -19,18 +19,11 @@ from camrep import pose as P
 from camrep import train, writers
 from configs import gibson, gqn, seven_scenes, shapenet_car
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _fast_compile():
-  # Compile time dominates these tiny models; XLA's optimisations would double it.
-  old = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", old)
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 @pytest.fixture(scope="module")
-def workdir(tmp_path_factory, _fast_compile):
+def workdir(tmp_path_factory, fast_compile):
   config = gqn.get_config("smoke")
   config.total_steps = 2  # checkpoint and eval at step 2
   wd = str(tmp_path_factory.mktemp("evaluate") / "run")

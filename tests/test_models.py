@@ -19,13 +19,7 @@ POSE_DIM = 192  # GQN rooms: v_view (96) || v_loc (96).
 STYLE_KEYS = ("gamma8", "beta8", "gamma16", "beta16")
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _fast_compile():
-  """Cuts XLA compile time (most of this module's run time); restored afterwards."""
-  old = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", old)
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 def _init(module, key, *args):

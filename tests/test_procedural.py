@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import jax
 import numpy as np
 import pytest
 
@@ -13,13 +12,7 @@ SIZE = 16
 TWO_PI = 2 * np.pi
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _fast_compile():
-  """Halves XLA compile time for the jitted renderer in this module; restored afterwards."""
-  old = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", old)
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 _FAMILIES: dict[str, procedural.ProceduralFamily] = {}

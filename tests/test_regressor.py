@@ -26,13 +26,7 @@ TINY = 1 / 16
 SMALL_SPEC = dict(n_blocks=2, block_size=4)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _fast_compile():
-  """Cuts XLA compile time (most of this module's run time); restored afterwards."""
-  old = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", old)
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 def _random_poses(setting, shape, rng):

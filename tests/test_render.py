@@ -21,13 +21,7 @@ def trace(o, d, scene, *, shadows=True) -> dict:
   return {k: np.asarray(v)[:n] for k, v in out.items()}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _fast_compile():
-  """Halves XLA compile time for the jitted renderer in this module; restored afterwards."""
-  old = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", old)
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 def _rays(origins, directions):

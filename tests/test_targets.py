@@ -18,13 +18,7 @@ from tests.utils import assert_close, x64
 TWO_PI = 2 * math.pi
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _fast_compile():
-  """Cuts XLA compile time (most of this module's run time); restored afterwards."""
-  old = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", old)
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 def _wxyz(rot: Rotation) -> np.ndarray:

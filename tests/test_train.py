@@ -21,13 +21,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 CONFIGS = {"gqn": gqn, "shapenet_car": shapenet_car, "gibson": gibson, "seven_scenes": seven_scenes}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _fast_compile():
-  # Compile time dominates these tiny models; XLA's optimisations would double it.
-  old = jax.config.read("jax_disable_most_optimizations")
-  jax.config.update("jax_disable_most_optimizations", True)
-  yield
-  jax.config.update("jax_disable_most_optimizations", old)
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 @pytest.mark.parametrize("name", sorted(CONFIGS))
