@@ -80,6 +80,7 @@ def make_regressor(
   fc_dim: int = 2048,
   stage_sizes: tuple[int, ...] = R.RESNET34_STAGES,
   refine_steps: int = 4,
+  equalise_params: bool = False,
   **overrides: Any,
 ) -> Regressor:
   """The regressor of a setting and representation at a given width.
@@ -96,6 +97,9 @@ def make_regressor(
     num_scenes: rows of Gibson's per-area instance-norm tables.
     fc_dim, stage_sizes: ResNet fc units and blocks per stage (7-Scenes).
     refine_steps: decoding refinement of "ours".
+    equalise_params: size a baseline's extra dense layer so that its parameter count equals
+      that of "ours" (the paper's fixed units equalise only at paper width; at a reduced width
+      they leave a baseline with about half the parameters of ours).
     **overrides: fields of `targets.RegressionDefaults` to change (lr, extra_fc, loss, ...).
 
   Returns:
@@ -108,16 +112,18 @@ def make_regressor(
     spec = None
   heads = T.head_specs(representation, setting, spec=spec)
   extra = layers.scaled(cfg.extra_fc, width) if cfg.extra_fc else None
+  match = None
+  if equalise_params and extra:
+    match = sum(h.size for h in T.head_specs("ours", setting, spec=T.default_spec(setting)))
+  kw = dict(width=width, extra_fc=extra, extra_fc_match=match)
   if setting == "gqn":
-    module = R.GQNRegressor(heads, width=width, extra_fc=extra)
+    module = R.GQNRegressor(heads, **kw)
   elif setting == "car":
-    module = R.CarRegressor(heads, width=width, extra_fc=extra)
+    module = R.CarRegressor(heads, **kw)
   elif setting == "gibson":
-    module = R.GibsonRegressor(heads, num_scenes=num_scenes, width=width, extra_fc=extra)
+    module = R.GibsonRegressor(heads, num_scenes=num_scenes, **kw)
   else:
-    module = R.ResNetRegressor(
-      heads, width=width, stage_sizes=tuple(stage_sizes), fc_dim=fc_dim, extra_fc=extra
-    )
+    module = R.ResNetRegressor(heads, stage_sizes=tuple(stage_sizes), fc_dim=fc_dim, **kw)
   return Regressor(setting, representation, module, heads, cfg, spec, refine_steps)
 
 

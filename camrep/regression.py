@@ -504,6 +504,7 @@ def make_regressor(config, spec, num_scenes: int) -> regress.Regressor:
     fc_dim=config.model.fc_dim,
     stage_sizes=tuple(config.model.resnet_stages),
     refine_steps=config.model.refine_steps,
+    equalise_params=config.model.equalise_params,
     lr=config.optax.lr,
   )
 

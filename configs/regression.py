@@ -101,6 +101,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.model.resnet_stages = (3, 4, 6, 3)
   c.model.fc_dim = 2048
   c.model.resnet_weights = ""
+  # Baselines' extra dense layer: False: the paper's fixed units (196 gqn, 256 car, 192 gibson,
+  # scaled by the width), which equalise parameter counts at paper width only; True: units
+  # solved so that each baseline has as many parameters as ours at any width (quick runs).
+  c.model.equalise_params = False
 
   c.optax = ml_collections.ConfigDict()
   c.optax.lr = config_dict.placeholder(float)
@@ -145,6 +149,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     c.data.n_query = 4  # gqn: 4 scenes x (6 context + 4 query) views a step
     c.model.resnet_stages = (1, 1, 1, 1)
     c.model.fc_dim = 256
+    c.model.equalise_params = True
     # The families of the :quick view-synthesis configs, with more views for regression.
     c.settings.gqn = _setting(
       family=dict(

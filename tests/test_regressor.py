@@ -183,6 +183,24 @@ def test_paper_width_parameter_counts():
   assert (ours - bare) / ours > 0.10
 
 
+@pytest.mark.parametrize("setting", ["car", "gibson"])
+def test_equalise_params_matches_ours_at_reduced_width(setting):
+  """At 1/8 width the fixed extra layer leaves a baseline far smaller than ours; solving for
+  its units brings every baseline within 1% of ours."""
+
+  def count(rep, **kw):
+    reg = regress.make_regressor(setting, rep, width=0.125, num_scenes=2, **kw)
+    batch = _batch(setting, np.random.default_rng(0), n=1, size=64, scenes=1, queries=1, views=2)
+    return layers.param_count(_abstract_init(reg, batch)["params"])
+
+  ours = count("ours")
+  assert (ours - count("quat")) / ours > 0.2
+  for rep in ("euler", "sincos", "quat", "logq"):
+    n = count(rep, equalise_params=True)
+    assert abs(n - ours) / ours < 0.01, (rep, n, ours)
+  assert count("ours", equalise_params=True) == ours  # ours has no extra layer to size
+
+
 # ---------------------------------------------------------------------------- ResNet
 
 

@@ -76,10 +76,16 @@ class PoseHeads(nn.Module):
     heads: the head specs (`camrep.targets.head_specs`).
     extra_fc: units of the extra layer (followed by lrelu), or None.
     kernel_init: kernel initialiser of the dense layers (glorot for the TF models).
+    extra_fc_match: with `extra_fc`, size the extra layer by the feature size F instead: the
+      units e that make these heads' parameters (F e + e + e o + o, o the heads' total size)
+      equal those of one dense layer from F to `extra_fc_match` outputs (F m + m: the heads of
+      "ours"), so that a baseline has as many parameters as ours at any width. None: `extra_fc`
+      units as given (the paper's fixed 196 / 256 / 192).
   """
 
   heads: tuple[HeadSpec, ...]
   extra_fc: int | None = None
+  extra_fc_match: int | None = None
   kernel_init: Callable = layers.kernel_init
 
   @nn.compact
@@ -89,7 +95,11 @@ class PoseHeads(nn.Module):
       n, kernel_init=self.kernel_init, bias_init=layers.bias_init, name=name
     )
     if self.extra_fc:
-      x = layers.lrelu(dense(self.extra_fc, "extra_fc")(x))
+      units = self.extra_fc
+      if self.extra_fc_match:
+        f, o, m = x.shape[-1], sum(h.size for h in self.heads), self.extra_fc_match
+        units = max(1, round((f * m + m - o) / (f + 1 + o)))
+      x = layers.lrelu(dense(units, "extra_fc")(x))
     return {h.name: normalise_head(dense(h.size, f"head_{h.name}")(x), h) for h in self.heads}
 
 
@@ -106,11 +116,13 @@ class GQNRegressor(nn.Module):
     heads: output heads.
     width: channel multiplier (paper 1.0).
     extra_fc: baselines' extra dense layer, or None.
+    extra_fc_match: size the extra layer to match this head size's parameters (`PoseHeads`).
   """
 
   heads: tuple[HeadSpec, ...]
   width: float = 1.0
   extra_fc: int | None = None
+  extra_fc_match: int | None = None
 
   @nn.compact
   def __call__(
@@ -158,7 +170,7 @@ class GQNRegressor(nn.Module):
       x = layers.lrelu(layers.adain(x, st[f"gamma{key}"], st[f"beta{key}"]))
       rms[name] = layers.rms(x)
     x = x.reshape((s, q, -1))
-    out = PoseHeads(self.heads, self.extra_fc, name="heads")(x)
+    out = PoseHeads(self.heads, self.extra_fc, extra_fc_match=self.extra_fc_match, name="heads")(x)
     return out, {"style": style, "rms": rms}
 
 
@@ -169,12 +181,14 @@ class CarRegressor(nn.Module):
     heads: output heads.
     width: channel multiplier.
     extra_fc: baselines' extra dense layer, or None.
+    extra_fc_match: size the extra layer to match this head size's parameters (`PoseHeads`).
     channels: conv channels at width 1.0.
   """
 
   heads: tuple[HeadSpec, ...]
   width: float = 1.0
   extra_fc: int | None = None
+  extra_fc_match: int | None = None
   channels: tuple[int, ...] = (64, 64, 128, 128, 256)
 
   @nn.compact
@@ -201,7 +215,9 @@ class CarRegressor(nn.Module):
       )
       rms[f"conv{i + 1}"] = layers.rms(x)
     x = x.reshape((*lead, -1))
-    return PoseHeads(self.heads, self.extra_fc, name="heads")(x), {"rms": rms}
+    return PoseHeads(self.heads, self.extra_fc, extra_fc_match=self.extra_fc_match, name="heads")(
+      x
+    ), {"rms": rms}
 
 
 class GibsonRegressor(nn.Module):
@@ -212,6 +228,7 @@ class GibsonRegressor(nn.Module):
     num_scenes: number of areas (rows of the gamma / beta tables).
     width: channel multiplier.
     extra_fc: baselines' extra dense layer, or None.
+    extra_fc_match: size the extra layer to match this head size's parameters (`PoseHeads`).
     channels: conv channels at width 1.0.
     gamma_init_one: initialise gamma tables at 1 + N(0, 0.001^2) instead of the authors'
       N(0, 0.001^2) (which makes every IN output ~ beta ~ 0 at the start).
@@ -221,6 +238,7 @@ class GibsonRegressor(nn.Module):
   num_scenes: int
   width: float = 1.0
   extra_fc: int | None = None
+  extra_fc_match: int | None = None
   channels: tuple[int, ...] = (64, 128, 256, 256, 256)
   gamma_init_one: bool = False
 
@@ -255,7 +273,9 @@ class GibsonRegressor(nn.Module):
       x = layers.lrelu(layers.adain(x, gamma[scene], beta[scene]))
       rms[f"conv{i + 1}"] = layers.rms(x)
     x = x.reshape((*lead, -1))
-    return PoseHeads(self.heads, self.extra_fc, name="heads")(x), {"rms": rms}
+    return PoseHeads(self.heads, self.extra_fc, extra_fc_match=self.extra_fc_match, name="heads")(
+      x
+    ), {"rms": rms}
 
 
 # --------------------------------------------------------------------------------------------
@@ -313,6 +333,7 @@ class ResNetRegressor(nn.Module):
     stage_sizes: basic blocks per stage (ResNet-34: 3, 4, 6, 3).
     fc_dim: units of the fc layer after pooling (2048).
     extra_fc: optional extra dense layer before the heads (none in MapNet's baselines).
+    extra_fc_match: size the extra layer to match this head size's parameters (`PoseHeads`).
   """
 
   heads: tuple[HeadSpec, ...]
@@ -320,6 +341,7 @@ class ResNetRegressor(nn.Module):
   stage_sizes: tuple[int, ...] = RESNET34_STAGES
   fc_dim: int = 2048
   extra_fc: int | None = None
+  extra_fc_match: int | None = None
 
   @nn.compact
   def __call__(
@@ -353,7 +375,13 @@ class ResNetRegressor(nn.Module):
       nn.Dense(self.fc_dim, kernel_init=kaiming_normal, bias_init=layers.bias_init, name="fc")(x)
     )
     x = x.reshape((*lead, self.fc_dim))
-    out = PoseHeads(self.heads, self.extra_fc, kernel_init=kaiming_normal, name="heads")(x)
+    out = PoseHeads(
+      self.heads,
+      self.extra_fc,
+      kernel_init=kaiming_normal,
+      extra_fc_match=self.extra_fc_match,
+      name="heads",
+    )(x)
     return out, {"features": x}
 
 
