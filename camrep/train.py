@@ -202,7 +202,7 @@ def make_model(config, num_scenes: int):
   """The view-synthesis model of the config's setting."""
   m = config.model
   if config.task == "gqn":
-    return GQNSynthesis(width=m.width)
+    return GQNSynthesis(width=m.width, gamma_offset=1.0 if m.gamma_init_one else 0.0)
   return TableSynthesis(
     num_scenes=num_scenes,
     scene_dim=m.scene_dim,

@@ -51,6 +51,9 @@ def base() -> ml_collections.ConfigDict:
   c.model.scene_dim = 128
   c.model.per_scene_norm = False
   c.model.norm_eps = 0.0
+  # camrep option, off for fidelity: AdaIN / instance-norm gammas start at ~1 instead of ~0 (the
+  # per-scene tables of Gibson / 7-Scenes are initialised at 1; the GQN decoder adds 1 to the
+  # encoder's gamma heads).
   c.model.gamma_init_one = False
 
   c.rep = ml_collections.ConfigDict()

@@ -269,6 +269,18 @@ def test_gibson_decoder_tables_and_lookup():
   assert float(jnp.abs(grads["fc"]["kernel"]).max()) > 0.0
 
 
+def test_gqn_decoder_gamma_offset_adds_to_the_encoder_gammas(gqn_tiny):
+  enc, dec = gqn_tiny["enc"], gqn_tiny["dec"]
+  scene, _ = _apply(enc, gqn_tiny["enc_vars"], gqn_tiny["images"], gqn_tiny["poses"])
+  shifted = {k: v + 1.0 if k.startswith("gamma") else v for k, v in scene.items()}
+  want, _ = _apply(dec, gqn_tiny["dec_vars"], shifted, gqn_tiny["queries"])
+  offset = models.ResAdaINDecoder(width=dec.width, gamma_offset=1.0)
+  got, _ = _apply(offset, gqn_tiny["dec_vars"], scene, gqn_tiny["queries"])
+  assert_close(got, want, atol=1e-6, rtol=1e-6)
+  plain, _ = _apply(dec, gqn_tiny["dec_vars"], scene, gqn_tiny["queries"])
+  assert not np.allclose(plain, got)
+
+
 def test_gibson_gamma_init_one_option():
   dec = models.GibsonDecoderTiny(gamma_init_one=True)
   z, idx = jnp.zeros((2, 40)), jnp.array([0, 1])

@@ -54,9 +54,14 @@ class ResAdaINDecoder(nn.Module):
 
   Attributes:
     width: channel multiplier (paper: 1.0); the AdaIN parameters must have 256 * width channels.
+    gamma_offset: added to the encoder's gamma8 / gamma16 before AdaIN. 0 as the authors (gamma
+      starts as a small random head output, so the AdaIN branches start nearly silent); 1 is a
+      camrep option (`model.gamma_init_one`): the heads learn gamma - 1, so the normalised
+      branches pass signal from the first step.
   """
 
   width: float = 1.0
+  gamma_offset: float = 0.0
 
   @nn.compact
   def __call__(self, scene: Mapping[str, Array], poses: Array) -> tuple[Array, dict]:
@@ -90,6 +95,8 @@ class ResAdaINDecoder(nn.Module):
 
     z = jnp.concatenate([per_query(u), poses.reshape((s * q, -1)).astype(u.dtype)], axis=-1)
     style = {k: per_query(scene[k]) for k in GQN_STYLE_KEYS}
+    if self.gamma_offset:
+      style = {k: v + self.gamma_offset if k.startswith("gamma") else v for k, v in style.items()}
     acts = {}
 
     x = layers.dense(4 * 4 * c256, name="fc")(z).reshape((s * q, 4, 4, c256))

@@ -30,9 +30,12 @@ class GQNSynthesis(nn.Module):
 
   Attributes:
     width: channel multiplier (1.0 = paper width).
+    gamma_offset: added to the encoder's AdaIN gammas in the decoder (0 as the authors; see
+      `ResAdaINDecoder`).
   """
 
   width: float = 1.0
+  gamma_offset: float = 0.0
 
   @nn.compact
   def __call__(
@@ -49,7 +52,9 @@ class GQNSynthesis(nn.Module):
       images (S, Q, 64, 64, 3) in [-1, 1], and aux with the scene code and decoder styles.
     """
     scene, enc_aux = SceneEncoder(width=self.width, name="encoder")(context_images, context_vecs)
-    images, dec_aux = ResAdaINDecoder(width=self.width, name="decoder")(scene, query_vecs)
+    images, dec_aux = ResAdaINDecoder(
+      width=self.width, gamma_offset=self.gamma_offset, name="decoder"
+    )(scene, query_vecs)
     return images, {"scene": scene, "decoder": dec_aux}
 
 
