@@ -671,6 +671,12 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
   p.add_argument("--workdir", required=True, help="training workdir (config.json, checkpoints/)")
   p.add_argument("--what", default="noise,gram", help="comma-separated: noise, gram")
   p.add_argument("--levels", type=int, default=DEFAULT_LEVELS, help="alpha = 0.025 j, j < levels")
+  p.add_argument(
+    "--alphas",
+    default=None,
+    help="comma-separated noise levels instead of --levels (e.g. 0,0.3,1,3,10: how much the "
+    "model uses its pose input)",
+  )
   p.add_argument("--out", default=None, help="output directory (default WORKDIR/eval)")
   p.add_argument("--step", type=int, default=None, help="checkpoint step (default: latest)")
   p.add_argument(
@@ -692,6 +698,15 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.error(f"--what takes a comma-separated subset of noise,gram; got {args.what!r}")
   if args.levels < 1:
     p.error("--levels must be at least 1")
+  if args.alphas is not None:
+    try:
+      args.alphas = np.array([float(a) for a in args.alphas.split(",") if a.strip()])
+    except ValueError:
+      p.error(f"--alphas takes comma-separated numbers; got {args.alphas!r}")
+    if not len(args.alphas) or (args.alphas < 0).any():
+      p.error(f"--alphas takes non-negative noise levels; got {args.alphas!r}")
+  else:
+    args.alphas = default_alphas(args.levels)
   args.what = what
   return args
 
@@ -717,7 +732,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     result = noise_robustness(
       run,
       key=jax.random.key(args.seed),
-      alphas=default_alphas(args.levels),
+      alphas=args.alphas,
       quantisation=args.quantisation,
       progress=log,
     )

@@ -23,10 +23,11 @@ paper's, `camrep.targets.DEFAULTS`).
       --config.setting=car --config.representation=quat [--config.optax.lr=3e-3 --config.seed=1]
     ~1-1.5 minutes on 2 CPU cores once the data is cached (a few thousand 64 px images,
     rendered once, ~30 s, into --config.data.cache_dir), eighth-width networks, 1500 steps of
-    32 images (gqn: 600 steps of 4 scenes x (6 + 4) views, ~1.5 minutes). Measured on a
-    shared 2-core machine (seed 0, lr 1e-3): car ours (pose system of a configs/shapenet_car.py
-    :quick run) 4.35 deg mean rotation error, car quat 7.40 deg (paper, real data: 2.85 / 4.28);
-    rooms (GQN) ours and quat both stay at chance (x, y ~0.41, yaw ~89 deg) at this budget.
+    32 images (gqn: 600 steps of 4 scenes x (6 + 4) views, ~1.5 minutes). Baselines get as
+    many parameters as ours (model.equalise_params). Measured in the quick comparison
+    (results/table1.md, mean of seeds 0 and 1 at the validation-chosen lr): car ours 3.71 deg
+    mean rotation error, sin/cos 4.50, quat 7.73 (paper, real data: 2.85 / 7.29 / 4.28); rooms
+    (GQN) every representation at chance (x, y ~0.41, yaw ~89 deg) at this budget.
   python -m camrep.regression --config=configs/regression.py:smoke --workdir=/tmp/reg_s \
       --config.setting=car --config.representation=euler
     seconds; for tests.

@@ -153,6 +153,13 @@ def test_cli_writes_all_files(workdir, tmp_path, capsys):
     assert z["yaw"].shape == (360, 360) and z["xy_values"].shape == (441, 2)
   with pytest.raises(SystemExit):
     ev.main(["--workdir", workdir, "--what", "loss"])
+  # Explicit noise levels (how much a model uses its pose: large alphas wipe the pose out).
+  out2 = str(tmp_path / "alphas")
+  assert ev.main(["--workdir", workdir, "--what", "noise", "--alphas", "0,3", "--out", out2]) == 0
+  assert json.load(open(os.path.join(out2, "noise.json")))["alphas"] == [0.0, 3.0]
+  for bad in ("0,x", "-1", ","):
+    with pytest.raises(SystemExit):
+      ev.main(["--workdir", workdir, "--alphas", bad])
 
 
 @pytest.mark.parametrize("kind", ["lowdim", "mlp"])
