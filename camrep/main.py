@@ -66,7 +66,7 @@ def main(argv):
   except FloatingPointError as e:
     print(f"error: {e}", file=sys.stderr, flush=True)
     sys.exit(3)
-  except (train.WorkdirError, DataError, CheckpointError) as e:
+  except (train.ConfigError, train.WorkdirError, DataError, CheckpointError) as e:
     print(f"error: {e}", file=sys.stderr, flush=True)
     sys.exit(2)
 

@@ -75,6 +75,29 @@ def setting(config) -> str:
     ) from None
 
 
+class ConfigError(ValueError):
+  """A config whose parts do not fit together (raised before any data or model is built)."""
+
+
+def check_config(config) -> None:
+  """Raises ConfigError on combinations the train step cannot run (e.g. GQN layouts without
+  query views, or data-pair rotation losses on a batch that holds no pairs)."""
+  d, L = config.data, config.loss
+  setting(config)
+  if config.total_steps < 1:
+    raise ConfigError(f"total_steps must be >= 1, got {config.total_steps}")
+  if config.task == "gqn" and not 1 <= d.n_context < d.views_per_scene:
+    raise ConfigError(
+      f"data.n_context must be in [1, views_per_scene) so that each scene has query views, "
+      f"got n_context={d.n_context}, views_per_scene={d.views_per_scene}"
+    )
+  if L.data_pairs and rep_kind(config) == "grid" and d.mode != "pairs":
+    raise ConfigError(
+      "loss.data_pairs reads the batch's views as (anchor, partner) pairs: it needs "
+      f"data.mode='pairs', got {d.mode!r} (GQN rooms: leave data_pairs off)"
+    )
+
+
 def pose_spec(config) -> P.PoseSystemSpec:
   """The pose system of the config's setting (digest 1.7), with camrep's options from config.rep."""
   r = config.rep
@@ -665,6 +688,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
   from camrep import checkpoint as ckpt_lib
   from camrep import writers
 
+  check_config(config)
   pidx, pcount = jax.process_index(), jax.process_count()
   lead = pidx == 0  # several processes: only process 0 logs, evaluates and prints
   check_workdir(workdir)

@@ -51,3 +51,21 @@ def test_render_pipeline_pairs_and_shards():
     pipeline.render_pipeline(
       family, "train", pipeline.PipelineConfig(scenes_per_device=50, num_threads=0)
     )
+
+
+def test_render_pipeline_on_per_scene_trajectories():
+  """scene6dof scenes have trajectories of different lengths (the paper-size 7-Scenes config
+  renders batch by batch through this pipeline)."""
+  family = procedural.make_family("scene6dof", preset="small")
+  lengths = [family.num_views("train", s) for s in family.scene_ids("train")]
+  assert len(set(lengths)) > 1
+  cfg = pipeline.PipelineConfig(scenes_per_device=2, views_per_scene=4, mode="pairs", num_threads=0)
+  pipe = pipeline.render_pipeline(family, "train", cfg)
+  b = pipe.batch(0)
+  assert b["image"].shape == (1, 2, 4, 64, 64, 3)
+  assert pipe.num_scene_views(1) == lengths[1]
+  too_many = pipeline.PipelineConfig(
+    scenes_per_device=2, views_per_scene=2 * min(lengths) + 2, mode="pairs", num_threads=0
+  )
+  with pytest.raises(DataError, match="views per scene"):
+    pipeline.render_pipeline(family, "train", too_many)

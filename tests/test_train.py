@@ -28,6 +28,7 @@ pytestmark = pytest.mark.usefixtures("fast_compile")
 @pytest.mark.parametrize("variant", [None, "quick", "smoke"])
 def test_configs_build(name, variant):
   config = CONFIGS[name].get_config(variant)
+  train.check_config(config)
   spec = train.pose_spec(config)
   assert spec.pose_dim == {"gqn": 3, "shapenet_car": 2, "gibson": 3, "seven_scenes": 6}[name]
   for key in ("total_steps", "ckpt_every_steps", "eval_every_steps", "log_every_steps"):
@@ -45,6 +46,24 @@ def test_configs_build(name, variant):
 def test_config_variant_errors():
   with pytest.raises(ValueError, match="variant"):
     gqn.get_config("huge")
+
+
+def test_check_config_rejects_layouts_the_step_cannot_run(tmp_path):
+  c = gqn.get_config("smoke")
+  c.data.n_context = c.data.views_per_scene  # no query views left
+  with pytest.raises(train.ConfigError, match="n_context"):
+    train.check_config(c)
+  c = gqn.get_config("smoke")
+  c.loss.data_pairs = True  # GQN batches hold random views, not (anchor, partner) pairs
+  with pytest.raises(train.ConfigError, match="data.mode='pairs'"):
+    train.train_and_evaluate(c, str(tmp_path / "run"))
+  assert not (tmp_path / "run").exists()  # refused before the workdir was touched
+  c.rep.kind = "lowdim"  # no generators, no rotation loss: data_pairs is moot
+  train.check_config(c)
+  c = shapenet_car.get_config("smoke")
+  c.total_steps = 0
+  with pytest.raises(train.ConfigError, match="total_steps"):
+    train.check_config(c)
 
 
 def test_gqn_smoke_trains_evaluates_and_resumes(tmp_path):

@@ -511,7 +511,10 @@ class RenderPipeline(BatchPipeline):
         f"batch layout needs {need} scenes per step per process, but the split has "
         f"{len(self.all_scene_ids)} scenes for {process_count} process(es)",
       )
-    views = family.num_views(split)
+    if getattr(family, "fixed_view_count", True):
+      views = family.num_views(split)
+    else:  # per-scene trajectories (scene6dof): the shortest one bounds the batch layout
+      views = min(family.num_views(split, int(s)) for s in self.all_scene_ids)
     need_views = (
       config.views_per_scene if config.mode == "random" else max(2, config.views_per_scene // 2)
     )

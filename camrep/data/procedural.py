@@ -261,6 +261,8 @@ class ProceduralFamily(abc.ABC):
   name: str
   splits: tuple[str, ...]
   budgets: dict[str, int]
+  # Whether every scene of a split has the same number of views (`num_views(split)` alone).
+  fixed_view_count: bool = True
 
   def __init__(self, config):
     self.config = config
@@ -883,6 +885,8 @@ class Scene6DofFamily(ProceduralFamily):
 
   name = "scene6dof"
   splits = ("train", "test")
+  # Each scene's trajectory has its own length: `num_views` needs `scene`.
+  fixed_view_count = False
   budgets = dict(max_boxes=16, max_spheres=6, max_cylinders=6, max_planes=1)
 
   def __init__(self, config):
