@@ -6,7 +6,8 @@ lambda_1 0.01, lambda_2 100, lambda_4 0.8, 3000 extra pairs plus image pairs, 41
 grid (0.05 m), extra-pair radius 2.2 grid units.
 
   python -m camrep.main --config=configs/gibson.py --workdir=/tmp/gibson
-    paper size: ~5 days on one Titan RTX; expected Table 1 Gibson errors 0.021 m, 0.020 m, 0.87 deg.
+    paper size: ~5 days on one Titan RTX (on one H100 it trained, using ~17 GiB of GPU memory;
+    no steady rate measured). Expected Table 1 Gibson errors 0.021 m, 0.020 m, 0.87 deg.
   python -m camrep.main --config=configs/gibson.py:quick --workdir=/tmp/gibson_quick
     64 px, 4 areas in memory, eighth width: ~10 minutes on 2 CPU cores.
   python -m camrep.main --config=configs/gibson.py:smoke --workdir=/tmp/gibson_smoke

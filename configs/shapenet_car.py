@@ -5,8 +5,8 @@ vectors u (128), 3 pose-system steps per decoder step, lr 1e-4 / 1e-4, lambda_1 
 100 extra pairs plus the batch's image pairs (0.5 / 0.5), 6 blocks of 16, 10-degree grids.
 
   python -m camrep.main --config=configs/shapenet_car.py --workdir=/tmp/car
-    paper size: ~1-4 days on one Titan RTX per the authors; expected car pose-regression error
-    2.85 degrees (Table 1).
+    paper size: ~1-4 days on one Titan RTX per the authors; measured on one H100: 4.8 steps/s,
+    ETA 9 h 18 min. Expected car pose-regression error 2.85 degrees (Table 1).
   python -m camrep.main --config=configs/shapenet_car.py:quick --workdir=/tmp/car_quick
     64 px, 64 cars in memory, eighth width: ~10 minutes on 2 CPU cores; held-out-view PSNR should
     beat the per-car mean-image baseline.
