@@ -83,7 +83,11 @@ def check_config(config) -> None:
   """Raises ConfigError on combinations the train step cannot run (e.g. GQN layouts without
   query views, or data-pair rotation losses on a batch that holds no pairs)."""
   d, L = config.data, config.loss
-  setting(config)
+  try:
+    setting(config)
+    kind = rep_kind(config)
+  except ValueError as e:  # unknown data.source or rep.kind
+    raise ConfigError(str(e)) from None
   if config.total_steps < 1:
     raise ConfigError(f"total_steps must be >= 1, got {config.total_steps}")
   if config.task == "gqn" and not 1 <= d.n_context < d.views_per_scene:
@@ -91,7 +95,7 @@ def check_config(config) -> None:
       f"data.n_context must be in [1, views_per_scene) so that each scene has query views, "
       f"got n_context={d.n_context}, views_per_scene={d.views_per_scene}"
     )
-  if L.data_pairs and rep_kind(config) == "grid" and d.mode != "pairs":
+  if L.data_pairs and kind == "grid" and d.mode != "pairs":
     raise ConfigError(
       "loss.data_pairs reads the batch's views as (anchor, partner) pairs: it needs "
       f"data.mode='pairs', got {d.mode!r} (GQN rooms: leave data_pairs off)"

@@ -64,6 +64,10 @@ def test_check_config_rejects_layouts_the_step_cannot_run(tmp_path):
   c.total_steps = 0
   with pytest.raises(train.ConfigError, match="total_steps"):
     train.check_config(c)
+  c = shapenet_car.get_config("smoke")
+  c.data.source = "nowhere"
+  with pytest.raises(train.ConfigError, match="unknown data.source"):
+    train.check_config(c)
 
 
 def test_gqn_smoke_trains_evaluates_and_resumes(tmp_path):
