@@ -28,6 +28,8 @@ import subprocess
 import sys
 import time
 
+from camrep import writers
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -114,24 +116,17 @@ def run_one(args: argparse.Namespace, name: str, overrides: list[str]) -> dict:
 
 def read_curve(workdir: str) -> list[dict]:
   """[{step, psnr, baseline, gain, ssim}] from a run's metrics.jsonl (evaluation rows only)."""
-  path = os.path.join(workdir, "metrics.jsonl")
-  if not os.path.exists(path):
-    return []
-  rows = []
-  with open(path, encoding="utf-8") as f:
-    for line in f:
-      d = json.loads(line)
-      if "eval/psnr" in d and "eval/psnr_baseline" in d:
-        rows.append(
-          {
-            "step": int(d["step"]),
-            "psnr": d["eval/psnr"],
-            "baseline": d["eval/psnr_baseline"],
-            "gain": d["eval/psnr"] - d["eval/psnr_baseline"],
-            "ssim": d.get("eval/ssim"),
-          }
-        )
-  return rows
+  return [
+    {
+      "step": int(d["step"]),
+      "psnr": d["eval/psnr"],
+      "baseline": d["eval/psnr_baseline"],
+      "gain": d["eval/psnr"] - d["eval/psnr_baseline"],
+      "ssim": d.get("eval/ssim"),
+    }
+    for d in writers.read_metrics(workdir)
+    if "eval/psnr" in d and "eval/psnr_baseline" in d
+  ]
 
 
 def table(results: list[dict]) -> str:
