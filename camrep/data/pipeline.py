@@ -95,6 +95,14 @@ class PipelineConfig:
     """D * S, the scenes in one step's batch on this process."""
     return self.num_devices * self.scenes_per_device
 
+  @property
+  def scene_views_needed(self) -> int:
+    """Views every scene must have: V distinct views ("random"), or V / 2 anchors, at least
+    2 ("pairs")."""
+    if self.mode == "random":
+      return self.views_per_scene
+    return max(2, self.views_per_scene // 2)
+
   @classmethod
   def from_mapping(cls, cfg: Mapping[str, Any]) -> PipelineConfig:
     """Builds a config from the matching keys of a dict or ml_collections.ConfigDict."""
@@ -227,10 +235,7 @@ class BatchPipeline:
         f"for {process_count} process(es)",
       )
     min_views = min(len(r) for r in rows)
-    if config.mode == "random":
-      need_views = config.views_per_scene
-    else:
-      need_views = max(2, config.views_per_scene // 2)
+    need_views = config.scene_views_needed
     if min_views < need_views:
       raise DataError(
         where,
@@ -515,9 +520,7 @@ class RenderPipeline(BatchPipeline):
       views = family.num_views(split)
     else:  # per-scene trajectories (scene6dof): the shortest one bounds the batch layout
       views = min(family.num_views(split, int(s)) for s in self.all_scene_ids)
-    need_views = (
-      config.views_per_scene if config.mode == "random" else max(2, config.views_per_scene // 2)
-    )
+    need_views = config.scene_views_needed
     if views < need_views:
       raise DataError(
         where, f"{config.mode!r} mode needs {need_views} views per scene, scenes have {views}"
