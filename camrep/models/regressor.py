@@ -215,9 +215,8 @@ class CarRegressor(nn.Module):
       )
       rms[f"conv{i + 1}"] = layers.rms(x)
     x = x.reshape((*lead, -1))
-    return PoseHeads(self.heads, self.extra_fc, extra_fc_match=self.extra_fc_match, name="heads")(
-      x
-    ), {"rms": rms}
+    heads = PoseHeads(self.heads, self.extra_fc, extra_fc_match=self.extra_fc_match, name="heads")
+    return heads(x), {"rms": rms}
 
 
 class GibsonRegressor(nn.Module):
@@ -273,9 +272,8 @@ class GibsonRegressor(nn.Module):
       x = layers.lrelu(layers.adain(x, gamma[scene], beta[scene]))
       rms[f"conv{i + 1}"] = layers.rms(x)
     x = x.reshape((*lead, -1))
-    return PoseHeads(self.heads, self.extra_fc, extra_fc_match=self.extra_fc_match, name="heads")(
-      x
-    ), {"rms": rms}
+    heads = PoseHeads(self.heads, self.extra_fc, extra_fc_match=self.extra_fc_match, name="heads")
+    return heads(x), {"rms": rms}
 
 
 # --------------------------------------------------------------------------------------------
