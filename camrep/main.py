@@ -1,7 +1,8 @@
 """Entry point: `python -m camrep.main --config=configs/gqn.py[:quick|:smoke] --workdir=DIR`.
 
 Kept short on purpose: it parses flags, joins a jax.distributed job when asked, logs the devices,
-and calls `camrep.train.train_and_evaluate`. Override config fields with `--config.total_steps=...`
+and calls `camrep.synthesis.train.train_and_evaluate`. Override config fields with
+`--config.total_steps=...`
 (`lock_config` turns an unknown key into an error, and types are checked).
 
 Exit status: 0 done (or stopped by SIGTERM / Ctrl-C after saving a checkpoint), 1 bad flags,
@@ -16,9 +17,9 @@ import jax
 from absl import app, flags, logging
 from ml_collections import config_flags
 
-from camrep import train
-from camrep.checkpoint import CheckpointError
 from camrep.data.errors import DataError
+from camrep.runtime.checkpoint import CheckpointError
+from camrep.synthesis import train
 
 _CONFIG = config_flags.DEFINE_config_file(
   "config", None, "Path to a config file (configs/*.py).", lock_config=True

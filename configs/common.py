@@ -1,7 +1,7 @@
 """The base config every experiment derives from, and the `:quick` / `:smoke` argument parser.
 
 Sections: data, model, rep (the pose system), loss, optax, evals; durations in steps, converted in
-one place (`camrep.writers.itstime`).
+one place (`camrep.runtime.writers.itstime`).
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ picks nothing itself, and writes results.json (validation and test errors) for
 
 Sizes per setting live in `settings.<setting>`; the top-level `total_steps`, `data.batch_size`,
 `model.width` and `optax.lr` override them when set (None: the setting's value; lr None: the
-paper's, `camrep.targets.DEFAULTS`).
+paper's, `camrep.regression.targets.DEFAULTS`).
 
   python -m camrep.regression --config=configs/regression.py --workdir=/tmp/reg_car_ours \
       --config.setting=car --config.representation=ours --config.synthesis_workdir=/tmp/car
@@ -67,7 +67,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   variant = common.parse_arg(arg)
   c = ml_collections.ConfigDict()
   c.setting = "car"
-  # One of camrep.targets.REPRESENTATIONS: ours, mlp, euler, axis_angle, sincos, quat, logq.
+  # One of camrep.regression.targets.REPRESENTATIONS: ours, mlp, euler, axis_angle, sincos, quat,
+  # logq.
   c.representation = "quat"
   c.seed = 0
   # A `camrep.main` workdir of the same setting: "ours" takes its learned pose system (required);

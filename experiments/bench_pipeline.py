@@ -29,7 +29,7 @@ import cv2
 import grain
 import numpy as np
 
-from camrep.data import pipeline, procedural, tfds_builders
+from camrep.data import pipeline, procedural, storage
 
 
 class StandInRooms:
@@ -73,7 +73,7 @@ class StandInRooms:
 
 def make_source(
   kind: str, num_scenes: int, views: int, size: int
-) -> tuple[tfds_builders.ViewSource, str]:
+) -> tuple[storage.ViewSource, str]:
   """The procedural rooms family ("rooms") or the cheap stand-in ("stand_in")."""
   if kind == "stand_in":
     return StandInRooms(num_scenes, views, size), "stand-in rooms (no rendering)"
@@ -141,9 +141,9 @@ def main() -> None:
 
   with tempfile.TemporaryDirectory() as data_dir:
     t0 = time.perf_counter()
-    path = tfds_builders.prepare(source, data_dir, progress=False)
+    path = storage.prepare(source, data_dir, progress=False)
     prep = time.perf_counter() - t0
-    n = tfds_builders.load_metadata(path)["splits"]["train"]["num_views"]
+    n = storage.load_metadata(path)["splits"]["train"]["num_views"]
     size_mb = sum(f.stat().st_size for f in path.iterdir()) / 2**20
     print(f"prepare: {prep:.2f} s for {n} views ({n / prep:.0f} views/s, {size_mb:.1f} MiB)")
 
@@ -151,7 +151,7 @@ def main() -> None:
     stored = pipeline.tfds_pipeline(data_dir, source.name, "train", cfg)
     print(f"open tfds pipeline: {time.perf_counter() - t0:.2f} s")
     # The in-memory variant over the same views, loaded from the store (not re-rendered).
-    images = tfds_builders.load(data_dir, source.name, "train").read_images(np.arange(n))
+    images = storage.load(data_dir, source.name, "train").read_images(np.arange(n))
     memory = pipeline.BatchPipeline(stored.index, lambda records: images[records], cfg)
     runs = {
       "memory": (memory.batch(k) for k in range(10**9)),

@@ -19,8 +19,7 @@ from collections.abc import Sequence
 import jax
 import numpy as np
 
-from camrep import render
-from camrep.data import procedural
+from camrep.data import procedural, render
 
 
 def bench(name: str, size: int | None, batches: int) -> dict:

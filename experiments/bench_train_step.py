@@ -2,7 +2,7 @@
 
 Measures, in one run (these machines are noisy: compare the ratios printed by one run):
 
-  step      the pmapped `camrep.train` step on the paper's batch layout (30 scenes x (6 context
+  step      the pmapped `camrep.synthesis.train` step on the paper's batch layout (30 scenes x (6 context
             + 3 query) views of 64 px = 270 images, 4000 rotation pairs) at `--width`:
             seconds per step (median), images/s, compile time, FLOPs per step from XLA's cost
             analysis, achieved FLOP/s, and peak RSS;
@@ -107,7 +107,7 @@ def time_step(config, *, steps: int, num_devices: int = 1) -> dict:
   import jax.numpy as jnp
   import numpy as np
 
-  from camrep import train
+  from camrep.synthesis import train
 
   pipe = train.make_pipeline(config, "train", num_devices=num_devices)
   spec = train.pose_spec(config)
@@ -155,7 +155,7 @@ def decode_throughput(n: int = 4096) -> dict:
   import numpy as np
 
   from camrep import pose as P
-  from camrep import train
+  from camrep.synthesis import train
 
   config = gqn_config(1.0, 1)
   spec = train.pose_spec(config)
@@ -239,9 +239,9 @@ def breakdown(width: float, scenes: int, reps: int) -> dict[str, tuple[float, fl
   import jax.numpy as jnp
 
   from camrep import pose as P
-  from camrep import train
   from camrep.models.decoder import ResAdaINDecoder
   from camrep.models.encoder import SceneEncoder
+  from camrep.synthesis import train
 
   config = gqn_config(width, scenes)
   spec = train.pose_spec(config)

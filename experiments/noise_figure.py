@@ -1,11 +1,11 @@
 """The paper's PSNR-vs-noise figure (section 4.3), from view-synthesis workdirs.
 
-Each workdir is a `python -m camrep.main` run whose noise curve `python -m camrep.evaluate
+Each workdir is a `python -m camrep.main` run whose noise curve `python -m camrep.synthesis.evaluate
 --workdir=W --what=noise` has written to W/eval/noise.json. The runs differ only in the decoder's
 pose input (`--config.rep.kind`): the learned representation ("grid"), GQN's low-dimensional
 pose vector ("lowdim") and the supplement's MLP embedding ("mlp"). Noise N(0, (alpha beta_i)^2)
 is added to every element of the query pose input, beta_i being the element's std over the pose
-grid (camrep.evaluate.grid_betas), alpha = 0 .. 0.3.
+grid (camrep.synthesis.evaluate.grid_betas), alpha = 0 .. 0.3.
 
 Writes a PNG (PSNR and SSIM against alpha, one curve per run) and a Markdown table:
 
@@ -26,7 +26,7 @@ import sys
 import cv2
 import numpy as np
 
-from camrep import evaluate
+from camrep.synthesis import evaluate
 
 LABELS = {
   "grid": "ours (learned)",
@@ -42,7 +42,7 @@ def load(workdir: str) -> dict:
   path = os.path.join(workdir, evaluate.EVAL_SUBDIR, "noise.json")
   if not os.path.exists(path):
     raise FileNotFoundError(
-      f"{path} does not exist: run `python -m camrep.evaluate --workdir={workdir} --what=noise`"
+      f"{path} does not exist: run `python -m camrep.synthesis.evaluate --workdir={workdir} --what=noise`"
     )
   with open(path, encoding="utf-8") as f:
     noise = json.load(f)

@@ -14,11 +14,11 @@ so an interrupted launch resumes where it stopped):
   2. regression runs (`python -m camrep.regression --config=configs/regression.py[:quick]`) into
      DIR/regression/<setting>/<representation>/lr<lr>_seed<seed>: phase 1 trains seed 0 at every
      learning rate of the setting's grid; phase 2 trains the other seeds at the lr that seed 0's
-     validation errors chose (`camrep.comparison.select`), or at every lr with --full_grid;
+     validation errors chose (`camrep.regression.tables.select`), or at every lr with --full_grid;
      a run with results.json is done. Rendered data and restored pose systems are cached in
      DIR/cache;
   3. tables: experiments/table1.py -> DIR/table1.md, experiments/table2.py -> DIR/table2.md;
-  4. figures: `python -m camrep.evaluate --workdir DIR/synthesis/<name>` (noise robustness
+  4. figures: `python -m camrep.synthesis.evaluate --workdir DIR/synthesis/<name>` (noise robustness
      and Gram maps into each workdir's eval/), then, if experiments/noise_figure.py exists, one
      noise figure per setting with several pose inputs: DIR/noise_car.{png,md} (learned system
      vs MLP embedding) and, with --noise_runs (two more GQN synthesis runs, rep.kind lowdim and
@@ -44,8 +44,8 @@ import sys
 import time
 from collections.abc import Sequence
 
-from camrep import comparison as C
-from camrep import writers
+from camrep.regression import tables as C
+from camrep.runtime import writers
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SETTINGS = ("gqn", "car", "gibson", "seven_scenes")
@@ -74,7 +74,7 @@ class Plan:
     synthesis_s: estimated seconds per view-synthesis run, per setting.
     regression_s: estimated seconds per regression run (data cached), per setting.
     data_s: one-time rendering of a setting's regression data, seconds.
-    evaluate_s: `camrep.evaluate` of one synthesis run, seconds.
+    evaluate_s: `camrep.synthesis.evaluate` of one synthesis run, seconds.
   """
 
   variant: str
@@ -208,13 +208,13 @@ def table_jobs(out: str, py: str, settings: Sequence[str]) -> list[Job]:
 
 
 def figure_jobs(out: str, plan: Plan, synth: Sequence[Job], py: str) -> list[Job]:
-  """Noise robustness and Gram maps of every synthesis run (`camrep.evaluate`), then one noise
+  """Noise robustness and Gram maps of every synthesis run (`camrep.synthesis.evaluate`), then one noise
   figure per setting with several pose inputs (experiments/noise_figure.py, if present)."""
   jobs = []
   names = [j.name.removeprefix("synthesis_") for j in synth]
   for name in names:
     wd = os.path.join(out, "synthesis", name)
-    argv = [py, "-m", "camrep.evaluate", "--workdir", wd]
+    argv = [py, "-m", "camrep.synthesis.evaluate", "--workdir", wd]
     done = os.path.join(wd, "eval", "noise.json")
     jobs.append(Job(f"evaluate_{name}", argv, done, plan.evaluate_s))
   script = os.path.join("experiments", "noise_figure.py")
@@ -292,7 +292,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     "--representations", default="", help="comma-separated subset (default: per setting)"
   )
   p.add_argument("--full_grid", action="store_true", help="every seed at every learning rate")
-  p.add_argument("--skip_figures", action="store_true", help="no camrep.evaluate / noise figure")
+  p.add_argument(
+    "--skip_figures", action="store_true", help="no camrep.synthesis.evaluate / noise figure"
+  )
   p.add_argument(
     "--noise_runs",
     action="store_true",

@@ -28,7 +28,7 @@ import subprocess
 import sys
 import time
 
-from camrep import writers
+from camrep.runtime import writers
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

@@ -2,7 +2,7 @@
 
 Reads the results.json files of `camrep.regression` runs (nothing else), groups them by
 (setting, representation), picks each group's learning rate on the validation errors
-(`camrep.comparison`: mean of error / paper-ours-error over the setting's columns, averaged over
+(`camrep.regression.tables`: mean of error / paper-ours-error over the setting's columns, averaged over
 the seeds every lr has), and writes a Markdown file with
 
   1. the measured table in the paper's layout: car mean rotation error (deg); rooms (GQN) mean
@@ -23,7 +23,7 @@ import os
 import sys
 from collections.abc import Sequence
 
-from camrep import comparison as C
+from camrep.regression import tables as C
 
 SETTINGS = ("car", "gqn", "gibson")
 
@@ -65,7 +65,7 @@ def build(results: Sequence[dict]) -> str:
     C.markdown_table(["representation"] + [h for _, h, _, _ in C.TABLE1_COLUMNS], paper_rows),
     "",
     "MLP embedding: the supplement's car result. Baselines in the paper have one extra dense "
-    "layer to equalise parameter counts (here too, `camrep.targets.DEFAULTS`).",
+    "layer to equalise parameter counts (here too, `camrep.regression.targets.DEFAULTS`).",
     "",
     "## Learning-rate selection",
     "",

@@ -2,7 +2,7 @@
 
 Reads the results.json files of `camrep.regression` runs of the seven_scenes setting (the
 `scene6dof` family: the real 7-Scenes camera trajectories inside procedural rooms), picks each
-representation's learning rate on the validation errors (`camrep.comparison`), and writes a
+representation's learning rate on the validation errors (`camrep.regression.tables`), and writes a
 Markdown table: per scene the median position error (m) and median rotation error (deg) of the
 test trajectory, ours vs quaternion vs log quaternion, each the mean ± sample std over seeds at
 the chosen lr; "average" is the mean over scenes of the per-scene medians (as the paper). The
@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from camrep import comparison as C
+from camrep.regression import tables as C
 
 
 def _scene_medians(run: dict, scene: str) -> tuple[float, float]:

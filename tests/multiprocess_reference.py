@@ -1,7 +1,7 @@
 """Helper for tests/test_multiprocess.py: what a 2-process run computes, in ONE process.
 
 Two forced host devices; device p gets the batch that process p of a 2-process run reads (its
-shard of the scenes), and the loop repeats `camrep.train.train_and_evaluate`'s keys and order.
+shard of the scenes), and the loop repeats `train_and_evaluate`'s keys and order.
 
 Usage: python tests/multiprocess_reference.py STEPS OUT.npz [--config.key=value ...]
 """
@@ -16,7 +16,7 @@ os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from camrep import train  # noqa: E402
+from camrep.synthesis import train  # noqa: E402
 from configs import gqn  # noqa: E402
 
 steps, out = int(sys.argv[1]), sys.argv[2]

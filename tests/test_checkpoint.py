@@ -1,4 +1,4 @@
-"""Tests for camrep.checkpoint: round trips, retention, resume, and fault handling."""
+"""Tests for camrep.runtime.checkpoint: round trips, retention, resume, and fault handling."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import orbax.checkpoint as ocp
 import pytest
 from flax.training import train_state
 
-from camrep import checkpoint as ckpt_lib
+from camrep.runtime import checkpoint as ckpt_lib
 
 # When a read or write fails, Orbax/tensorstore leave asyncio futures whose exceptions are
 # reported after their event loop closed; that is Orbax-internal noise, not our error.

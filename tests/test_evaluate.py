@@ -1,4 +1,4 @@
-"""Tests of camrep.evaluate (noise robustness, Gram maps, CLI) on a 2-step GQN :smoke run."""
+"""Tests of camrep.synthesis.evaluate (noise robustness, Gram maps, CLI) on a GQN :smoke run."""
 
 from __future__ import annotations
 
@@ -13,10 +13,11 @@ import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
-from camrep import checkpoint as ckpt_lib
-from camrep import evaluate as ev
 from camrep import pose as P
-from camrep import train, writers
+from camrep.runtime import checkpoint as ckpt_lib
+from camrep.runtime import writers
+from camrep.synthesis import evaluate as ev
+from camrep.synthesis import train
 from configs import gibson, gqn, seven_scenes, shapenet_car
 
 pytestmark = pytest.mark.usefixtures("fast_compile")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from camrep.data import procedural, tfds_builders
+from camrep.data import procedural, storage
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
@@ -13,10 +13,10 @@ pytestmark = pytest.mark.usefixtures("fast_compile")
 @pytest.mark.parametrize("name", procedural.FAMILIES)
 def test_family_round_trips_through_builder(name, tmp_path):
   family = procedural.make_family(name, preset="small")
-  tfds_builders.prepare(family, tmp_path, progress=False)
+  storage.prepare(family, tmp_path, progress=False)
   for split in family.splits:
     expected = sorted(family.iter_views(split), key=lambda r: (r["scene"], r["view"]))
-    stored = tfds_builders.load(tmp_path, family.name, split)
+    stored = storage.load(tmp_path, family.name, split)
     assert len(stored) == len(expected) > 0
     got = sorted(
       (stored[i] for i in range(len(stored))), key=lambda r: (int(r["scene"]), int(r["view"]))

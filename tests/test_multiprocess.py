@@ -18,7 +18,8 @@ import time
 import jax
 import numpy as np
 
-from camrep import evaluate, writers
+from camrep.runtime import writers
+from camrep.synthesis import evaluate
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 STEPS = 6

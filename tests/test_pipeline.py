@@ -7,7 +7,7 @@ import itertools
 import numpy as np
 import pytest
 
-from camrep.data import pipeline, tfds_builders
+from camrep.data import pipeline, storage
 from camrep.data.errors import DataError
 from camrep.data.pipeline import PipelineConfig
 
@@ -53,7 +53,7 @@ def assert_batches_equal(a: dict, b: dict):
 @pytest.fixture(scope="module")
 def data_dir(tmp_path_factory):
   d = tmp_path_factory.mktemp("tfds")
-  tfds_builders.prepare(RingSource(), d, progress=False)
+  storage.prepare(RingSource(), d, progress=False)
   return d
 
 

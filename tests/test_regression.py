@@ -16,9 +16,9 @@ import sys
 import numpy as np
 import pytest
 
-from camrep import comparison as C
-from camrep import regression as R
-from camrep import train
+from camrep.regression import driver as R
+from camrep.regression import tables as C
+from camrep.synthesis import train
 from configs import regression as regression_config
 from configs import shapenet_car
 

@@ -1,4 +1,4 @@
-"""Tests of the pose regressors (camrep.models.regressor) and pose regression (camrep.regress).
+"""Tests of the pose regressors (camrep.models.pose_regressor) and camrep.regression.learner.
 
 Networks run at tiny widths; paper-width networks are only traced with `jax.eval_shape`.
 """
@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from camrep import pose as P
-from camrep import regress
-from camrep import targets as T
 from camrep.models import layers
-from camrep.models import regressor as R
+from camrep.models import pose_regressor as R
+from camrep.regression import learner
+from camrep.regression import targets as T
 from tests.test_targets import consistent_params
 from tests.utils import assert_close
 
@@ -74,7 +74,7 @@ def _make(setting, rep, **kw):
   if setting == "seven_scenes":
     kw.setdefault("stage_sizes", (1,))
     kw.setdefault("fc_dim", 16)
-  return regress.make_regressor(setting, rep, **kw)
+  return learner.make_regressor(setting, rep, **kw)
 
 
 # ---------------------------------------------------------------------------- modules
@@ -99,15 +99,15 @@ def test_car_output_shapes_and_head_norms():
   rng = np.random.default_rng(0)
   reg = _make(setting, "ours")
   batch = _batch(setting, rng)
-  state = regress.init(
+  state = learner.init(
     jax.random.key(1), reg, batch, rep_params=_rep_params(setting, "ours", reg.spec)
   )
   lead = batch["pose"].shape[:-1]
-  _check_heads(reg, jax.jit(regress.predict_heads)(state, batch), lead)
+  _check_heads(reg, jax.jit(learner.predict_heads)(state, batch), lead)
   # Baseline heads: raw outputs of the listed sizes (eval_shape: no compute).
   for rep in ("quat", "sincos"):
     breg = _make(setting, rep)
-    images, kw = regress.network_inputs(breg, {}, batch)
+    images, kw = learner.network_inputs(breg, {}, batch)
     out, _ = jax.eval_shape(
       lambda im, kw_, m=breg.module: m.init_with_output(jax.random.key(0), im, **kw_)[0],
       images,
@@ -117,11 +117,11 @@ def test_car_output_shapes_and_head_norms():
   # The MLP representation end to end, traced only.
   mreg = _make(setting, "mlp")
   mstate = jax.eval_shape(
-    lambda: regress.init(
+    lambda: learner.init(
       jax.random.key(0), mreg, batch, rep_params=_rep_params(setting, "mlp", mreg.spec)
     )
   )
-  assert jax.eval_shape(regress.predict_poses, mstate, batch).shape == batch["pose"].shape
+  assert jax.eval_shape(learner.predict_poses, mstate, batch).shape == batch["pose"].shape
 
 
 def test_gqn_regressor_structure():
@@ -143,14 +143,14 @@ def test_gibson_per_area_tables():
   batch = _batch("gibson", rng, n=2)
   batch["image"][1] = batch["image"][0]
   batch["scene"] = np.array([0, 2], np.int32)
-  state = regress.init(
+  state = learner.init(
     jax.random.key(0), reg, batch, rep_params=_rep_params("gibson", "ours", reg.spec)
   )
   net = state.params["net"]
   for i, c in enumerate((64, 128, 256, 256, 256)):
     g = np.asarray(net[f"gamma{i + 1}"])
     assert g.shape == (3, layers.scaled(c, TINY)) and np.std(g) < 3e-3  # N(0, 0.001^2)
-  heads = jax.jit(regress.predict_heads)(state, batch)
+  heads = jax.jit(learner.predict_heads)(state, batch)
   _check_heads(reg, heads, (2,))
   assert not np.allclose(heads["yaw"][0], heads["yaw"][1])  # same image, different area
   with pytest.raises(ValueError, match="scene"):
@@ -158,14 +158,14 @@ def test_gibson_per_area_tables():
 
 
 def _abstract_init(reg, batch):
-  images, kw = regress.network_inputs(
+  images, kw = learner.network_inputs(
     reg, _rep_params(reg.setting, reg.representation, reg.spec), batch
   )
   return jax.eval_shape(lambda im, k: reg.module.init(jax.random.key(0), im, **k), images, kw)
 
 
 def _paper_params(setting, rep, *, size, **kw):
-  reg = regress.make_regressor(setting, rep, width=1.0, num_scenes=20, **kw)
+  reg = learner.make_regressor(setting, rep, width=1.0, num_scenes=20, **kw)
   rng = np.random.default_rng(0)
   batch = _batch(setting, rng, n=1, size=size, scenes=1, queries=1, views=2)
   return layers.param_count(_abstract_init(reg, batch)["params"])
@@ -189,7 +189,7 @@ def test_equalise_params_matches_ours_at_reduced_width(setting):
   its units brings every baseline within 1% of ours."""
 
   def count(rep, **kw):
-    reg = regress.make_regressor(setting, rep, width=0.125, num_scenes=2, **kw)
+    reg = learner.make_regressor(setting, rep, width=0.125, num_scenes=2, **kw)
     batch = _batch(setting, np.random.default_rng(0), n=1, size=64, scenes=1, queries=1, views=2)
     return layers.param_count(_abstract_init(reg, batch)["params"])
 
@@ -340,9 +340,9 @@ def test_training_reduces_the_loss():
   rng = np.random.default_rng(0)
   data = _synthetic_car_batch(_random_poses("car", (64,), rng))
   spec = T.default_spec("car", **SMALL_SPEC)
-  reg = regress.make_regressor("car", "ours", spec=spec, width=1 / 8, refine_steps=0)
-  state = regress.init(jax.random.key(0), reg, data, rep_params=consistent_params(spec))
-  step = jax.jit(regress.train_step)
+  reg = learner.make_regressor("car", "ours", spec=spec, width=1 / 8, refine_steps=0)
+  state = learner.init(jax.random.key(0), reg, data, rep_params=consistent_params(spec))
+  step = jax.jit(learner.train_step)
   losses = []
   for i in range(100):
     idx = np.random.default_rng(i).choice(64, 16, replace=False)
@@ -352,7 +352,7 @@ def test_training_reduces_the_loss():
   assert int(state.step) == 100 and np.all(np.isfinite(losses))
   first, last = np.mean(losses[:10]), np.mean(losses[-10:])
   assert last < 0.2 * first, (first, last)
-  errors = regress.evaluate_regression(state, [data])
+  errors = learner.evaluate_regression(state, [data])
   # Chance level is ~90 degrees.
   assert errors["rotation_error_deg"].shape == (64,) and np.mean(errors["rotation_error_deg"]) < 60
 
@@ -362,12 +362,12 @@ def test_train_step_homoscedastic_and_batch_norm():
   # 7-Scenes ours: ResNet with batch norm, L1 loss, learned s (3x factor), coupled weight decay.
   reg = _make("seven_scenes", "ours")
   batch = _batch("seven_scenes", rng, n=4)
-  state = regress.init(
+  state = learner.init(
     jax.random.key(0), reg, batch, rep_params=_rep_params("seven_scenes", "ours", reg.spec)
   )
   assert float(state.params["log_var"]["position"]) == -3.0
-  new, m = jax.jit(regress.train_step)(state, batch)
-  _check_heads(reg, jax.jit(regress.predict_heads)(new, batch), (4,))
+  new, m = jax.jit(learner.train_step)(state, batch)
+  _check_heads(reg, jax.jit(learner.predict_heads)(new, batch), (4,))
   assert set(m) >= {"loss", "loss_position", "loss_orientation", "s_position", "grad_norm"}
   assert float(new.params["log_var"]["position"]) != -3.0
   before = state.batch_stats["bn1"]["mean"]
@@ -380,16 +380,16 @@ def test_train_and_predict_gqn():
   rng = np.random.default_rng(2)
   reg = _make("gqn", "ours", refine_steps=0)  # refinement: tests/test_targets.py
   batch = _batch("gqn", rng)  # (2 scenes, 2 queries), 3 context views, 32 x 32 images
-  state = regress.init(
+  state = learner.init(
     jax.random.key(0), reg, batch, rep_params=_rep_params("gqn", "ours", reg.spec)
   )
   assert float(state.params["log_var"]["position"]) == pytest.approx(-math.log(20))
-  new, m = jax.jit(regress.train_step)(state, batch)
+  new, m = jax.jit(learner.train_step)(state, batch)
   assert np.isfinite(float(m["loss"])) and int(new.step) == 1
 
   @jax.jit
   def predict(st, b):
-    return regress.predict_heads(st, b), regress.predict_poses(st, b)
+    return learner.predict_heads(st, b), learner.predict_poses(st, b)
 
   heads, poses = predict(new, batch)
   _check_heads(reg, heads, (2, 2))
@@ -400,17 +400,17 @@ def test_train_and_predict_gqn():
 def test_fixed_weights_have_no_log_vars():
   reg = _make("gibson", "ours")
   batch = _batch("gibson", np.random.default_rng(3))
-  state = regress.init(
+  state = learner.init(
     jax.random.key(0), reg, batch, rep_params=_rep_params("gibson", "ours", reg.spec)
   )
   assert state.params["log_var"] == {}
   with pytest.raises(ValueError, match="rep_params"):
-    regress.init(jax.random.key(0), reg, batch)
+    learner.init(jax.random.key(0), reg, batch)
 
 
 def test_pose_errors_hand_computed():
   deg = math.radians
-  e = regress.pose_errors(
+  e = learner.pose_errors(
     "gqn",
     jnp.array([[0.1, 0.2, deg(359.0)]]),
     jnp.array([[0.4, -0.2, deg(1.0)]]),
@@ -420,7 +420,7 @@ def test_pose_errors_hand_computed():
   assert float(e["position_error"][0]) == pytest.approx(0.5, abs=1e-6)
   assert float(e["yaw_error_deg"][0]) == pytest.approx(2.0, abs=1e-4)
   # Car: 10 degrees of azimuth on the equator is a 10 degree rotation.
-  e = regress.pose_errors(
+  e = learner.pose_errors(
     "car", jnp.array([[deg(30.0), deg(90.0)]]), jnp.array([[deg(40.0), deg(90.0)]])
   )
   assert float(e["rotation_error_deg"][0]) == pytest.approx(10.0, abs=1e-3)
@@ -428,7 +428,7 @@ def test_pose_errors_hand_computed():
   # 7-Scenes: 5 degrees of theta only, 3-4-5 translation.
   p = np.array([[1.0, 1.0, 1.0, 3.0, 1.5, 3.0]], np.float32)
   q = p + np.array([[0.3, 0.4, 0.0, deg(5.0), 0.0, 0.0]], np.float32)
-  e = regress.pose_errors("seven_scenes", jnp.asarray(q), jnp.asarray(p))
+  e = learner.pose_errors("seven_scenes", jnp.asarray(q), jnp.asarray(p))
   assert float(e["position_error"][0]) == pytest.approx(0.5, abs=1e-6)
   assert float(e["rotation_error_deg"][0]) == pytest.approx(5.0, abs=1e-3)
 
@@ -442,23 +442,23 @@ def test_evaluate_and_summarise_per_scene():
     "mask": np.array([1, 1, 1, 1, 1, 0], bool),
   }
   shift = np.array([math.radians(2.0), 0.0], np.float32)
-  errors = regress.evaluate_regression(
+  errors = learner.evaluate_regression(
     None, [batch], predict_fn=lambda s, b: b["pose"] + shift, setting="car"
   )
   assert errors["scene"].tolist() == [0, 0, 1, 1, 1]  # padding dropped
   assert_close(errors["azimuth_error_deg"], np.full(5, 2.0), atol=1e-3)
-  summary = regress.summarise_errors(errors)
+  summary = learner.summarise_errors(errors)
   assert set(summary) == {"all", 0, 1}
   assert summary[1]["azimuth_error_deg"]["median"] == pytest.approx(2.0, abs=1e-3)
   assert summary["all"]["rotation_error_deg"]["mean"] <= 2.0 + 1e-3
 
 
 def test_make_regressor_overrides_and_modules():
-  reg = regress.make_regressor("car", "quat", width=0.5, lr=3e-4)
+  reg = learner.make_regressor("car", "quat", width=0.5, lr=3e-4)
   assert reg.config.lr == 3e-4 and reg.config.extra_fc == 256
   assert isinstance(reg.module, R.CarRegressor) and reg.module.extra_fc == 128
   assert reg.spec is None
-  assert isinstance(regress.make_regressor("seven_scenes", "logq").module, R.ResNetRegressor)
-  assert isinstance(regress.make_regressor("gibson", "ours").module, R.GibsonRegressor)
-  assert isinstance(regress.make_regressor("gqn", "mlp").module, nn.Module)
+  assert isinstance(learner.make_regressor("seven_scenes", "logq").module, R.ResNetRegressor)
+  assert isinstance(learner.make_regressor("gibson", "ours").module, R.GibsonRegressor)
+  assert isinstance(learner.make_regressor("gqn", "mlp").module, nn.Module)
   hash(reg)  # static in the train state's treedef

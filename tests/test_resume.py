@@ -20,7 +20,8 @@ import jax
 import numpy as np
 import pytest
 
-from camrep import evaluate, writers
+from camrep.runtime import writers
+from camrep.synthesis import evaluate
 
 # One xdist worker runs the module, so the reference run is made once.
 pytestmark = pytest.mark.xdist_group("resume")

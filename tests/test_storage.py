@@ -1,4 +1,4 @@
-"""Tests of camrep.data.tfds_builders: exact round trip through tfds ArrayRecord, and errors."""
+"""Tests of camrep.data.storage: exact round trip through tfds ArrayRecord, and errors."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import json
 import numpy as np
 import pytest
 
-from camrep.data import gqn, pipeline, prepare, records, tfds_builders
+from camrep.data import gqn, pipeline, prepare, records, storage
 from camrep.data.errors import DataError
-from camrep.data.tfds_builders import ViewSource
+from camrep.data.storage import ViewSource
 from tests import readers_fixtures as fx
 
 
@@ -39,7 +39,7 @@ class FakeSource:
 @pytest.fixture(scope="module")
 def prepared(tmp_path_factory):
   data_dir = tmp_path_factory.mktemp("tfds")
-  path = tfds_builders.prepare(
+  path = storage.prepare(
     FakeSource(), data_dir, config="tiny", metadata={"why": "test"}, progress=False
   )
   return data_dir, path
@@ -47,12 +47,12 @@ def prepared(tmp_path_factory):
 
 def test_fake_source_follows_protocol():
   assert isinstance(FakeSource(), ViewSource)
-  assert tfds_builders.source_splits(FakeSource()) == ("train", "test", "test_scenes")
+  assert storage.source_splits(FakeSource()) == ("train", "test", "test_scenes")
 
 
 def test_png_round_trip_exact():
   img = np.random.default_rng(0).integers(0, 256, size=(7, 5, 3), dtype=np.uint8)
-  np.testing.assert_array_equal(tfds_builders.decode_png(tfds_builders.encode_png(img)), img)
+  np.testing.assert_array_equal(storage.decode_png(storage.encode_png(img)), img)
 
 
 @pytest.mark.parametrize("split", ["train", "test", "test_scenes"])
@@ -60,7 +60,7 @@ def test_round_trip_exact(prepared, split):
   data_dir, path = prepared
   assert path == data_dir / "fake" / "tiny" / "1.0.0"
   expected = list(FakeSource().iter_views(split))
-  stored = tfds_builders.load(data_dir, "fake", split)
+  stored = storage.load(data_dir, "fake", split)
   assert len(stored) == len(expected)
   seen = set()
   for rec in stored:
@@ -76,7 +76,7 @@ def test_round_trip_exact(prepared, split):
 @pytest.mark.parametrize("split", ["train", "test"])
 def test_sidecar_matches_records(prepared, split):
   data_dir, _ = prepared
-  stored = tfds_builders.load(data_dir, "fake", split, config="tiny", version="1.0.0")
+  stored = storage.load(data_dir, "fake", split, config="tiny", version="1.0.0")
   expected = list(FakeSource().iter_views(split))
   idx = stored.index
   np.testing.assert_array_equal(idx.index, np.arange(len(expected)))
@@ -91,7 +91,7 @@ def test_sidecar_matches_records(prepared, split):
 
 def test_metadata(prepared):
   _, path = prepared
-  meta = json.loads((path / tfds_builders.METADATA_FILE).read_text())
+  meta = json.loads((path / storage.METADATA_FILE).read_text())
   assert meta["splits"]["train"] == {"num_views": 12, "num_scenes": 3}
   assert meta["splits"]["test_scenes"] == {"num_views": 8, "num_scenes": 2}
   assert meta["image_shape"] == [6, 10] and meta["metadata"] == {"why": "test"}
@@ -99,22 +99,22 @@ def test_metadata(prepared):
 
 def test_prepare_again_reuses(prepared):
   data_dir, path = prepared
-  again = tfds_builders.prepare(FakeSource(), data_dir, config="tiny", progress=False)
+  again = storage.prepare(FakeSource(), data_dir, config="tiny", progress=False)
   assert again == path
 
 
 def test_load_errors(prepared, tmp_path):
   data_dir, _ = prepared
   with pytest.raises(DataError, match="does not exist"):
-    tfds_builders.load(tmp_path / "nope", "fake", "train")
+    storage.load(tmp_path / "nope", "fake", "train")
   with pytest.raises(DataError, match="no prepared dataset 'fake'"):
-    tfds_builders.load(tmp_path, "fake", "train")
+    storage.load(tmp_path, "fake", "train")
   with pytest.raises(DataError, match="unknown split 'val'"):
-    tfds_builders.load(data_dir, "fake", "val")
+    storage.load(data_dir, "fake", "val")
   with pytest.raises(DataError, match="no config 'big'"):
-    tfds_builders.load(data_dir, "fake", "train", config="big")
+    storage.load(data_dir, "fake", "train", config="big")
   with pytest.raises(DataError, match="no version '9.9.9'"):
-    tfds_builders.load(data_dir, "fake", "train", version="9.9.9")
+    storage.load(data_dir, "fake", "train", version="9.9.9")
 
 
 def test_bad_record_is_named(tmp_path):
@@ -126,7 +126,7 @@ def test_bad_record_is_named(tmp_path):
         yield {**rec, "image": rec["image"][:, :5]}
 
   with pytest.raises(DataError, match=r"broken/train #0: image must be uint8"):
-    tfds_builders.prepare(Broken(), tmp_path, progress=False)
+    storage.prepare(Broken(), tmp_path, progress=False)
 
 
 def test_overwrite_regenerates(tmp_path):
@@ -135,9 +135,9 @@ def test_overwrite_regenerates(tmp_path):
       for rec in super().iter_views(split):
         yield {**rec, "pose": rec["pose"] + 1}
 
-  tfds_builders.prepare(FakeSource(), tmp_path, progress=False)
-  path = tfds_builders.prepare(Shifted(), tmp_path, overwrite=True, progress=False)
-  stored = tfds_builders.load(tmp_path, "fake", "test")
+  storage.prepare(FakeSource(), tmp_path, progress=False)
+  path = storage.prepare(Shifted(), tmp_path, overwrite=True, progress=False)
+  stored = storage.load(tmp_path, "fake", "test")
   expected = np.stack([r["pose"] for r in Shifted().iter_views("test")])
   np.testing.assert_array_equal(stored.index.pose, expected)
   assert path == tmp_path / "fake" / "1.0.0"
@@ -186,7 +186,7 @@ def test_prepare_cli_real_reader_end_to_end(tmp_path, capsys):
   reader = gqn.GQN(root, image_size=16)
   for split in ("train", "test"):
     expected = list(reader.iter_views(split))
-    stored = tfds_builders.load(tmp_path / "tfds", "gqn", split)
+    stored = storage.load(tmp_path / "tfds", "gqn", split)
     assert len(stored) == len(expected) == 3 * (9 if split == "train" else 1)
     for rec in stored:
       exp = expected[rec["index"]]

@@ -1,4 +1,4 @@
-"""Tests of camrep.targets: rotation conversions (vs scipy), round trips, losses, defaults."""
+"""Tests of camrep.regression.targets: conversions (vs scipy), round trips, losses, defaults."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from camrep import lie
 from camrep import pose as P
-from camrep import targets as T
+from camrep.regression import targets as T
 from tests.utils import assert_close, x64
 
 TWO_PI = 2 * math.pi

@@ -1,4 +1,4 @@
-"""End-to-end tests of view-synthesis training (camrep.train, camrep.main) on :smoke configs."""
+"""End-to-end tests of view-synthesis training (camrep.synthesis, camrep.main), :smoke configs."""
 
 from __future__ import annotations
 
@@ -13,8 +13,9 @@ import numpy as np
 import pytest
 
 from camrep import pose as P
-from camrep import train, writers
-from camrep.models.synthesis import GQNSynthesis, TableSynthesis
+from camrep.models.composite import GQNSynthesis, TableSynthesis
+from camrep.runtime import writers
+from camrep.synthesis import train
 from configs import gibson, gqn, seven_scenes, shapenet_car
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]

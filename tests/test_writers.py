@@ -1,4 +1,4 @@
-"""Tests for camrep.writers: metrics.jsonl, TensorBoard files, PNG grids, Progress, itstime."""
+"""Tests for camrep.runtime.writers: metrics.jsonl, TensorBoard, PNG grids, Progress, itstime."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import ml_collections
 import numpy as np
 import pytest
 
-from camrep import writers
+from camrep.runtime import writers
 
 
 def _read_events(workdir):

@@ -17,7 +17,7 @@ import numpy as np  # noqa: E402
 
 jax.config.update("jax_disable_most_optimizations", True)
 
-from camrep import train  # noqa: E402
+from camrep.synthesis import train  # noqa: E402
 from configs import gqn  # noqa: E402
 
 assert jax.local_device_count() == n_dev, jax.devices()

@@ -35,7 +35,7 @@ p, p + process_count, ... only (disjoint, covering). Every process uses the same
 steps_per_epoch, computed from the smallest shard, so all processes turn epochs together.
 
 Backends share the batching code: `tfds_pipeline` reads the ArrayRecord files written by
-`camrep.data.tfds_builders.prepare` (grouping by scene comes from the sidecar index, only the
+`camrep.data.storage.prepare` (grouping by scene comes from the sidecar index, only the
 selected PNGs are decoded); `memory_pipeline` holds a source's split in memory (tests, quick
 runs). `BatchPipeline.iterator` wraps `batch` in a `grain.MapDataset` over step numbers and
 prefetches with grain's reader threads (cv2 PNG decoding releases the GIL).
@@ -51,9 +51,9 @@ from typing import Any
 import grain
 import numpy as np
 
-from camrep.data import tfds_builders
+from camrep.data import storage
 from camrep.data.errors import DataError
-from camrep.data.tfds_builders import ViewIndex, ViewSource
+from camrep.data.storage import ViewIndex, ViewSource
 
 MODES = ("random", "pairs")
 PERIODIC_POSE_NAMES = frozenset({"yaw", "azimuth", "theta", "psi"})
@@ -383,14 +383,14 @@ def views_in_memory(source: ViewSource, split: str) -> tuple[ViewIndex, np.ndarr
   Raises:
     DataError: unknown split, empty split or a record breaking the contract.
   """
-  splits = tfds_builders.source_splits(source)
+  splits = storage.source_splits(source)
   if split not in splits:
     raise DataError(None, f"source {source.name!r} has no split {split!r}; available: {splits}")
-  shape = tfds_builders.image_shape(source)
+  shape = storage.image_shape(source)
   p = len(source.pose_names)
   images, poses, scenes, views = [], [], [], []
   for i, rec in enumerate(source.iter_views(split)):
-    tfds_builders.check_record(rec, shape, p, f"{source.name}/{split} #{i}")
+    storage.check_record(rec, shape, p, f"{source.name}/{split} #{i}")
     images.append(rec["image"])
     poses.append(np.asarray(rec["pose"], np.float32))
     scenes.append(int(rec["scene"]))
@@ -464,7 +464,7 @@ def tfds_pipeline(
   Raises:
     DataError: missing/empty data_dir, unknown dataset or split, layout too large.
   """
-  stored = tfds_builders.load(data_dir, name, split, config=dataset_config, version=version)
+  stored = storage.load(data_dir, name, split, config=dataset_config, version=version)
   return BatchPipeline(
     stored.index,
     stored.read_images,

@@ -16,7 +16,7 @@ family / reader constructor (values parsed as Python literals, else kept as stri
 `--preset NAME` applies a named set of overrides first (see `PRESETS`).
 
 Output: `DATA_DIR/NAME/CONFIG/VERSION/`, CONFIG being `--config_name` or else the preset name
-(no CONFIG level without either); see `camrep.data.tfds_builders` for the files. Preparing
+(no CONFIG level without either); see `camrep.data.storage` for the files. Preparing
 again into the same directory reuses the dataset if its recorded source settings are the same
 and refuses otherwise (pass `--overwrite`, or another `--config_name`).
 """
@@ -37,9 +37,9 @@ import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from camrep.data import tfds_builders
+from camrep.data import storage
 from camrep.data.errors import DataError
-from camrep.data.tfds_builders import ViewSource
+from camrep.data.storage import ViewSource
 
 
 @dataclasses.dataclass(frozen=True)
@@ -185,7 +185,7 @@ def make_source(
 
 def _check_reuse(path: pathlib.Path, settings: Mapping[str, Any], overwrite: bool) -> None:
   """Refuses to reuse an existing dataset that was prepared with other settings."""
-  meta_file = path / tfds_builders.METADATA_FILE
+  meta_file = path / storage.METADATA_FILE
   if overwrite or not meta_file.exists():
     return
   recorded = json.loads(meta_file.read_text()).get("metadata", {})
@@ -215,11 +215,11 @@ def prepare_source(
   overrides: Mapping[str, Any] | None = None,
   config_name: str | None = None,
   dataset_name: str | None = None,
-  version: str = tfds_builders.DEFAULT_VERSION,
+  version: str = storage.DEFAULT_VERSION,
   overwrite: bool = False,
   progress: bool = True,
 ) -> pathlib.Path:
-  """Constructs source `name` and stores it with `tfds_builders.prepare`.
+  """Constructs source `name` and stores it with `storage.prepare`.
 
   Args:
     name: a key of `SOURCES`.
@@ -246,7 +246,7 @@ def prepare_source(
     "overrides": dict(overrides or {}),
   }
   _check_reuse(target_dir(data_dir, dataset_name, config_name, version), settings, overwrite)
-  return tfds_builders.prepare(
+  return storage.prepare(
     source,
     data_dir,
     name=dataset_name,
@@ -273,7 +273,7 @@ def _parser() -> argparse.ArgumentParser:
   )  # fmt: skip
   parser.add_argument("--config_name", help="sub-directory for this variant (default: preset)")
   parser.add_argument("--name", help="dataset name (default: the source name)")
-  parser.add_argument("--version", default=tfds_builders.DEFAULT_VERSION)
+  parser.add_argument("--version", default=storage.DEFAULT_VERSION)
   parser.add_argument("--overwrite", action="store_true", help="regenerate if present")
   parser.add_argument("--no_progress", action="store_true", help="no progress bars")
   parser.add_argument("--list", action="store_true", help="list the sources and exit")
@@ -304,7 +304,7 @@ def main(argv: Sequence[str] | None = None) -> pathlib.Path | None:
   target = target_dir(
     args.data_dir, args.name or args.source, args.config_name or args.preset, args.version
   )
-  existed = (target / tfds_builders.METADATA_FILE).exists() and not args.overwrite
+  existed = (target / storage.METADATA_FILE).exists() and not args.overwrite
   t0 = time.perf_counter()
   path = prepare_source(
     args.source,
@@ -318,7 +318,7 @@ def main(argv: Sequence[str] | None = None) -> pathlib.Path | None:
     overwrite=args.overwrite,
     progress=not args.no_progress,
   )
-  meta = tfds_builders.load_metadata(path)
+  meta = storage.load_metadata(path)
   counts = ", ".join(
     f"{split}: {c['num_scenes']} scenes / {c['num_views']} views"
     for split, c in meta["splits"].items()

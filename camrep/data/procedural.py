@@ -1,4 +1,4 @@
-"""Procedural posed-image datasets rendered by `camrep.render`: camrep's default data.
+"""Procedural posed-image datasets rendered by `camrep.data.render`: camrep's default data.
 
 Four families mirror the paper's four datasets (digest sections 1.7 and 6); each yields view
 records (`camrep.data.records`) with the same pose conventions as its real counterpart:
@@ -22,7 +22,7 @@ so a per-scene table indexed by id never aliases a held-out scene.
 Determinism: scene `s` is built from `np.random.default_rng([seed, family, s])` and view `v`
 of split `k` from `np.random.default_rng([seed, family, s, k, v])`, so any record can be
 regenerated alone and a smaller config's views are a prefix of a larger one's. The renderer
-is deterministic (one jit compile per family and image size: see `camrep.render`).
+is deterministic (one jit compile per family and image size: see `camrep.data.render`).
 
 Usage:
   family = make_family("rooms", preset="small")
@@ -42,8 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from camrep import render
-from camrep.data import seven_scenes
+from camrep.data import render, seven_scenes
 from camrep.data.records import POSE_NAMES
 
 FAMILIES = ("rooms", "object", "area", "scene6dof")

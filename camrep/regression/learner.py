@@ -1,6 +1,6 @@
 """Pose regression on a frozen pose representation (paper section 4.4; digest section 4).
 
-Plain functions, independent of the view-synthesis trainer (`camrep.train`):
+Plain functions, independent of the view-synthesis trainer (`camrep.synthesis.train`):
 
   make_regressor(setting, representation, ...)  the static description: network, heads, loss
   init(key, regressor, batch, rep_params)       a `RegressionState`
@@ -14,7 +14,7 @@ Plain functions, independent of the view-synthesis trainer (`camrep.train`):
 Batches are dicts of arrays:
   "image": (..., H, W, 3) uint8 (mapped to [-1, 1]) or float (used as given, e.g. a ResNet's
            per-scene normalised input);
-  "pose":  (..., P) float poses in the setting's columns (`camrep.targets.POSE_COLUMNS`);
+  "pose":  (..., P) float poses in the setting's columns (`camrep.regression.targets.POSE_COLUMNS`);
   "scene": (...) int scene / area index (Gibson's instance-norm tables; per-scene summaries);
   GQN only, with leading axes (S, Q) of scenes and queries:
   "context_image": (S, V, H, W, 3) and "context_pose": (S, V, P) of each scene's context views;
@@ -40,9 +40,9 @@ import optax
 
 from camrep import metrics
 from camrep import pose as P
-from camrep import targets as T
 from camrep.models import layers
-from camrep.models import regressor as R
+from camrep.models import pose_regressor as R
+from camrep.regression import targets as T
 
 Array = jax.Array
 
@@ -54,7 +54,7 @@ class Regressor:
   Attributes:
     setting: one of `targets.SETTINGS`.
     representation: one of `targets.REPRESENTATIONS`.
-    module: the Flax network (`camrep.models.regressor`).
+    module: the Flax network (`camrep.models.pose_regressor`).
     heads: its output heads (`targets.head_specs`).
     config: loss, weighting and optimiser settings (`targets.defaults`, maybe overridden).
     spec: the pose system of a learned representation, else None.
@@ -92,7 +92,7 @@ def make_regressor(
     setting: one of `targets.SETTINGS`.
     representation: one of `targets.REPRESENTATIONS`.
     spec: pose system of a learned representation (default `targets.default_spec(setting)`;
-      pass `camrep.train.pose_spec(config)` for a stage-1 run's system).
+      pass `camrep.synthesis.train.pose_spec(config)` for a stage-1 run's system).
     width: channel multiplier (paper 1.0).
     num_scenes: rows of Gibson's per-area instance-norm tables.
     fc_dim, stage_sizes: ResNet fc units and blocks per stage (7-Scenes).

@@ -2,14 +2,14 @@
 
 `python -m camrep.regression --config=configs/regression.py[:quick|:smoke] --workdir=DIR
 [--config.setting=gqn --config.representation=ours --config.synthesis_workdir=W ...]` trains one
-pose regressor (`camrep.regress`) for one (setting, representation, learning rate, seed) and
+pose regressor (`learner`) for one (setting, representation, learning rate, seed) and
 writes into DIR:
 
   config.json        the resolved config (per-setting sizes filled in)
   metrics.jsonl      train/* every log_every_steps, eval/validation/* and eval/test/* at the end
   results.json       setting, representation, seed, lr, steps, parameter count, data sizes and
                      the error summaries {"validation", "test", "extra"}: per error kind (as
-                     `regress.pose_errors` names them) the mean and median over all examples
+                     `learner.pose_errors` names them) the mean and median over all examples
                      ("all") and per scene id
   errors_<split>.npz per-example errors, scene ids, true and predicted poses of the test split(s)
 
@@ -29,7 +29,7 @@ once and held in memory (cached in `data.cache_dir` when set):
               views; object "test_scenes": held-out cars).
 
 Representations: baselines need nothing more; "ours" restores the frozen pose system of a
-view-synthesis workdir (`load_pose_system`, via `camrep.evaluate.load_run`); "mlp" uses that
+view-synthesis workdir (`load_pose_system`, via `camrep.synthesis`'s `load_run`); "mlp" uses that
 workdir's MLP embedding when it was trained with rep.kind="mlp", else a frozen randomly
 initialised MLP embedding (`targets.init_mlp`; the supplement's MLP is trained by view synthesis).
 """
@@ -50,8 +50,9 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from camrep import regress, writers
-from camrep import targets as T
+from camrep.regression import learner
+from camrep.regression import targets as T
+from camrep.runtime import writers
 
 SOURCE_OF_SETTING = {"gqn": "rooms", "car": "object", "gibson": "area", "seven_scenes": "scene6dof"}
 RESULTS_FILE = "results.json"
@@ -283,7 +284,7 @@ def make_data(config) -> Data:
 
 
 def train_batches(config, views: ViewSet) -> Iterator[dict[str, np.ndarray]]:
-  """Endless training batches in `camrep.regress`'s layout, a pure function of (seed, step).
+  """Endless training batches in `learner`'s layout, a pure function of (seed, step).
 
   gqn: per step `batch_size` distinct scenes (epoch permutations), each with n_context + n_query
   distinct random views, the first n_context the context: "context_image" (S, V, H, W, 3),
@@ -400,7 +401,7 @@ def eval_batches(config, eval_set: EvalSet) -> list[dict[str, np.ndarray]]:
 def load_pose_system(workdir: str, setting: str, *, cache_dir: str = "") -> dict[str, Any]:
   """The frozen pose input of a view-synthesis workdir, checked against the setting.
 
-  Restores the latest checkpoint with `camrep.evaluate.load_run`; with `cache_dir`, the pose
+  Restores the latest checkpoint with the synthesis `load_run`; with `cache_dir`, the pose
   parameters are also saved there (keyed by the workdir's path and checkpoint step), so later
   runs skip load_run's data rendering.
 
@@ -413,8 +414,8 @@ def load_pose_system(workdir: str, setting: str, *, cache_dir: str = "") -> dict
   """
   import flax.serialization
 
-  from camrep import checkpoint as ckpt_lib
-  from camrep import evaluate, train
+  from camrep.runtime import checkpoint as ckpt_lib
+  from camrep.synthesis import evaluate, train
 
   workdir = os.path.abspath(workdir)
   try:
@@ -493,9 +494,9 @@ def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
 # The run.
 
 
-def make_regressor(config, spec, num_scenes: int) -> regress.Regressor:
-  """The resolved config's `regress.Regressor` (lr from config.optax.lr)."""
-  return regress.make_regressor(
+def make_regressor(config, spec, num_scenes: int) -> learner.Regressor:
+  """The resolved config's `learner.Regressor` (lr from config.optax.lr)."""
+  return learner.make_regressor(
     config.setting,
     config.representation,
     spec=spec,
@@ -538,7 +539,7 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
     ConfigError: bad config or synthesis workdir.
     FloatingPointError: the loss became non-finite.
   """
-  from camrep import train as train_lib
+  from camrep.synthesis import train as train_lib
 
   config = resolve_config(config)
   train_lib.check_workdir(workdir)
@@ -566,10 +567,10 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
   batches = train_batches(config, data.train)
   init_key = jax.random.fold_in(jax.random.key(config.seed), 0)
   first = next(train_batches(config, data.train))
-  state = regress.init(init_key, reg, first, rep_params=rep_params)
+  state = learner.init(init_key, reg, first, rep_params=rep_params)
   n_params = count_params(state.params["net"])
-  step_fn = jax.jit(regress.train_step, donate_argnums=0)
-  predict_fn = jax.jit(regress.predict_poses)
+  step_fn = jax.jit(learner.train_step, donate_argnums=0)
+  predict_fn = jax.jit(learner.predict_poses)
   eval_sets = {k: eval_batches(config, e) for k, e in data.evals.items()}
   total = config.total_steps
   progress = writers.Progress(total, every_seconds=20.0)
@@ -589,15 +590,15 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
       if status:
         log(f"{status} loss={float(m['loss']):.4f}")
       if step < total and writers.itstime(step, config.eval_every_steps, total):
-        errs = regress.evaluate_regression(state, eval_sets["validation"], predict_fn=predict_fn)
-        writer.write_scalars(step, _scalars("eval/validation", regress.summarise_errors(errs)))
+        errs = learner.evaluate_regression(state, eval_sets["validation"], predict_fn=predict_fn)
+        writer.write_scalars(step, _scalars("eval/validation", learner.summarise_errors(errs)))
     jax.block_until_ready(state.params)
     train_seconds = time.perf_counter() - t_train
     t_eval = time.perf_counter()
     summaries, extra = {}, {}
     for name, bs in eval_sets.items():
-      errs = regress.evaluate_regression(state, bs, predict_fn=predict_fn)
-      summary = regress.summarise_errors(errs)
+      errs = learner.evaluate_regression(state, bs, predict_fn=predict_fn)
+      summary = learner.summarise_errors(errs)
       data.info["num_examples"][name] = len(errs["scene"])
       writer.write_scalars(total, _scalars(f"eval/{name}", summary))
       if name != "validation":
@@ -639,37 +640,3 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
     + ", ".join(f"{k} mean {v['mean']:.4g} median {v['median']:.4g}" for k, v in overall.items())
   )
   return results
-
-
-def main(argv) -> None:
-  """The command line (flags defined under __main__); exit 2 on a bad config, 3 on NaN."""
-  import sys
-
-  from absl import app, flags, logging
-
-  if len(argv) > 1:
-    raise app.UsageError(f"unexpected arguments: {argv[1:]}")
-  if not flags.FLAGS["verbosity"].present:
-    logging.set_verbosity(logging.ERROR)  # orbax warns that a read-only manager saves nothing
-  print(f"JAX {jax.__version__}, devices {jax.local_devices()}", flush=True)
-  try:
-    run(_CONFIG.value, _WORKDIR.value, log=lambda s: print(s, flush=True))
-  except ConfigError as e:
-    print(f"error: {e}", file=sys.stderr, flush=True)
-    sys.exit(2)
-  except FloatingPointError as e:
-    print(f"error: {e}", file=sys.stderr, flush=True)
-    sys.exit(3)
-
-
-if __name__ == "__main__":
-  # Flags only when run as a program, so that importing this module defines none.
-  from absl import app, flags
-  from ml_collections import config_flags
-
-  _CONFIG = config_flags.DEFINE_config_file(
-    "config", None, "Path to configs/regression.py[:quick|:smoke].", lock_config=True
-  )
-  _WORKDIR = flags.DEFINE_string("workdir", None, "Output directory (results.json, metrics).")
-  flags.mark_flags_as_required(["config", "workdir"])
-  app.run(main)

@@ -43,7 +43,7 @@ from camrep import metrics as metrics_lib
 from camrep import pose as P
 from camrep.data import pipeline as pipeline_lib
 from camrep.data.errors import DataError
-from camrep.models.synthesis import GQNSynthesis, TableSynthesis
+from camrep.models.composite import GQNSynthesis, TableSynthesis
 
 Array = jax.Array
 AXIS = "batch"
@@ -202,7 +202,7 @@ def init_rep(key: Array, config, spec: P.PoseSystemSpec) -> dict:
   if kind == "grid":
     return P.init(key, spec)
   if kind == "mlp":
-    from camrep import targets
+    from camrep.regression import targets
 
     return targets.init_mlp(key, spec)
   return {}
@@ -219,7 +219,7 @@ def pose_vectors(
   if kind == "grid":
     return P.embed(rep, spec, poses, mode=mode, key=key)
   if kind == "mlp":
-    from camrep import targets
+    from camrep.regression import targets
 
     return targets.mlp_embed(rep, spec, poses)
   return lowdim_vectors(config, spec, poses)
@@ -689,8 +689,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
     FloatingPointError: a loss or gradient became non-finite (the last good checkpoint is kept).
     WorkdirError: the workdir cannot be written.
   """
-  from camrep import checkpoint as ckpt_lib
-  from camrep import writers
+  from camrep.runtime import checkpoint as ckpt_lib
+  from camrep.runtime import writers
 
   check_config(config)
   pidx, pcount = jax.process_index(), jax.process_count()

@@ -2,7 +2,7 @@
 
 Every regressor ends in `PoseHeads`: an optional extra dense layer (the baselines' parameter-count
 equaliser, digest 4.5: 196 units for GQN, 256 car, 192 Gibson) and one dense layer per
-`camrep.targets.HeadSpec`, normalised as the targets are (`targets.normalise_head`: learned
+`HeadSpec`, normalised as the targets are (`normalise_head`: learned
 position vectors block-normalised to 1 / n_blocks per block, angle vectors unit length, baselines
 raw). All modules share one call signature and return `(heads, aux)`:
 
@@ -49,7 +49,7 @@ import numpy as np
 
 from camrep.models import layers
 from camrep.models.encoder import Head, SceneEncoder
-from camrep.targets import HeadSpec, normalise_head
+from camrep.regression.targets import HeadSpec, normalise_head
 
 Array = jax.Array
 
@@ -73,7 +73,7 @@ class PoseHeads(nn.Module):
   """Optional extra dense layer, then one dense + normalisation per head.
 
   Attributes:
-    heads: the head specs (`camrep.targets.head_specs`).
+    heads: the head specs (`camrep.regression.targets.head_specs`).
     extra_fc: units of the extra layer (followed by lrelu), or None.
     kernel_init: kernel initialiser of the dense layers (glorot for the TF models).
     extra_fc_match: with `extra_fc`, size the extra layer by the feature size F instead: the

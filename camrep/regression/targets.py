@@ -463,7 +463,7 @@ def default_spec(
   exp_method: str = "taylor2",
   polar_variant: str = "binned",
 ) -> P.PoseSystemSpec:
-  """The paper-size pose system of a setting (digest 1.7), as `camrep.train.pose_spec` builds it
+  """The paper-size pose system of a setting (digest 1.7), as synthesis's `pose_spec` builds it
   from the configs' defaults: gqn polar (x, y) on [-1, 1] at 0.1 + yaw; gibson polar on [0, 2] m
   at 0.05 + yaw; car azimuth + polar angle (0..pi, non-periodic); seven_scenes x, y, z on
   [0, 4] x [0, 1.5] x [0, 3] m at 0.1 + theta, phi (0..pi), psi, with 4 x 8 blocks. Angles at

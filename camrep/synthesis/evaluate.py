@@ -1,6 +1,6 @@
 """Evaluation of a trained run: noise robustness of view synthesis and Gram maps (digest 5).
 
-Reads a training workdir (config.json and checkpoints/ written by `camrep.train`) back:
+Reads a training workdir (config.json and checkpoints/ written by `camrep.synthesis.train`) back:
 
   run = load_run(workdir)                      config, pose spec, model, params, pipelines
   noise_robustness(run, key=jax.random.key(0))  PSNR / SSIM vs pose-vector noise level alpha
@@ -19,7 +19,8 @@ the first test view as the query, and for GQN the first n_context training views
 
 Command line:
 
-  python -m camrep.evaluate --workdir DIR [--what noise,gram] [--levels 13] [--out DIR/eval]
+  python -m camrep.synthesis.evaluate --workdir DIR [--what noise,gram] [--levels 13]
+    [--out DIR/eval]
 
 writes DIR/eval/noise.json, noise.png (PSNR and SSIM vs alpha), gram_<dof>.png and gram.npz.
 """
@@ -46,7 +47,8 @@ from absl import logging as absl_logging
 
 from camrep import metrics as metrics_lib
 from camrep import pose as P
-from camrep import train, writers
+from camrep.runtime import writers
+from camrep.synthesis import train
 
 Array = jax.Array
 
@@ -128,10 +130,10 @@ def load_run(workdir: str, *, step: int | None = None) -> Run:
 
   Raises:
     FileNotFoundError: no workdir, no config.json, or no checkpoint.
-    camrep.checkpoint.CheckpointError: the requested step is missing, or no checkpoint is
+    camrep.runtime.checkpoint.CheckpointError: the requested step is missing, or no checkpoint is
       readable or matches the config's model.
   """
-  from camrep import checkpoint as ckpt_lib
+  from camrep.runtime import checkpoint as ckpt_lib
 
   config = read_config(workdir)
   try:
@@ -665,7 +667,7 @@ def write_grams(out: str, run: Run, grams: Mapping[str, np.ndarray]) -> list[str
 
 def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
   p = argparse.ArgumentParser(
-    prog="python -m camrep.evaluate",
+    prog="python -m camrep.synthesis.evaluate",
     description="Noise robustness and Gram maps of a trained camrep run (digest section 5).",
   )
   p.add_argument("--workdir", required=True, help="training workdir (config.json, checkpoints/)")
