@@ -18,6 +18,8 @@ from absl import app, flags, logging
 from ml_collections import config_flags
 
 from camrep.data.errors import DataError
+from camrep.runtime import runconfig
+from camrep.runtime import workdir as workdir_lib
 from camrep.runtime.checkpoint import CheckpointError
 from camrep.synthesis import train
 
@@ -67,7 +69,7 @@ def main(argv):
   except FloatingPointError as e:
     print(f"error: {e}", file=sys.stderr, flush=True)
     sys.exit(3)
-  except (train.ConfigError, train.WorkdirError, DataError, CheckpointError) as e:
+  except (runconfig.ConfigError, workdir_lib.WorkdirError, DataError, CheckpointError) as e:
     print(f"error: {e}", file=sys.stderr, flush=True)
     sys.exit(2)
 

@@ -37,6 +37,9 @@ import subprocess
 import sys
 import time
 
+from camrep.synthesis import components
+from camrep.synthesis import step as step_lib
+
 WIDTHS = {"paper": 1.0, "quick": 0.125}
 
 
@@ -109,18 +112,20 @@ def time_step(config, *, steps: int, num_devices: int = 1) -> dict:
 
   from camrep.synthesis import train
 
-  pipe = train.make_pipeline(config, "train", num_devices=num_devices)
-  spec = train.pose_spec(config)
-  model = train.make_model(config, train.num_train_scenes(pipe))
+  pipe = components.make_pipeline(config, "train", num_devices=num_devices)
+  spec = components.pose_spec(config)
+  model = components.make_model(config, components.num_train_scenes(pipe))
   init_key, loop_key = jax.random.split(jax.random.key(0))
   b0 = pipe.batch(0)
   batch = {k: jnp.asarray(b0[k]) for k in ("image", "pose", "scene")}
-  state = jax.jit(lambda k, b: train.create_train_state(k, config, model, spec, b))(init_key, batch)
+  state = jax.jit(lambda k, b: step_lib.create_train_state(k, config, model, spec, b))(
+    init_key, batch
+  )
   pstate = train._replicate(state, num_devices)
   keys = jax.vmap(jax.random.wrap_key_data)(
     train._replicate(jax.random.key_data(loop_key), num_devices)
   )
-  p_step = train.make_p_train_step(config, model, spec)
+  p_step = step_lib.make_p_train_step(config, model, spec)
   t = time.perf_counter()
   compiled = p_step.lower(pstate, batch, keys).compile()
   compile_s = time.perf_counter() - t
@@ -155,10 +160,9 @@ def decode_throughput(n: int = 4096) -> dict:
   import numpy as np
 
   from camrep import pose as P
-  from camrep.synthesis import train
 
   config = gqn_config(1.0, 1)
-  spec = train.pose_spec(config)
+  spec = components.pose_spec(config)
   params = P.init(jax.random.key(0), spec)
   rng = np.random.default_rng(0)
   poses = np.stack(
@@ -241,10 +245,9 @@ def breakdown(width: float, scenes: int, reps: int) -> dict[str, tuple[float, fl
   from camrep import pose as P
   from camrep.models.decoder import ResAdaINDecoder
   from camrep.models.encoder import SceneEncoder
-  from camrep.synthesis import train
 
   config = gqn_config(width, scenes)
-  spec = train.pose_spec(config)
+  spec = components.pose_spec(config)
   rep = P.init(jax.random.key(0), spec)
   k = jax.random.split(jax.random.key(1), 4)
   ctx = jax.random.uniform(k[0], (scenes, 6, 64, 64, 3), minval=-1, maxval=1)
@@ -264,7 +267,7 @@ def breakdown(width: float, scenes: int, reps: int) -> dict[str, tuple[float, fl
     return jnp.sum(img**2)
 
   def rot_loss(r):
-    return train.rotation_objective(config, spec, r, {}, jax.random.key(2), None)[0]
+    return step_lib.rotation_objective(config, spec, r, {}, jax.random.key(2), None)[0]
 
   return {
     "encoder (6 context views)": _timed(jax.grad(enc_loss), pe, reps=reps),

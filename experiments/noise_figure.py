@@ -26,6 +26,7 @@ import sys
 import cv2
 import numpy as np
 
+from camrep.runtime import plots
 from camrep.synthesis import evaluate
 
 LABELS = {
@@ -82,14 +83,14 @@ def markdown(runs: list[dict]) -> str:
 def figure(runs: list[dict]) -> np.ndarray:
   alphas = runs[0]["alphas"]
   setting = runs[0]["setting"]
-  left = evaluate.line_plot(
+  left = plots.line_plot(
     alphas,
     {r["label"]: r["psnr"] for r in runs},
     title=f"PSNR vs pose noise ({setting})",
     xlabel="alpha",
     ylabel="PSNR (dB)",
   )
-  right = evaluate.line_plot(
+  right = plots.line_plot(
     alphas,
     {r["label"]: r["ssim"] for r in runs},
     title=f"SSIM vs pose noise ({setting})",

@@ -45,7 +45,7 @@ import time
 from collections.abc import Sequence
 
 from camrep.regression import tables as C
-from camrep.runtime import writers
+from camrep.runtime import progress as progress_lib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SETTINGS = ("gqn", "car", "gibson", "seven_scenes")
@@ -234,13 +234,15 @@ def run_job(job: Job, logs: str, *, index: str) -> bool:
   """Runs a job (stdout and stderr to logs/<name>.log); True on success."""
   os.makedirs(logs, exist_ok=True)
   log_path = os.path.join(logs, f"{job.name}.log")
-  print(f"[{index}] {job.name} (est. {writers.format_duration(job.estimate_s)}) ...", flush=True)
+  print(
+    f"[{index}] {job.name} (est. {progress_lib.format_duration(job.estimate_s)}) ...", flush=True
+  )
   t0 = time.perf_counter()
   with open(log_path, "w", encoding="utf-8") as log:
     log.write(f"$ {job.command()}\n")
     log.flush()
     rc = subprocess.call(job.argv, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
-  took = writers.format_duration(time.perf_counter() - t0)
+  took = progress_lib.format_duration(time.perf_counter() - t0)
   if rc == 0:
     print(f"    done in {took}", flush=True)
     return True
@@ -332,20 +334,20 @@ def main(argv: Sequence[str] | None = None) -> int:
   print(
     f"{args.size} comparison into {out}: {len(synth)} view-synthesis runs, {n_runs} regression "
     f"runs ({len(first)} in phase 1, {n_later} in phase 2), {len(tables)} tables, "
-    f"{len(figures)} figure steps; estimated {writers.format_duration(est)} for what is not "
+    f"{len(figures)} figure steps; estimated {progress_lib.format_duration(est)} for what is not "
     f"done yet{' (on 2 CPU cores)' if args.size == 'quick' else ' (GPU; rough guess)'}.",
     flush=True,
   )
   if args.dry_run:
     for j in synth + first:
-      state = "done" if j.done() else f"~{writers.format_duration(j.estimate_s)}"
+      state = "done" if j.done() else f"~{progress_lib.format_duration(j.estimate_s)}"
       print(f"[{state}] {j.command()}")
     for s, rep, seed in later:
       job = regression_job(out, plan, s, rep, None, seed, py)
-      print(f"[~{writers.format_duration(plan.regression_s[s])}, phase 2] {job.command()}")
+      print(f"[~{progress_lib.format_duration(plan.regression_s[s])}, phase 2] {job.command()}")
     print("  (phase 2: <LR> = the lr chosen on seed 0's validation errors)")
     for j in tables + figures:
-      print(f"[~{writers.format_duration(j.estimate_s)}] {j.command()}")
+      print(f"[~{progress_lib.format_duration(j.estimate_s)}] {j.command()}")
     return 0
 
   failed = []
@@ -368,7 +370,7 @@ def main(argv: Sequence[str] | None = None) -> int:
   for job in tables + figures:
     if not job.done() and not run_job(job, logs, index=job.name):
       failed.append(job.name)
-  took = writers.format_duration(time.perf_counter() - t0)
+  took = progress_lib.format_duration(time.perf_counter() - t0)
   if failed:
     print(f"finished in {took} with {len(failed)} failures: {', '.join(failed)}", flush=True)
     return 1

@@ -16,7 +16,11 @@ os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from camrep.synthesis import train  # noqa: E402
+from camrep.synthesis import (
+  components,
+  train,  # noqa: E402
+)
+from camrep.synthesis import step as step_lib
 from configs import gqn  # noqa: E402
 
 steps, out = int(sys.argv[1]), sys.argv[2]
@@ -26,19 +30,19 @@ for arg in sys.argv[3:]:
   config[key] = type(config[key])(value)
 assert jax.local_device_count() == 2, jax.devices()
 pipes = [
-  train.make_pipeline(config, "train", num_devices=1, process_index=p, process_count=2)
+  components.make_pipeline(config, "train", num_devices=1, process_index=p, process_count=2)
   for p in range(2)
 ]
-spec = train.pose_spec(config)
-model = train.make_model(config, train.num_train_scenes(pipes[0]))
+spec = components.pose_spec(config)
+model = components.make_model(config, components.num_train_scenes(pipes[0]))
 init_key, loop_key = jax.random.split(jax.random.key(config.seed))
 first = pipes[0].batch(0)
-state = jax.jit(lambda k, b: train.create_train_state(k, config, model, spec, b))(
+state = jax.jit(lambda k, b: step_lib.create_train_state(k, config, model, spec, b))(
   init_key, {k: first[k] for k in ("image", "pose", "scene")}
 )
 pstate = train._replicate(state, 2)
 keys = jax.vmap(jax.random.wrap_key_data)(train._replicate(jax.random.key_data(loop_key), 2))
-p_step = train.make_p_train_step(config, model, spec)
+p_step = step_lib.make_p_train_step(config, model, spec)
 logged = {}
 for step in range(1, steps + 1):
   parts = [p.batch(step - 1) for p in pipes]

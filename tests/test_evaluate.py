@@ -14,10 +14,13 @@ import orbax.checkpoint as ocp
 import pytest
 
 from camrep import pose as P
+from camrep import pose_inputs
 from camrep.runtime import checkpoint as ckpt_lib
 from camrep.runtime import writers
+from camrep.synthesis import components, heldout, restore, train
 from camrep.synthesis import evaluate as ev
-from camrep.synthesis import train
+from camrep.synthesis import gram as gram_lib
+from camrep.synthesis import noise as noise_lib
 from configs import gibson, gqn, seven_scenes, shapenet_car
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
@@ -34,7 +37,7 @@ def workdir(tmp_path_factory, fast_compile):
 
 @pytest.fixture(scope="module")
 def run(workdir):
-  return ev.load_run(workdir)
+  return restore.load_run(workdir)
 
 
 def _train_eval(workdir):
@@ -42,8 +45,10 @@ def _train_eval(workdir):
 
 
 def test_load_run_restores_checkpoint_params(workdir, run):
-  assert run.step == 2 and train.setting(run.config) == "gqn"
-  assert run.config.data.n_context == 3 and run.spec == train.pose_spec(gqn.get_config("smoke"))
+  assert run.step == 2 and components.setting(run.config) == "gqn"
+  assert run.config.data.n_context == 3 and run.spec == components.pose_spec(
+    gqn.get_config("smoke")
+  )
   raw = ocp.PyTreeCheckpointer().restore(os.path.join(workdir, "checkpoints", "2", "state"))
   want = dict(jax.tree_util.tree_flatten_with_path(raw["params"])[0])
   got = dict(jax.tree_util.tree_flatten_with_path(run.params)[0])
@@ -54,30 +59,30 @@ def test_load_run_restores_checkpoint_params(workdir, run):
 
 def test_load_run_errors(workdir, tmp_path):
   with pytest.raises(FileNotFoundError, match="does not exist"):
-    ev.load_run(str(tmp_path / "nope"))
+    restore.load_run(str(tmp_path / "nope"))
   with pytest.raises(FileNotFoundError, match="config.json"):
-    ev.load_run(str(tmp_path))
+    restore.load_run(str(tmp_path))
   shutil.copy(os.path.join(workdir, "config.json"), tmp_path / "config.json")
   with pytest.raises(FileNotFoundError, match="no checkpoint"):
-    ev.load_run(str(tmp_path))
+    restore.load_run(str(tmp_path))
   os.makedirs(tmp_path / "checkpoints")
   with pytest.raises(FileNotFoundError, match="no checkpoint"):
-    ev.load_run(str(tmp_path))
+    restore.load_run(str(tmp_path))
   with pytest.raises(ckpt_lib.CheckpointError, match="available"):
-    ev.load_run(workdir, step=7)
+    restore.load_run(workdir, step=7)
   assert ev.main(["--workdir", str(tmp_path / "nope")]) == 2
 
 
 def test_default_quantisation():
   configs = {"gqn": gqn, "car": shapenet_car, "gibson": gibson, "seven_scenes": seven_scenes}
-  got = {k: ev.default_quantisation(m.get_config("smoke")) for k, m in configs.items()}
+  got = {k: noise_lib.default_quantisation(m.get_config("smoke")) for k, m in configs.items()}
   assert got == {"gqn": "random", "car": "random", "gibson": "nearest", "seven_scenes": "nearest"}
 
 
 def test_noise_levels(workdir, run):
-  batches = train.eval_batches(run.config, run.train_pipe, run.test_pipe)
+  batches = heldout.eval_batches(run.config, run.train_pipe, run.test_pipe)
   key = jax.random.key(3)
-  res = ev.noise_robustness(
+  res = noise_lib.noise_robustness(
     run, key=key, alphas=[0.0, 0.2, 0.2], quantisation="nearest", batches=batches
   )
   assert res["step"] == 2 and res["quantisation"] == "nearest"
@@ -96,7 +101,7 @@ def test_noise_levels(workdir, run):
 
 def test_beta_and_noise_statistics(run):
   rep, spec = run.params["rep"], run.spec
-  betas = ev.grid_betas(rep, spec)
+  betas = noise_lib.grid_betas(rep, spec)
   assert set(betas) == {"xy", "yaw"}
   for name, beta in betas.items():
     assert beta.shape == (spec.dim,)
@@ -107,20 +112,20 @@ def test_beta_and_noise_statistics(run):
   # a function of the image's key.
   n = 4000
   poses = jnp.tile(jnp.asarray([[[0.13, -0.42, 1.0]]], jnp.float32), (n, 1, 1))
-  _, _, k_noise = ev.image_keys(jax.random.key(0), jnp.arange(n))
-  exact = jax.jit(lambda r, p: ev.pose_vectors(r, spec, p, None, mode="nearest"))(rep, poses)
-  noisy = ev.add_noise(exact, spec, k_noise, alpha=0.3, betas=betas)
+  _, _, k_noise = noise_lib.image_keys(jax.random.key(0), jnp.arange(n))
+  exact = jax.jit(lambda r, p: noise_lib.pose_vectors(r, spec, p, None, mode="nearest"))(rep, poses)
+  noisy = noise_lib.add_noise(exact, spec, k_noise, alpha=0.3, betas=betas)
   for name in spec.names:
     diff = np.asarray(noisy[name] - exact[name])[:, 0]  # (n, d)
     np.testing.assert_allclose(diff.std(axis=0), 0.3 * betas[name], rtol=0.08)
     assert abs(np.corrcoef(diff[:, 0], diff[:, 1])[0, 1]) < 0.08
-  zero = ev.add_noise(exact, spec, k_noise, alpha=0.0, betas=betas)
+  zero = noise_lib.add_noise(exact, spec, k_noise, alpha=0.0, betas=betas)
   for name in spec.names:
     np.testing.assert_array_equal(zero[name], exact[name])
 
 
 def test_gram_maps(run):
-  grams = ev.gram_maps(run)
+  grams = gram_lib.gram_maps(run)
   xy = run.spec.dof("xy")
   assert grams["xy"].shape == (xy.n_grid, xy.n_grid) == (441, 441)
   assert grams["yaw"].shape == (360, 360)  # 1-degree vectors over the periodic range
@@ -172,14 +177,14 @@ def test_other_pose_inputs_train_and_take_noise(kind, tmp_path):
   config.total_steps = 2
   last = train.train_and_evaluate(config, str(tmp_path))
   assert last["train/finite"] == 1.0 and "train/rot_xy" not in last
-  run = ev.load_run(str(tmp_path))
+  run = restore.load_run(str(tmp_path))
   spec = run.spec
   poses = jnp.asarray([[0.1, -0.2, 1.0], [0.5, 0.3, 4.0]], jnp.float32)
-  vecs = train.pose_vectors(run.config, spec, run.params["rep"], poses)
-  betas = ev.grid_betas(run.params["rep"], spec, run.config)
+  vecs = pose_inputs.pose_vectors(run.config, spec, run.params["rep"], poses)
+  betas = noise_lib.grid_betas(run.params["rep"], spec, run.config)
   if kind == "lowdim":
     assert run.params["rep"] == {}
-    z, pitch = train.lowdim_constants(run.config)
+    z, pitch = pose_inputs.lowdim_constants(run.config)
     np.testing.assert_allclose(vecs["xy"], [[0.1, -0.2, z], [0.5, 0.3, z]], atol=1e-7)
     np.testing.assert_allclose(
       vecs["yaw"][0], [np.sin(1.0), np.cos(1.0), np.sin(pitch), np.cos(pitch)], atol=1e-6
@@ -192,10 +197,10 @@ def test_other_pose_inputs_train_and_take_noise(kind, tmp_path):
     for name in spec.names:
       assert vecs[name].shape == (2, spec.dim) and np.all(betas[name] > 0)
       np.testing.assert_allclose(np.linalg.norm(vecs[name], axis=-1), 1.0, rtol=1e-5)
-  result = ev.noise_robustness(run, key=jax.random.key(0), alphas=[0.0, 0.3])
+  result = noise_lib.noise_robustness(run, key=jax.random.key(0), alphas=[0.0, 0.3])
   assert result["psnr"][0] == pytest.approx(_train_eval(str(tmp_path))["eval/psnr"], abs=1e-4)
   assert result["psnr"][1] != result["psnr"][0]
-  grams = ev.gram_maps(run)
+  grams = gram_lib.gram_maps(run)
   assert set(grams) == set(spec.names)
 
 

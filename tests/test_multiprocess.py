@@ -19,7 +19,7 @@ import jax
 import numpy as np
 
 from camrep.runtime import writers
-from camrep.synthesis import evaluate
+from camrep.synthesis import restore
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 STEPS = 6
@@ -90,7 +90,7 @@ def test_two_processes_train_as_one(tmp_path):
     for key in ("train/loss", "train/rec", "train/rot_xy", "train/grad_norm_model"):
       assert row[key] == float(want[f"metric/{row['step']}/{key}"]), (row["step"], key)
   assert sorted(os.listdir(workdir / "checkpoints")) == ["3", "6"]
-  run = evaluate.load_run(str(workdir))
+  run = restore.load_run(str(workdir))
   assert run.step == STEPS
   flat = jax.tree_util.tree_flatten_with_path(run.params)[0]
   for path, value in flat:

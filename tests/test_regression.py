@@ -18,7 +18,9 @@ import pytest
 
 from camrep.regression import driver as R
 from camrep.regression import tables as C
-from camrep.synthesis import train
+from camrep.regression import views as views_lib
+from camrep.runtime import runconfig
+from camrep.synthesis import components, train
 from configs import regression as regression_config
 from configs import shapenet_car
 
@@ -88,9 +90,9 @@ def test_baseline_end_to_end(tmp_path, cache):
     assert json.load(f)["total_steps"] == 3
   # The cache holds the rendered splits; a second data build reads them back identically.
   assert len([f for f in os.listdir(cache) if f.endswith(".npz")]) == 2
-  d1 = R.make_data(R.resolve_config(config))
+  d1 = views_lib.make_data(R.resolve_config(config))
   np.testing.assert_array_equal(
-    d1.train.images[:3], R.make_data(R.resolve_config(config)).train.images[:3]
+    d1.train.images[:3], views_lib.make_data(R.resolve_config(config)).train.images[:3]
   )
 
 
@@ -115,25 +117,25 @@ def test_ours_from_a_synthesis_workdir(tmp_path, cache, car_synthesis):
   # The restored pose system was cached: the next run reads it back without load_run.
   assert any(f.startswith("pose_system_") for f in os.listdir(cache))
   spec, rep, info = R.representation_params(R.resolve_config(config))
-  assert spec == train.pose_spec(shapenet_car.get_config("smoke")) and info["step"] == 1
+  assert spec == components.pose_spec(shapenet_car.get_config("smoke")) and info["step"] == 1
   # "mlp" with a learned-grid run: its pose spec, a frozen random MLP embedding.
   mlp = _config("car", "mlp", synthesis_workdir=car_synthesis, **{"data.cache_dir": cache})
   spec, params, info = R.representation_params(R.resolve_config(mlp))
   assert info["source"] == "random_init" and set(params) == set(spec.names)
   # A synthesis run of another setting is refused.
   other = _config("gibson", "ours", synthesis_workdir=car_synthesis)
-  with pytest.raises(R.ConfigError, match="is a 'car' run"):
+  with pytest.raises(runconfig.ConfigError, match="is a 'car' run"):
     R.run(other, str(tmp_path / "bad"), log=lambda s: None)
 
 
 def test_config_errors(tmp_path):
-  with pytest.raises(R.ConfigError, match="synthesis_workdir"):
+  with pytest.raises(runconfig.ConfigError, match="synthesis_workdir"):
     R.resolve_config(_config("car", "ours"))
-  with pytest.raises(R.ConfigError, match="unknown representation"):
+  with pytest.raises(runconfig.ConfigError, match="unknown representation"):
     R.resolve_config(_config("car", "quaternion"))
-  with pytest.raises(R.ConfigError, match="unknown setting"):
+  with pytest.raises(runconfig.ConfigError, match="unknown setting"):
     R.resolve_config(_config("shapenet", "quat"))
-  with pytest.raises(R.ConfigError, match="no checkpoint|config.json"):
+  with pytest.raises(runconfig.ConfigError, match="no checkpoint|config.json"):
     R.run(_config("car", "ours", synthesis_workdir=str(tmp_path)), str(tmp_path / "x"))
   c = R.resolve_config(_config("gqn", "quat"))
   assert (c.total_steps, c.data.batch_size, c.evals.test_split) == (3, 2, "test_scenes")
@@ -160,7 +162,7 @@ def test_command_line_errors(tmp_path):
 def _views(n_scenes, n_views, p=3, size=4):
   rng = np.random.default_rng(0)
   n = n_scenes * n_views
-  return R.ViewSet(
+  return views_lib.ViewSet(
     images=rng.integers(0, 256, (n, size, size, 3), dtype=np.uint8),
     poses=rng.uniform(size=(n, p)).astype(np.float32),
     scenes=np.repeat(np.arange(n_scenes), n_views),
@@ -170,19 +172,19 @@ def _views(n_scenes, n_views, p=3, size=4):
 
 def test_validation_split_and_batches():
   views = _views(5, 10)
-  train_v, val = R.split_validation("car", views, 0.2)
+  train_v, val = views_lib.split_validation("car", views, 0.2)
   assert len(val) == 10 and len(train_v) == 40
   for s in range(5):  # the two last views by id of every scene
     assert sorted(val.views[val.scenes == s]) == [8, 9]
-  train_v, val = R.split_validation("gqn", views, 0.2)
+  train_v, val = views_lib.split_validation("gqn", views, 0.2)
   assert set(val.scenes) == {4} and set(train_v.scenes) == {0, 1, 2, 3}
 
   config = R.resolve_config(_config("gqn", "quat", **{"evals.batch_size": 7}))
-  batch = next(R.train_batches(config, train_v))
+  batch = next(views_lib.train_batches(config, train_v))
   assert batch["context_image"].shape == (2, 3, 4, 4, 3) and batch["image"].shape == (2, 2, 4, 4, 3)
   assert batch["pose"].shape == (2, 2, 3) and batch["scene"].shape == (2,)
   # Held-out scenes: context = views 0..2 of each scene, queries = the other 7, one scene a batch.
-  ev = R.eval_batches(config, R.EvalSet(views, views))
+  ev = views_lib.eval_batches(config, views_lib.EvalSet(views, views))
   assert len(ev) == 5 and ev[0]["image"].shape == (1, 7, 4, 4, 3) and ev[0]["mask"].all()
   b = ev[1]
   rows = views.scene_rows(1)
@@ -190,9 +192,9 @@ def test_validation_split_and_batches():
   np.testing.assert_array_equal(b["pose"][0], views.poses[rows[3:]])
 
   config = R.resolve_config(_config("car", "quat", **{"evals.batch_size": 16}))
-  ev = R.eval_batches(config, R.EvalSet(_views(5, 5, p=2)))
+  ev = views_lib.eval_batches(config, views_lib.EvalSet(_views(5, 5, p=2)))
   assert [b["mask"].sum() for b in ev] == [16, 9] and ev[1]["image"].shape[0] == 16
-  b0, b1 = (next(R.train_batches(config, _views(5, 5, p=2))) for _ in range(2))
+  b0, b1 = (next(views_lib.train_batches(config, _views(5, 5, p=2))) for _ in range(2))
   np.testing.assert_array_equal(b0["pose"], b1["pose"])  # a pure function of (seed, step)
 
 

@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 
 from camrep import pose as P
+from camrep import pose_inputs
 from camrep.models import layers
 from camrep.models import pose_regressor as R
-from camrep.regression import learner
+from camrep.regression import learner, scoring
 from camrep.regression import targets as T
 from tests.test_targets import consistent_params
 from tests.utils import assert_close
@@ -62,7 +63,7 @@ def _rep_params(setting, rep, spec, key=0):
   if rep == "ours":
     return jax.jit(P.init, static_argnums=1)(jax.random.key(key), spec)
   if rep == "mlp":
-    return T.init_mlp(jax.random.key(key), spec)
+    return pose_inputs.init_mlp(jax.random.key(key), spec)
   return None
 
 
@@ -352,7 +353,7 @@ def test_training_reduces_the_loss():
   assert int(state.step) == 100 and np.all(np.isfinite(losses))
   first, last = np.mean(losses[:10]), np.mean(losses[-10:])
   assert last < 0.2 * first, (first, last)
-  errors = learner.evaluate_regression(state, [data])
+  errors = scoring.evaluate_regression(state, [data])
   # Chance level is ~90 degrees.
   assert errors["rotation_error_deg"].shape == (64,) and np.mean(errors["rotation_error_deg"]) < 60
 
@@ -410,7 +411,7 @@ def test_fixed_weights_have_no_log_vars():
 
 def test_pose_errors_hand_computed():
   deg = math.radians
-  e = learner.pose_errors(
+  e = scoring.pose_errors(
     "gqn",
     jnp.array([[0.1, 0.2, deg(359.0)]]),
     jnp.array([[0.4, -0.2, deg(1.0)]]),
@@ -420,7 +421,7 @@ def test_pose_errors_hand_computed():
   assert float(e["position_error"][0]) == pytest.approx(0.5, abs=1e-6)
   assert float(e["yaw_error_deg"][0]) == pytest.approx(2.0, abs=1e-4)
   # Car: 10 degrees of azimuth on the equator is a 10 degree rotation.
-  e = learner.pose_errors(
+  e = scoring.pose_errors(
     "car", jnp.array([[deg(30.0), deg(90.0)]]), jnp.array([[deg(40.0), deg(90.0)]])
   )
   assert float(e["rotation_error_deg"][0]) == pytest.approx(10.0, abs=1e-3)
@@ -428,7 +429,7 @@ def test_pose_errors_hand_computed():
   # 7-Scenes: 5 degrees of theta only, 3-4-5 translation.
   p = np.array([[1.0, 1.0, 1.0, 3.0, 1.5, 3.0]], np.float32)
   q = p + np.array([[0.3, 0.4, 0.0, deg(5.0), 0.0, 0.0]], np.float32)
-  e = learner.pose_errors("seven_scenes", jnp.asarray(q), jnp.asarray(p))
+  e = scoring.pose_errors("seven_scenes", jnp.asarray(q), jnp.asarray(p))
   assert float(e["position_error"][0]) == pytest.approx(0.5, abs=1e-6)
   assert float(e["rotation_error_deg"][0]) == pytest.approx(5.0, abs=1e-3)
 
@@ -442,12 +443,12 @@ def test_evaluate_and_summarise_per_scene():
     "mask": np.array([1, 1, 1, 1, 1, 0], bool),
   }
   shift = np.array([math.radians(2.0), 0.0], np.float32)
-  errors = learner.evaluate_regression(
+  errors = scoring.evaluate_regression(
     None, [batch], predict_fn=lambda s, b: b["pose"] + shift, setting="car"
   )
   assert errors["scene"].tolist() == [0, 0, 1, 1, 1]  # padding dropped
   assert_close(errors["azimuth_error_deg"], np.full(5, 2.0), atol=1e-3)
-  summary = learner.summarise_errors(errors)
+  summary = scoring.summarise_errors(errors)
   assert set(summary) == {"all", 0, 1}
   assert summary[1]["azimuth_error_deg"]["median"] == pytest.approx(2.0, abs=1e-3)
   assert summary["all"]["rotation_error_deg"]["mean"] <= 2.0 + 1e-3

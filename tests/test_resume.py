@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from camrep.runtime import writers
-from camrep.synthesis import evaluate
+from camrep.synthesis import restore
 
 # One xdist worker runs the module, so the reference run is made once.
 pytestmark = pytest.mark.xdist_group("resume")
@@ -94,7 +94,7 @@ def _rows(workdir) -> list[dict]:
 
 
 def _params(workdir):
-  run = evaluate.load_run(str(workdir))
+  run = restore.load_run(str(workdir))
   assert run.step == TOTAL
   return run.params
 

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from camrep import lie
+from camrep import lie, pose_inputs
 from camrep import pose as P
+from camrep.models import pose_regressor
 from camrep.regression import targets as T
 from tests.utils import assert_close, x64
 
@@ -291,7 +292,7 @@ def test_ours_round_trip_refines_below_candidate_spacing(setting):
   heads = T.head_specs("ours", setting, spec=spec)
   assert sorted(enc) == sorted(spec.names) and [h.name for h in heads] == list(spec.names)
   for h in heads:
-    norm = np.asarray(T.normalise_head(enc[h.name], h))
+    norm = np.asarray(pose_regressor.normalise_head(enc[h.name], h))
     # Targets satisfy the head's normalisation, up to the Taylor exp's norm drift d^4 B^4 / 4.
     assert_close(norm, enc[h.name], atol=2e-3)
   dec = jax.jit(lambda e: T.decode("ours", setting, e, spec=spec, rep_params=params))(enc)
@@ -335,7 +336,7 @@ def test_ours_targets_are_frozen_embeddings():
 
 def test_mlp_embedding_round_trip():
   spec = T.default_spec("car")
-  mlp = T.init_mlp(jax.random.key(3), spec)
+  mlp = pose_inputs.init_mlp(jax.random.key(3), spec)
   assert set(mlp) == {"azimuth", "polar"}
   assert mlp["azimuth"]["hidden"]["kernel"].shape == (1, 128)
   assert mlp["azimuth"]["out"]["kernel"].shape == (128, 96)
@@ -355,7 +356,9 @@ def test_normalise_head_matches_pose_system():
   assert heads["yaw"].norm == "unit"
   for name in ("xy", "yaw"):
     raw = params[name]["grid"]
-    assert_close(T.normalise_head(raw, heads[name]), P.grid_vectors(params, spec, name), atol=1e-7)
+    assert_close(
+      pose_regressor.normalise_head(raw, heads[name]), P.grid_vectors(params, spec, name), atol=1e-7
+    )
 
 
 def test_head_sizes():

@@ -14,8 +14,9 @@ import pytest
 
 from camrep import pose as P
 from camrep.models.composite import GQNSynthesis, TableSynthesis
-from camrep.runtime import writers
-from camrep.synthesis import train
+from camrep.runtime import runconfig, writers
+from camrep.synthesis import components, train
+from camrep.synthesis import step as step_lib
 from configs import gibson, gqn, seven_scenes, shapenet_car
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -29,12 +30,12 @@ pytestmark = pytest.mark.usefixtures("fast_compile")
 @pytest.mark.parametrize("variant", [None, "quick", "smoke"])
 def test_configs_build(name, variant):
   config = CONFIGS[name].get_config(variant)
-  train.check_config(config)
-  spec = train.pose_spec(config)
+  components.check_config(config)
+  spec = components.pose_spec(config)
   assert spec.pose_dim == {"gqn": 3, "shapenet_car": 2, "gibson": 3, "seven_scenes": 6}[name]
   for key in ("total_steps", "ckpt_every_steps", "eval_every_steps", "log_every_steps"):
     assert config[key] > 0
-  model = train.make_model(config, 7)
+  model = components.make_model(config, 7)
   expected = GQNSynthesis if name == "gqn" else TableSynthesis
   assert isinstance(model, expected) and config.task == ("gqn" if name == "gqn" else "table")
   if variant is None:  # paper settings (digest 3)
@@ -52,23 +53,23 @@ def test_config_variant_errors():
 def test_check_config_rejects_layouts_the_step_cannot_run(tmp_path):
   c = gqn.get_config("smoke")
   c.data.n_context = c.data.views_per_scene  # no query views left
-  with pytest.raises(train.ConfigError, match="n_context"):
-    train.check_config(c)
+  with pytest.raises(runconfig.ConfigError, match="n_context"):
+    components.check_config(c)
   c = gqn.get_config("smoke")
   c.loss.data_pairs = True  # GQN batches hold random views, not (anchor, partner) pairs
-  with pytest.raises(train.ConfigError, match="data.mode='pairs'"):
+  with pytest.raises(runconfig.ConfigError, match="data.mode='pairs'"):
     train.train_and_evaluate(c, str(tmp_path / "run"))
   assert not (tmp_path / "run").exists()  # refused before the workdir was touched
   c.rep.kind = "lowdim"  # no generators, no rotation loss: data_pairs is moot
-  train.check_config(c)
+  components.check_config(c)
   c = shapenet_car.get_config("smoke")
   c.total_steps = 0
-  with pytest.raises(train.ConfigError, match="total_steps"):
-    train.check_config(c)
+  with pytest.raises(runconfig.ConfigError, match="total_steps"):
+    components.check_config(c)
   c = shapenet_car.get_config("smoke")
   c.data.source = "nowhere"
-  with pytest.raises(train.ConfigError, match="unknown data.source"):
-    train.check_config(c)
+  with pytest.raises(runconfig.ConfigError, match="unknown data.source"):
+    components.check_config(c)
 
 
 def test_gqn_smoke_trains_evaluates_and_resumes(tmp_path):
@@ -110,7 +111,7 @@ def test_table_settings_smoke(name, tmp_path):
   config.eval_every_steps = 2
   last = train.train_and_evaluate(config, str(tmp_path))
   assert last["train/finite"] == 1.0
-  spec = train.pose_spec(config)
+  spec = components.pose_spec(config)
   for d in spec.dofs:
     assert np.isfinite(last[f"train/rot_{d.name}"])
   assert np.isfinite(last["eval/psnr"]) and np.isfinite(last["eval/psnr_baseline"])
@@ -118,20 +119,20 @@ def test_table_settings_smoke(name, tmp_path):
 
 def test_train_step_does_not_retrace():
   config = gqn.get_config("smoke")
-  pipe = train.make_pipeline(config, "train", num_devices=1)
-  spec = train.pose_spec(config)
-  model = train.make_model(config, train.num_train_scenes(pipe))
-  state = train.create_train_state(jax.random.key(0), config, model, spec, pipe.batch(0))
+  pipe = components.make_pipeline(config, "train", num_devices=1)
+  spec = components.pose_spec(config)
+  model = components.make_model(config, components.num_train_scenes(pipe))
+  state = step_lib.create_train_state(jax.random.key(0), config, model, spec, pipe.batch(0))
   traces = []
 
   def counted(*args, **kw):
     traces.append(1)
-    return train.train_step(*args, **kw)
+    return step_lib.train_step(*args, **kw)
 
   import functools
 
   fn = functools.partial(counted, model=model, config=config, spec=spec)
-  p_step = jax.pmap(fn, axis_name=train.AXIS, donate_argnums=(0,))
+  p_step = jax.pmap(fn, axis_name=step_lib.AXIS, donate_argnums=(0,))
   pstate = train._replicate(state, 1)
   keys = jax.vmap(jax.random.wrap_key_data)(
     train._replicate(jax.random.key_data(jax.random.key(1)), 1)
@@ -231,23 +232,23 @@ def test_cli_unwritable_workdir_is_a_clear_error(tmp_path):
 
 
 def test_pose_spec_matches_paper_grids():
-  spec = train.pose_spec(gqn.get_config())
+  spec = components.pose_spec(gqn.get_config())
   assert spec.dof("xy").n_grid == 441 and spec.dof("xy").n_directions == 144
   assert spec.dim == 96 and spec.dof("yaw").n_grid == 36
-  s7 = train.pose_spec(seven_scenes.get_config())
+  s7 = components.pose_spec(seven_scenes.get_config())
   assert [d.n_grid for d in s7.dofs] == [41, 16, 31, 36, 19, 36] and s7.dim == 32
-  car = train.pose_spec(shapenet_car.get_config())
+  car = components.pose_spec(shapenet_car.get_config())
   assert isinstance(car.dof("polar"), P.AngularDof) and car.dof("polar").n_grid == 19
 
 
 def test_learning_rate_schedules():
   config = gqn.get_config("smoke")
-  assert train.learning_rate(config, 1e-3) == 1e-3  # the paper's constant rate
+  assert step_lib.learning_rate(config, 1e-3) == 1e-3  # the paper's constant rate
   config.optax.schedule = "cosine"
   config.total_steps = 100
-  lr = train.learning_rate(config, 1e-3)
+  lr = step_lib.learning_rate(config, 1e-3)
   assert float(lr(0)) == pytest.approx(1e-3) and float(lr(100)) == pytest.approx(1e-5)
   assert float(lr(50)) == pytest.approx(1e-3 * (0.01 + 0.99 * 0.5), rel=1e-5)
   config.optax.schedule = "linear"
   with pytest.raises(ValueError, match="unknown optax.schedule 'linear'"):
-    train.make_optimizers(config)
+    step_lib.make_optimizers(config)

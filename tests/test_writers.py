@@ -15,7 +15,8 @@ import ml_collections
 import numpy as np
 import pytest
 
-from camrep.runtime import writers
+from camrep.runtime import grids, writers
+from camrep.runtime import progress as progress_lib
 
 
 def _read_events(workdir):
@@ -180,29 +181,29 @@ def test_write_config(tmp_path):
 
 def test_to_uint8_ranges():
   np.testing.assert_array_equal(
-    writers.to_uint8(np.array([[-1.0, 0.0, 1.0, 2.0]]))[0, :, 0], [0, 128, 255, 255]
+    grids.to_uint8(np.array([[-1.0, 0.0, 1.0, 2.0]]))[0, :, 0], [0, 128, 255, 255]
   )
   np.testing.assert_array_equal(
-    writers.to_uint8(np.array([[0.0, 1.0]]), value_range=(0.0, 1.0))[0, :, 0], [0, 255]
+    grids.to_uint8(np.array([[0.0, 1.0]]), value_range=(0.0, 1.0))[0, :, 0], [0, 255]
   )
   with pytest.raises(ValueError):
-    writers.to_uint8(np.zeros((2, 2, 2)))
+    grids.to_uint8(np.zeros((2, 2, 2)))
 
 
 def test_image_grid_shape_and_layout():
   h, w, pad = 8, 10, 2
   rows = [[np.full((h, w, 3), -1.0)] * 3, [np.full((h, w, 3), 255, np.uint8)] * 2]
-  grid = writers.image_grid(rows, pad=pad)
+  grid = grids.image_grid(rows, pad=pad)
   assert grid.dtype == np.uint8
   assert grid.shape == (2 * (h + pad) + pad, 3 * (w + pad) + pad, 3)
   assert np.all(grid[pad : pad + h, pad : pad + w] == 0)  # First cell: -1 -> black.
   assert np.all(grid[:pad] == 255)  # White border.
-  labelled = writers.image_grid(rows, labels=["a", "b", "c"], pad=pad)
+  labelled = grids.image_grid(rows, labels=["a", "b", "c"], pad=pad)
   header = labelled.shape[0] - grid.shape[0]
   assert header > 0 and labelled.shape[1] == grid.shape[1]
   assert np.any(labelled[:header] < 255)  # Text was drawn.
   with pytest.raises(ValueError):
-    writers.image_grid([])
+    grids.image_grid([])
 
 
 def test_view_synthesis_grid_written_and_readable(tmp_path):
@@ -212,7 +213,7 @@ def test_view_synthesis_grid_written_and_readable(tmp_path):
   target = rng.uniform(-1, 1, (s, q, h, w, 3)).astype(np.float32)
   prediction = target.copy()
   prediction[:, 1] = -target[:, 1]
-  grid = writers.view_synthesis_grid(context, target, prediction, max_scenes=4)
+  grid = grids.view_synthesis_grid(context, target, prediction, max_scenes=4)
   pad = 2
   assert grid.shape[1] == (c + 3) * (w + pad) + pad
   header = grid.shape[0] - (4 * q * (h + pad) + pad)
@@ -225,13 +226,13 @@ def test_view_synthesis_grid_written_and_readable(tmp_path):
 
   assert cell(0, err_x).max() < 10  # Exact prediction: near-black error map.
   assert cell(1, err_x).mean() > 100  # Wrong prediction: bright error map.
-  np.testing.assert_array_equal(cell(0, pad + c * (w + pad)), writers.to_uint8(target[0, 0]))
+  np.testing.assert_array_equal(cell(0, pad + c * (w + pad)), grids.to_uint8(target[0, 0]))
   with writers.MetricWriter(str(tmp_path), tensorboard=False) as mw:
     mw.write_images(7, {"eval/test/views": grid})
   back = cv2.imread(str(tmp_path / "images" / "eval_test_views_00000007.png"), cv2.IMREAD_COLOR)
   np.testing.assert_array_equal(back[..., ::-1], grid)
   with pytest.raises(ValueError):
-    writers.view_synthesis_grid(context, target, prediction[:, :1])
+    grids.view_synthesis_grid(context, target, prediction[:, :1])
 
 
 # ------------------------------------------------------------------------------------------
@@ -248,7 +249,7 @@ class FakeClock:
 
 def test_progress_format_and_rate_limit():
   clock = FakeClock()
-  p = writers.Progress(1000, every_seconds=10.0, clock=clock)
+  p = progress_lib.Progress(1000, every_seconds=10.0, clock=clock)
   assert p.update(0) == "step 0/1000 (0.0%) -- steps/s ETA --"  # First call reports.
   assert math.isnan(p.steps_per_second)
   clock.t = 5.0
@@ -267,7 +268,7 @@ def test_progress_format_and_rate_limit():
 
 def test_progress_slow_rate_and_resume():
   clock = FakeClock()
-  p = writers.Progress(10_000, start_step=9000, every_seconds=1.0, clock=clock)
+  p = progress_lib.Progress(10_000, start_step=9000, every_seconds=1.0, clock=clock)
   assert p.status().startswith("step 9000/10000 (90.0%)")
   p.update(9000)
   clock.t = 40.0
@@ -276,7 +277,7 @@ def test_progress_slow_rate_and_resume():
 
 def test_progress_prints_plain_lines_when_not_a_tty(capsys):
   clock = FakeClock()
-  p = writers.Progress(4, every_seconds=60.0, log_fn=print, clock=clock)
+  p = progress_lib.Progress(4, every_seconds=60.0, log_fn=print, clock=clock)
   for step in range(1, 5):
     clock.t += 1.0
     p.update(step)
@@ -288,24 +289,24 @@ def test_progress_prints_plain_lines_when_not_a_tty(capsys):
 
 
 def test_format_duration():
-  assert writers.format_duration(0) == "0s"
-  assert writers.format_duration(59.4) == "59s"
-  assert writers.format_duration(284) == "4m44s"
-  assert writers.format_duration(3723) == "1h02m03s"
-  assert writers.format_duration(math.inf) == "--"
+  assert progress_lib.format_duration(0) == "0s"
+  assert progress_lib.format_duration(59.4) == "59s"
+  assert progress_lib.format_duration(284) == "4m44s"
+  assert progress_lib.format_duration(3723) == "1h02m03s"
+  assert progress_lib.format_duration(math.inf) == "--"
 
 
 def test_itstime_periodic_and_last_step():
-  fired = [s for s in range(1, 26) if writers.itstime(s, 10, 25)]
+  fired = [s for s in range(1, 26) if progress_lib.itstime(s, 10, 25)]
   assert fired == [10, 20, 25]
   # The last step fires once, even when it is also a multiple.
-  assert [s for s in range(1, 21) if writers.itstime(s, 10, 20)] == [10, 20]
-  assert not writers.itstime(24, 10, 25) and not writers.itstime(0, 10, 25)
-  assert [s for s in range(1, 6) if writers.itstime(s, 100, 5)] == [5]
-  assert [s for s in range(1, 26) if writers.itstime(s, 10, 25, first=True)] == [1, 10, 20, 25]
-  assert [s for s in range(1, 3) if writers.itstime(s, 1, 2)] == [1, 2]
+  assert [s for s in range(1, 21) if progress_lib.itstime(s, 10, 20)] == [10, 20]
+  assert not progress_lib.itstime(24, 10, 25) and not progress_lib.itstime(0, 10, 25)
+  assert [s for s in range(1, 6) if progress_lib.itstime(s, 100, 5)] == [5]
+  assert [s for s in range(1, 26) if progress_lib.itstime(s, 10, 25, first=True)] == [1, 10, 20, 25]
+  assert [s for s in range(1, 3) if progress_lib.itstime(s, 1, 2)] == [1, 2]
 
 
 def test_itstime_disabled():
-  assert not any(writers.itstime(s, 0, 10) for s in range(0, 11))
-  assert not any(writers.itstime(s, -1, 10, first=True) for s in range(0, 11))
+  assert not any(progress_lib.itstime(s, 0, 10) for s in range(0, 11))
+  assert not any(progress_lib.itstime(s, -1, 10, first=True) for s in range(0, 11))

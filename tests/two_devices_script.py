@@ -17,20 +17,21 @@ import numpy as np  # noqa: E402
 
 jax.config.update("jax_disable_most_optimizations", True)
 
-from camrep.synthesis import train  # noqa: E402
+from camrep.synthesis import components, train  # noqa: E402
+from camrep.synthesis import step as step_lib  # noqa: E402
 from configs import gqn  # noqa: E402
 
 assert jax.local_device_count() == n_dev, jax.devices()
 config = gqn.get_config("smoke")
 config.data.scenes_per_device = 2 // n_dev  # the same global batch of 2 scenes
-pipe = train.make_pipeline(config, "train", num_devices=n_dev)
-spec = train.pose_spec(config)
-model = train.make_model(config, train.num_train_scenes(pipe))
+pipe = components.make_pipeline(config, "train", num_devices=n_dev)
+spec = components.pose_spec(config)
+model = components.make_model(config, components.num_train_scenes(pipe))
 init_key, loop_key = jax.random.split(jax.random.key(config.seed))
-state = train.create_train_state(init_key, config, model, spec, pipe.batch(0))
+state = step_lib.create_train_state(init_key, config, model, spec, pipe.batch(0))
 pstate = train._replicate(state, n_dev)
 keys = jax.vmap(jax.random.wrap_key_data)(train._replicate(jax.random.key_data(loop_key), n_dev))
-p_step = train.make_p_train_step(config, model, spec)
+p_step = step_lib.make_p_train_step(config, model, spec)
 logged = {}
 for step in range(steps):
   b = pipe.batch(step)

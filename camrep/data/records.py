@@ -34,3 +34,31 @@ POSE_NAMES: dict[str, tuple[str, ...]] = {
 }
 
 RECORD_KEYS = ("image", "pose", "scene", "view")
+
+
+# The procedural family that stands in for each setting's real dataset.
+SOURCE_OF_SETTING = {"gqn": "rooms", "car": "object", "gibson": "area", "seven_scenes": "scene6dof"}
+SETTINGS = tuple(SOURCE_OF_SETTING)
+PROCEDURAL = ("rooms", "object", "area", "scene6dof")
+
+
+SETTING_OF_SOURCE = {
+  "rooms": "gqn",
+  "gqn": "gqn",
+  "object": "car",
+  "srn_cars": "car",
+  "area": "gibson",
+  "gibson": "gibson",
+  "scene6dof": "seven_scenes",
+  "seven_scenes": "seven_scenes",
+}
+
+
+def setting_of_source(source: str) -> str:
+  """The paper's setting (gqn, car, gibson, seven_scenes) of a data source, real or procedural."""
+  try:
+    return SETTING_OF_SOURCE[source]
+  except KeyError:
+    raise ValueError(
+      f"unknown data source {source!r}; choose one of {sorted(SETTING_OF_SOURCE)}"
+    ) from None

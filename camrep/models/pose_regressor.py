@@ -37,6 +37,7 @@ ResNet follows torchvision (explicit symmetric padding, no conv bias, BN eps 1e-
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 from collections.abc import Callable, Mapping, Sequence
@@ -49,7 +50,6 @@ import numpy as np
 
 from camrep.models import layers
 from camrep.models.encoder import Head, SceneEncoder
-from camrep.regression.targets import HeadSpec, normalise_head
 
 Array = jax.Array
 
@@ -496,3 +496,57 @@ ResNet34Regressor = functools.partial(ResNetRegressor, width=1.0, stage_sizes=RE
 ResNetRegressorTiny = functools.partial(
   ResNetRegressor, width=1 / 16, stage_sizes=(1, 1, 1, 1), fc_dim=32
 )
+
+
+GROUPS = ("position", "orientation")
+
+
+NORMS = ("none", "unit", "block")
+
+
+@dataclasses.dataclass(frozen=True)
+class HeadSpec:
+  """One output head of a pose regressor.
+
+  Attributes:
+    name: "position" / "orientation" for baselines, the DOF name for learned representations.
+    size: output size.
+    group: loss group, "position" or "orientation".
+    norm: "none"; "unit" (divide by the L2 norm); "block" (each of `n_blocks` blocks scaled to
+      norm 1 / n_blocks, camrep.pose's polar block_norm).
+    n_blocks: number of blocks for norm="block".
+  """
+
+  name: str
+  size: int
+  group: str
+  norm: str = "none"
+  n_blocks: int = 1
+
+  def __post_init__(self):
+    if self.group not in GROUPS:
+      raise ValueError(f"head {self.name}: group must be one of {GROUPS}, got {self.group!r}")
+    if self.norm not in NORMS:
+      raise ValueError(f"head {self.name}: norm must be one of {NORMS}, got {self.norm!r}")
+    if self.norm == "block" and self.size % self.n_blocks:
+      raise ValueError(f"head {self.name}: size {self.size} not divisible by {self.n_blocks}")
+
+
+def normalise_head(v: Array, head: HeadSpec) -> Array:
+  """Apply a head's normalisation exactly as `camrep.pose` normalises grid vectors (digest 1.2).
+
+  Args:
+    v: (..., head.size) raw outputs.
+
+  Returns:
+    (..., head.size): unchanged ("none"), v / sqrt(|v|^2 + 1e-12) ("unit"), or each block b of
+    size/n_blocks entries v_b / (sqrt(|v_b|^2 + 1e-12) n_blocks) ("block").
+  """
+  eps = 1e-12
+  if head.norm == "none":
+    return v
+  if head.norm == "block":
+    vb = v.reshape(*v.shape[:-1], head.n_blocks, head.size // head.n_blocks)
+    nb = jnp.sqrt(jnp.sum(vb * vb, axis=-1, keepdims=True) + eps)
+    return (vb / (nb * head.n_blocks)).reshape(v.shape)
+  return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True) + eps)

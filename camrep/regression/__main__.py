@@ -11,6 +11,7 @@ from absl import app, flags, logging
 from ml_collections import config_flags
 
 from camrep.regression import driver
+from camrep.runtime import runconfig
 
 _CONFIG = config_flags.DEFINE_config_file(
   "config", None, "Path to configs/regression.py[:quick|:smoke].", lock_config=True
@@ -27,7 +28,7 @@ def main(argv) -> None:
   print(f"JAX {jax.__version__}, devices {jax.local_devices()}", flush=True)
   try:
     driver.run(_CONFIG.value, _WORKDIR.value, log=lambda s: print(s, flush=True))
-  except driver.ConfigError as e:
+  except runconfig.ConfigError as e:
     print(f"error: {e}", file=sys.stderr, flush=True)
     sys.exit(2)
   except FloatingPointError as e:

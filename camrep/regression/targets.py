@@ -41,20 +41,20 @@ import dataclasses
 import math
 from collections.abc import Mapping
 
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
 from camrep import pose as P
+from camrep import pose_inputs
+from camrep.data import records
+from camrep.models import pose_regressor
 
 Array = jax.Array
 
-SETTINGS = ("gqn", "car", "gibson", "seven_scenes")
+SETTINGS = records.SETTINGS
 REPRESENTATIONS = ("ours", "mlp", "euler", "axis_angle", "sincos", "quat", "logq")
 LEARNED = ("ours", "mlp")
 BASELINES = ("euler", "axis_angle", "sincos", "quat", "logq")
-GROUPS = ("position", "orientation")
-NORMS = ("none", "unit", "block")
 LOSSES = ("l2", "mse", "l1")
 
 TWO_PI = 2.0 * math.pi
@@ -406,54 +406,6 @@ def wrap_angles(setting: str, angles: Array) -> Array:
 # Head specs and the per-setting pose systems.
 
 
-@dataclasses.dataclass(frozen=True)
-class HeadSpec:
-  """One output head of a pose regressor.
-
-  Attributes:
-    name: "position" / "orientation" for baselines, the DOF name for learned representations.
-    size: output size.
-    group: loss group, "position" or "orientation".
-    norm: "none"; "unit" (divide by the L2 norm); "block" (each of `n_blocks` blocks scaled to
-      norm 1 / n_blocks, camrep.pose's polar block_norm).
-    n_blocks: number of blocks for norm="block".
-  """
-
-  name: str
-  size: int
-  group: str
-  norm: str = "none"
-  n_blocks: int = 1
-
-  def __post_init__(self):
-    if self.group not in GROUPS:
-      raise ValueError(f"head {self.name}: group must be one of {GROUPS}, got {self.group!r}")
-    if self.norm not in NORMS:
-      raise ValueError(f"head {self.name}: norm must be one of {NORMS}, got {self.norm!r}")
-    if self.norm == "block" and self.size % self.n_blocks:
-      raise ValueError(f"head {self.name}: size {self.size} not divisible by {self.n_blocks}")
-
-
-def normalise_head(v: Array, head: HeadSpec) -> Array:
-  """Apply a head's normalisation exactly as `camrep.pose` normalises grid vectors (digest 1.2).
-
-  Args:
-    v: (..., head.size) raw outputs.
-
-  Returns:
-    (..., head.size): unchanged ("none"), v / sqrt(|v|^2 + 1e-12) ("unit"), or each block b of
-    size/n_blocks entries v_b / (sqrt(|v_b|^2 + 1e-12) n_blocks) ("block").
-  """
-  eps = 1e-12
-  if head.norm == "none":
-    return v
-  if head.norm == "block":
-    vb = v.reshape(*v.shape[:-1], head.n_blocks, head.size // head.n_blocks)
-    nb = jnp.sqrt(jnp.sum(vb * vb, axis=-1, keepdims=True) + eps)
-    return (vb / (nb * head.n_blocks)).reshape(v.shape)
-  return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True) + eps)
-
-
 def default_spec(
   setting: str,
   *,
@@ -518,7 +470,7 @@ def _orientation_size(setting: str, representation: str) -> int:
 
 def head_specs(
   representation: str, setting: str, *, spec: P.PoseSystemSpec | None = None
-) -> tuple[HeadSpec, ...]:
+) -> tuple[pose_regressor.HeadSpec, ...]:
   """The heads a regressor for (representation, setting) predicts.
 
   Learned ("ours", "mlp"): one head of size spec.dim per DOF (96 at paper size; 7-Scenes 32),
@@ -541,88 +493,24 @@ def head_specs(
       group = "orientation" if isinstance(d, P.AngularDof) else "position"
       block = representation == "ours" and isinstance(d, P.PolarDof) and d.block_norm
       heads.append(
-        HeadSpec(
+        pose_regressor.HeadSpec(
           d.name, spec.dim, group, "block" if block else "unit", spec.n_blocks if block else 1
         )
       )
     return tuple(heads)
   heads = []
   if POSITION_DIM[setting]:
-    heads.append(HeadSpec("position", POSITION_DIM[setting], "position"))
-  heads.append(HeadSpec("orientation", _orientation_size(setting, representation), "orientation"))
+    heads.append(pose_regressor.HeadSpec("position", POSITION_DIM[setting], "position"))
+  heads.append(
+    pose_regressor.HeadSpec(
+      "orientation", _orientation_size(setting, representation), "orientation"
+    )
+  )
   return tuple(heads)
 
 
 # --------------------------------------------------------------------------------------------
 # The supplement's MLP embedding.
-
-
-class MlpEmbedding(nn.Module):
-  """Supplement baseline: v(l) = normalise(W2 lrelu(W1 l + b1) + b2) for one DOF.
-
-  The input is the DOF value mapped linearly from [low, high] to [-1, 1] (two inputs for a polar
-  DOF). The supplement gives no initialisation; here W1, b1 ~ N(0, 1) so that the 128 kinks of
-  the leaky ReLU fall across the input range (with zero biases every kink would sit at 0 and the
-  normalised output would take only two values), W2 glorot, b2 = 0. The output is unit-normalised
-  like the learned system's angle vectors.
-
-  Attributes:
-    dim: output size d (96).
-    hidden: hidden units (128).
-  """
-
-  dim: int = 96
-  hidden: int = 128
-
-  @nn.compact
-  def __call__(self, x: Array) -> Array:
-    """(..., n_in) inputs in [-1, 1] -> (..., dim) unit vectors."""
-    normal = nn.initializers.normal(1.0)
-    h = nn.Dense(self.hidden, kernel_init=normal, bias_init=normal, name="hidden")(x)
-    h = nn.leaky_relu(h, negative_slope=0.2)  # TF slope, as camrep.models.layers.lrelu
-    v = nn.Dense(self.dim, kernel_init=nn.initializers.xavier_uniform(), name="out")(h)
-    return v / jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True) + 1e-12)
-
-
-def _mlp_input(d: P.Dof, value: Array) -> Array:
-  x = 2.0 * (value - d.low) / (d.high - d.low) - 1.0
-  return x if isinstance(d, P.PolarDof) else x[..., None]
-
-
-def init_mlp(key: Array, spec: P.PoseSystemSpec, *, hidden: int = 128) -> dict:
-  """Parameters of one `MlpEmbedding` per DOF of `spec`: {dof name: flax params}."""
-  out = {}
-  for i, d in enumerate(spec.dofs):
-    x = jnp.zeros((1, d.width), jnp.float32)
-    out[d.name] = MlpEmbedding(spec.dim, hidden).init(jax.random.fold_in(key, i), x)["params"]
-  return out
-
-
-def mlp_embed(
-  mlp_params: Mapping, spec: P.PoseSystemSpec, poses: Array, *, hidden: int = 128
-) -> dict[str, Array]:
-  """MLP vectors of every DOF for poses (..., pose_dim): {name: (..., d)}."""
-  out = {}
-  for d in spec.dofs:
-    cols = poses[..., spec.columns(d.name)]
-    value = cols if isinstance(d, P.PolarDof) else cols[..., 0]
-    module = MlpEmbedding(spec.dim, hidden)
-    out[d.name] = module.apply({"params": mlp_params[d.name]}, _mlp_input(d, value))
-  return out
-
-
-def _mlp_decode(
-  mlp_params: Mapping, spec: P.PoseSystemSpec, heads: Mapping[str, Array], hidden: int
-) -> Array:
-  cols = []
-  for d in spec.dofs:
-    cands = P.candidates(spec, d.name)
-    module = MlpEmbedding(spec.dim, hidden)
-    cvec = module.apply({"params": mlp_params[d.name]}, _mlp_input(d, cands))  # (K, d)
-    score = jnp.sum(cvec * cvec, -1) - 2.0 * jnp.einsum("...d,kd->...k", heads[d.name], cvec)
-    best = cands[jnp.argmin(score, axis=-1)]
-    cols.append(best if isinstance(d, P.PolarDof) else best[..., None])
-  return jnp.concatenate(cols, axis=-1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -666,7 +554,7 @@ def encode(
     if representation == "ours":
       mode = mode or defaults(setting, "ours").quantisation
       return P.embed(rp, spec, poses, mode=mode)
-    return mlp_embed(rp, spec, poses, hidden=mlp_hidden)
+    return pose_inputs.mlp_embed(rp, spec, poses, hidden=mlp_hidden)
   pos, ang = split_pose(setting, poses)
   if representation == "euler":
     ori = ang
@@ -720,7 +608,7 @@ def decode(
       mode = mode or defaults(setting, "ours").quantisation
       vectors = {n: heads[n] for n in spec.names}
       return P.decode(rep_params, spec, vectors, refine_steps=refine_steps, mode=mode)
-    return _mlp_decode(rep_params, spec, heads, mlp_hidden)
+    return pose_inputs.mlp_decode(rep_params, spec, heads, mlp_hidden)
   ori = heads["orientation"]
   if representation == "euler":
     ang = wrap_angles(setting, ori)
@@ -765,7 +653,7 @@ def group_losses(
   kind: str,
   pred: Mapping[str, Array],
   target: Mapping[str, Array],
-  heads: tuple[HeadSpec, ...],
+  heads: tuple[pose_regressor.HeadSpec, ...],
 ) -> dict[str, Array]:
   """Sum of the head losses of each group present: {"position": L_pos, "orientation": L_ori}.
 
@@ -871,7 +759,9 @@ def init_log_vars(cfg: RegressionDefaults) -> dict[str, Array]:
   is homoscedastic with learn_s; {} otherwise (fixed weights, or s held at cfg.init_s)."""
   if cfg.weighting != "homoscedastic" or not cfg.learn_s:
     return {}
-  return {g: jnp.asarray(s, jnp.float32) for g, s in zip(GROUPS, cfg.init_s, strict=True)}
+  return {
+    g: jnp.asarray(s, jnp.float32) for g, s in zip(pose_regressor.GROUPS, cfg.init_s, strict=True)
+  }
 
 
 def total_loss(
@@ -887,7 +777,7 @@ def total_loss(
   Groups absent from `groups` (car has no position) contribute nothing.
   """
   total = jnp.zeros((), jnp.float32)
-  for i, g in enumerate(GROUPS):
+  for i, g in enumerate(pose_regressor.GROUPS):
     if g not in groups:
       continue
     if cfg.weighting == "homoscedastic":

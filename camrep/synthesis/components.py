@@ -1,0 +1,176 @@
+"""The parts of a view-synthesis run, built from its config (paper section 4.1, digest 1-2):
+the setting, the pose system, the model and the data pipelines; `check_config` refuses
+combinations the train step cannot run before anything is built.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+from camrep import pose as P
+from camrep import pose_inputs
+from camrep.data import pipeline as pipeline_lib
+from camrep.data import records
+from camrep.data.errors import DataError
+from camrep.models.composite import GQNSynthesis, TableSynthesis
+from camrep.runtime.runconfig import ConfigError
+
+Array = jax.Array
+
+
+def setting(config) -> str:
+  """The paper's setting of the config's data source: gqn, car, gibson or seven_scenes."""
+  return records.setting_of_source(config.data.source)
+
+
+def check_config(config) -> None:
+  """Raises ConfigError on combinations the train step cannot run (e.g. GQN layouts without
+  query views, or data-pair rotation losses on a batch that holds no pairs)."""
+  d, L = config.data, config.loss
+  try:
+    setting(config)
+    kind = pose_inputs.rep_kind(config)
+  except ValueError as e:  # unknown data.source or rep.kind
+    raise ConfigError(str(e)) from None
+  if config.total_steps < 1:
+    raise ConfigError(f"total_steps must be >= 1, got {config.total_steps}")
+  if config.task == "gqn" and not 1 <= d.n_context < d.views_per_scene:
+    raise ConfigError(
+      f"data.n_context must be in [1, views_per_scene) so that each scene has query views, "
+      f"got n_context={d.n_context}, views_per_scene={d.views_per_scene}"
+    )
+  if L.data_pairs and kind == "grid" and d.mode != "pairs":
+    raise ConfigError(
+      "loss.data_pairs reads the batch's views as (anchor, partner) pairs: it needs "
+      f"data.mode='pairs', got {d.mode!r} (GQN rooms: leave data_pairs off)"
+    )
+
+
+def pose_spec(config) -> P.PoseSystemSpec:
+  """The pose system of the config's setting (digest 1.7), with camrep's options from config.rep."""
+  r = config.rep
+  ang = math.radians(r.angle_spacing_deg)
+
+  def angle(name, low=0.0, high=2 * math.pi, periodic=None):
+    return P.AngularDof(
+      name, spacing=ang, low=low, high=high, periodic=r.periodic if periodic is None else periodic
+    )
+
+  def polar(low, high):
+    return P.PolarDof(
+      "xy",
+      low=low,
+      high=high,
+      spacing=r.position_spacing,
+      n_directions=r.n_directions,
+      variant=r.polar_variant,
+      block_norm=r.block_norm,
+      pair_radius=r.pair_radius,
+    )
+
+  s = setting(config)
+  if s == "gqn":
+    dofs = (polar(-1.0, 1.0), angle("yaw"))
+  elif s == "gibson":
+    dofs = (polar(0.0, 2.0), angle("yaw"))
+  elif s == "car":
+    dofs = (angle("azimuth"), angle("polar", high=math.pi, periodic=False))
+  else:
+    sp = r.position_spacing
+    dofs = (
+      P.LinearDof("x", 0.0, 4.0, sp),
+      P.LinearDof("y", 0.0, 1.5, sp),
+      P.LinearDof("z", 0.0, 3.0, sp),
+      angle("theta"),
+      angle("phi", high=math.pi, periodic=False),
+      angle("psi"),
+    )
+  return P.PoseSystemSpec(
+    dofs=dofs,
+    n_blocks=r.n_blocks,
+    block_size=r.block_size,
+    exp_method=r.exp_method,
+    n_steps=r.n_steps,
+  )
+
+
+def make_model(config, num_scenes: int):
+  """The view-synthesis model of the config's setting."""
+  m = config.model
+  if config.task == "gqn":
+    return GQNSynthesis(width=m.width, gamma_offset=1.0 if m.gamma_init_one else 0.0)
+  return TableSynthesis(
+    num_scenes=num_scenes,
+    scene_dim=m.scene_dim,
+    width=m.width,
+    image_size=m.image_size,
+    per_scene_norm=m.per_scene_norm,
+    norm_eps=m.norm_eps,
+    gamma_init_one=m.gamma_init_one,
+  )
+
+
+def make_source(config, split_hint: str = "train"):
+  """The procedural family of the config (for in-memory / rendered data)."""
+  from camrep.data import procedural
+
+  del split_hint
+  overrides = dict(config.data.family.to_dict()) if config.data.family else {}
+  return procedural.make_family(config.data.source, preset=config.data.preset, **overrides)
+
+
+def make_pipeline(
+  config,
+  split: str,
+  *,
+  num_devices: int,
+  process_index: int = 0,
+  process_count: int = 1,
+  for_eval: bool = False,
+):
+  """Batches of `split` laid out for the pmapped step (see camrep.data.pipeline).
+
+  Data comes from `config.data.dir` (a prepared tfds directory) when set; otherwise from the
+  procedural family, held in memory (`data.in_memory`) or rendered batch by batch. With
+  `for_eval` the pipeline only serves `scene_views` (a one-scene, one-view layout).
+  """
+  d = config.data
+  pcfg = pipeline_lib.PipelineConfig(
+    num_devices=num_devices,
+    scenes_per_device=1 if for_eval else d.scenes_per_device,
+    views_per_scene=1 if for_eval else d.views_per_scene,
+    mode="random" if for_eval else d.mode,
+    seed=config.seed,
+    num_threads=d.num_threads,
+    prefetch=d.prefetch,
+  )
+  kw = dict(process_index=process_index, process_count=process_count)
+  if d.dir:
+    dataset_config = d.preset if d.preset != "default" else None
+    return pipeline_lib.tfds_pipeline(
+      d.dir, d.source, split, pcfg, dataset_config=dataset_config, **kw
+    )
+  if d.source not in records.PROCEDURAL:
+    raise DataError(
+      None,
+      f"data.source {d.source!r} is a real dataset: prepare it with "
+      f"`python -m camrep.data.prepare --source {d.source} --input PATH --data_dir DIR` "
+      "and pass --config.data.dir=DIR",
+    )
+  family = make_source(config)
+  if d.in_memory:
+    return pipeline_lib.memory_pipeline(family, split, pcfg, **kw)
+  return pipeline_lib.render_pipeline(family, split, pcfg, **kw)
+
+
+def num_train_scenes(pipe) -> int:
+  """Size of the per-scene tables: one past the largest training scene id."""
+  return int(pipe.all_scene_ids.max()) + 1
+
+
+def to_float_images(images: Array) -> Array:
+  """uint8 [0, 255] -> float32 [-1, 1] (digest 6.1)."""
+  return images.astype(jnp.float32) * (2.0 / 255.0) - 1.0

@@ -1,0 +1,88 @@
+"""Gram maps V V^T of the learned pose vectors over each DOF's range (paper section 4.3,
+the kernel figures): how similar the vectors of two poses are.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from camrep import pose as P
+from camrep import pose_inputs
+from camrep.runtime import plots
+from camrep.synthesis.restore import Run
+
+Array = jax.Array
+_jit_gram = jax.jit(P.gram, static_argnums=(1, 2))
+
+
+def dof_poses(spec: P.PoseSystemSpec, name: str, values: Array) -> Array:
+  """Poses (K, pose_dim) whose DOF `name` takes `values` ((K,) or (K, 2)), other columns 0."""
+  values = jnp.asarray(values, jnp.float32)
+  cols = values if values.ndim == 2 else values[:, None]
+  poses = jnp.zeros((cols.shape[0], spec.pose_dim), jnp.float32)
+  return poses.at[:, spec.columns(name)].set(cols)
+
+
+def gram_values(spec: P.PoseSystemSpec, name: str) -> Array:
+  """The values of a Gram map: 1-degree steps for angles, the grid points otherwise.
+
+  Returns:
+    (K,) values, or (K, 2) positions for a polar DOF (flat index gx * n_side + gy).
+  """
+  d = spec.dof(name)
+  res = math.pi / 180 if isinstance(d, P.AngularDof) else d.spacing
+  return P.candidates(spec, name, res)
+
+
+def gram_maps(run: Run) -> dict[str, np.ndarray]:
+  """{dof name: (K, K) Gram matrix V V^T} of the run's pose vectors over `gram_values`.
+
+  Unit-norm DOFs have ones on the diagonal (up to the norm error of exp_method "taylor2" between
+  grid points); a polar DOF with block_norm has 1 / n_blocks.
+  """
+  rep = run.params["rep"]
+  if pose_inputs.rep_kind(run.config) != "grid":  # the same map of another pose input's vectors
+    out = {}
+    for n in run.spec.names:
+      v = pose_inputs.pose_vectors(
+        run.config, run.spec, rep, dof_poses(run.spec, n, gram_values(run.spec, n))
+      )[n]
+      out[n] = np.asarray(v @ v.T)
+    return out
+  return {
+    n: np.asarray(_jit_gram(rep, run.spec, n, values=gram_values(run.spec, n)))
+    for n in run.spec.names
+  }
+
+
+def _gram_caption(spec: P.PoseSystemSpec, name: str, k: int) -> str:
+  d = spec.dof(name)
+  if isinstance(d, P.AngularDof):
+    return f"{k} values, 1-degree steps from {math.degrees(d.low):.0f} deg"
+  if isinstance(d, P.PolarDof):
+    return f"{d.n_side} x {d.n_side} grid points, flat index gx * {d.n_side} + gy"
+  return f"{k} grid points, {d.low:g} to {d.high:g} step {d.spacing:g}"
+
+
+def write_grams(out: str, run: Run, grams: Mapping[str, np.ndarray]) -> list[str]:
+  """Writes out/gram_<dof>.png and out/gram.npz ({dof}: Gram, {dof}_values: values)."""
+  paths = []
+  arrays = {}
+  for name, g in grams.items():
+    arrays[name] = g
+    arrays[f"{name}_values"] = np.asarray(gram_values(run.spec, name))
+    path = os.path.join(out, f"gram_{name}.png")
+    title = f"Gram V V^T of {name} ({g.shape[0]} x {g.shape[1]}), step {run.step}"
+    plots.write_png(
+      path, plots.heat_map(g, title=title, caption=_gram_caption(run.spec, name, g.shape[0]))
+    )
+    paths.append(path)
+  npz = os.path.join(out, "gram.npz")
+  np.savez(npz, **arrays)
+  return [*paths, npz]

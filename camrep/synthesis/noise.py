@@ -1,0 +1,284 @@
+"""Robustness of view synthesis to noise on the pose vectors (paper section 4.3, digest 5).
+
+Noise-robustness experiment (paper figure "PSNR vs noise", digest 5): beta_i is the std of
+element i over the DOF's normalised grid vectors (`pose.grid_std`, computed once per DOF). At
+level alpha every element i of every query pose sub-vector, computed for the exact pose, gets
+independent N(0, (alpha beta_i)^2) noise, without renormalisation; fresh noise per image and per
+level. GQN: only the query (decoder) pose vectors are noised, not the encoder's context poses.
+The exact pose is quantised by the random lower/upper neighbour rule for the GQN and car
+settings (the authors' test) and by rounding for Gibson and 7-Scenes; the training loop's eval
+always rounds ("nearest"), so alpha = 0 with quantisation="nearest" reproduces its PSNR. The
+images are the training loop's held-out-view evaluation set (`heldout.eval_batches`): per scene
+the first test view as the query, and for GQN the first n_context training views as context.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from camrep import metrics as metrics_lib
+from camrep import pose as P
+from camrep import pose_inputs
+from camrep.runtime import plots
+from camrep.runtime import progress as progress_lib
+from camrep.synthesis import components, heldout
+from camrep.synthesis import gram as gram_lib
+from camrep.synthesis.restore import Run
+
+Array = jax.Array
+
+DEFAULT_LEVELS = 13
+
+
+ALPHA_STEP = 0.025
+
+
+def default_alphas(levels: int = DEFAULT_LEVELS) -> np.ndarray:
+  """alpha = 0.025 j for j = 0 .. levels - 1 (paper: 13 levels, 0 to 0.30)."""
+  return ALPHA_STEP * np.arange(levels)
+
+
+def default_quantisation(config: ml_collections.ConfigDict) -> str:
+  """The noise test's quantisation (authors): random neighbour for GQN and car, else rounding."""
+  return "random" if components.setting(config) in ("gqn", "car") else "nearest"
+
+
+def grid_betas(params_rep: dict, spec: P.PoseSystemSpec, config=None) -> dict[str, np.ndarray]:
+  """beta per DOF: {name: (d,)} std of each element over the DOF's normalised grid vectors.
+
+  With a config whose `rep.kind` is not the learned grid ("lowdim", "mlp"), the population is
+  the same grid points (`P.candidates` at the grid spacing) pushed through that pose input, so
+  every kind is noised relative to its own spread over the same poses.
+  """
+  if config is None or pose_inputs.rep_kind(config) == "grid":
+    return {n: np.asarray(P.grid_std(params_rep, spec, n)) for n in spec.names}
+  out = {}
+  for d in spec.dofs:
+    poses = gram_lib.dof_poses(spec, d.name, P.candidates(spec, d.name, d.spacing))
+    v = pose_inputs.pose_vectors(config, spec, params_rep, poses)[d.name]
+    out[d.name] = np.asarray(jnp.std(v, axis=0))
+  return out
+
+
+def pose_vectors(
+  params_rep: dict,
+  spec: P.PoseSystemSpec,
+  poses: Array,
+  keys: Array | None,
+  *,
+  mode: str,
+  config=None,
+) -> dict[str, Array]:
+  """Vectors of exact poses, one quantisation key per image: (E, V, P) -> {name: (E, V, d)}.
+
+  Args:
+    keys: (E,) PRNG keys, used (and required) only for mode="random".
+    config: the run's config; its `rep.kind` picks the pose input (default: the learned grid).
+  """
+  if config is not None and pose_inputs.rep_kind(config) != "grid":
+    return pose_inputs.pose_vectors(config, spec, params_rep, poses)
+  if mode == "random":
+    if keys is None:
+      raise ValueError("quantisation 'random' needs per-image keys")
+    return jax.vmap(lambda p, k: P.embed(params_rep, spec, p, mode=mode, key=k))(poses, keys)
+  return P.embed(params_rep, spec, poses, mode=mode)
+
+
+def add_noise(
+  vectors: Mapping[str, Array],
+  spec: P.PoseSystemSpec,
+  keys: Array,
+  *,
+  alpha: Array | float,
+  betas: Mapping[str, Array],
+) -> dict[str, Array]:
+  """v + alpha * beta * z per element, z ~ N(0, 1) independent (digest 5), no renormalisation.
+
+  Args:
+    vectors: {name: (E, ..., d)}.
+    keys: (E,) per-image keys; DOF i of image e draws from fold_in(keys[e], i).
+    alpha: noise level.
+    betas: {name: (d,)}.
+
+  Returns:
+    {name: (E, ..., d)}.
+  """
+  out = {}
+  for i, name in enumerate(spec.names):
+    v = vectors[name]
+    draw = lambda k, i=i, shape=v.shape[1:]: jax.random.normal(jax.random.fold_in(k, i), shape)
+    z = jax.vmap(draw)(keys).astype(v.dtype)
+    out[name] = v + alpha * jnp.asarray(betas[name], v.dtype) * z
+  return out
+
+
+def image_keys(key: Array, image_ids: Array) -> tuple[Array, Array, Array]:
+  """Per-image (context quantisation, query quantisation, noise) keys, each (E,).
+
+  Image n's keys come from fold_in(key, n), so they do not depend on the batching.
+  """
+  keys = jax.vmap(lambda i: jax.random.split(jax.random.fold_in(key, i), 3))(image_ids)
+  return keys[:, 0], keys[:, 1], keys[:, 2]
+
+
+def make_noisy_predict(config, model, spec: P.PoseSystemSpec, mode: str):
+  """jit(params, batch, key, alpha, betas, image_ids) -> (psnr (E,), ssim (E,), pred).
+
+  The query pose vectors get `add_noise` with the `image_keys` of each image; context poses
+  (GQN's encoder input) are embedded with the same quantisation but not noised.
+
+  Args (of the returned function):
+    params: {"model", "rep"}.
+    batch: an `heldout.eval_batches` element: context_image (E, C, H, W, 3) uint8,
+      context_pose (E, C, P), target_image (E, 1, H, W, 3), target_pose (E, 1, P), scene (E,).
+    key: the level's key.
+    alpha: scalar noise level.
+    betas: {name: (d,)}.
+    image_ids: (E,) int32 global image indices.
+
+  Returns (of the returned function):
+    per-image PSNR (E,), SSIM (E,) and the prediction (E, 1, H, W, 3) in [-1, 1].
+  """
+  if mode not in P.QUANTISATION_MODES:
+    raise ValueError(f"unknown quantisation {mode!r}; choose one of {P.QUANTISATION_MODES}")
+
+  def predict(params, b, key, alpha, betas, image_ids):
+    k_ctx, k_query, k_noise = image_keys(key, image_ids)
+    query = pose_vectors(params["rep"], spec, b["target_pose"], k_query, mode=mode, config=config)
+    q = P.concat(add_noise(query, spec, k_noise, alpha=alpha, betas=betas), spec)
+    if config.task == "gqn":
+      ctx = components.to_float_images(b["context_image"])
+      c = pose_vectors(params["rep"], spec, b["context_pose"], k_ctx, mode=mode, config=config)
+      c = P.concat(c, spec)
+      pred, _ = model.apply({"params": params["model"]}, ctx, c, q)
+    else:
+      pred, _ = model.apply({"params": params["model"]}, b["scene"], q)
+    target = components.to_float_images(b["target_image"])
+    return metrics_lib.psnr(pred, target), metrics_lib.ssim(pred, target), pred
+
+  return jax.jit(predict)
+
+
+def noise_robustness(
+  run: Run,
+  *,
+  key: Array,
+  alphas: Sequence[float] | np.ndarray | None = None,
+  quantisation: str | None = None,
+  batches: list[dict[str, np.ndarray]] | None = None,
+  progress: Callable[[str], None] | None = None,
+) -> dict[str, Any]:
+  """Mean per-image PSNR and SSIM of held-out views against pose-vector noise (digest 5).
+
+  Args:
+    run: a loaded run.
+    key: PRNG key; level j uses fold_in(key, j), image n within it fold_in(level key, n).
+    alphas: noise levels; default `default_alphas()` (0, 0.025, ..., 0.3).
+    quantisation: "random", "nearest" or "floor" for the exact poses; default
+      `default_quantisation(run.config)`.
+    batches: the evaluation set; default `heldout.eval_batches(config, train_pipe, test_pipe)`.
+    progress: called with one line per level (e.g. `print`).
+
+  Returns:
+    {"alphas": (L,), "psnr": (L,), "ssim": (L,) means over images; "psnr_per_image",
+     "ssim_per_image": (L, N); "beta": {dof: (d,)}; "quantisation": str; "step": int;
+     "num_images": N}.
+  """
+  alphas = default_alphas() if alphas is None else np.asarray(alphas, np.float64).ravel()
+  mode = quantisation or default_quantisation(run.config)
+  if batches is None:
+    batches = heldout.eval_batches(run.config, run.train_pipe, run.test_pipe)
+  betas = grid_betas(run.params["rep"], run.spec, run.config)
+  betas_j = {n: jnp.asarray(b) for n, b in betas.items()}
+  predict = make_noisy_predict(run.config, run.model, run.spec, mode)
+  dev_batches = [{k: jnp.asarray(v) for k, v in b.items()} for b in batches]
+  offsets = np.cumsum([0] + [len(b["scene"]) for b in batches])
+  psnr_all, ssim_all = [], []
+  t0 = time.perf_counter()
+  for j, alpha in enumerate(alphas):
+    k_level = jax.random.fold_in(key, j)
+    ps, ss = [], []
+    for b, start in zip(dev_batches, offsets[:-1], strict=True):
+      ids = jnp.arange(start, start + b["scene"].shape[0], dtype=jnp.int32)
+      p, s, _ = predict(run.params, b, k_level, jnp.float32(alpha), betas_j, ids)
+      ps.append(np.asarray(p).ravel())
+      ss.append(np.asarray(s).ravel())
+    psnr_all.append(np.concatenate(ps))
+    ssim_all.append(np.concatenate(ss))
+    if progress is not None:
+      elapsed = time.perf_counter() - t0
+      eta = elapsed / (j + 1) * (len(alphas) - j - 1)
+      progress(
+        f"noise level {j + 1}/{len(alphas)} alpha={alpha:.3f}: "
+        f"PSNR {np.mean(psnr_all[-1]):.3f} SSIM {np.mean(ssim_all[-1]):.4f} "
+        f"({progress_lib.format_duration(elapsed)} elapsed, "
+        f"ETA {progress_lib.format_duration(eta)})"
+      )
+  psnr_all, ssim_all = np.stack(psnr_all), np.stack(ssim_all)
+  return {
+    "alphas": alphas,
+    "psnr": psnr_all.mean(axis=1),
+    "ssim": ssim_all.mean(axis=1),
+    "psnr_per_image": psnr_all,
+    "ssim_per_image": ssim_all,
+    "beta": betas,
+    "quantisation": mode,
+    "step": run.step,
+    "num_images": int(psnr_all.shape[1]),
+  }
+
+
+def noise_figure(result: Mapping[str, Any], *, title: str = "") -> np.ndarray:
+  """PSNR and SSIM against alpha, side by side: (420, 1120, 3) uint8 RGB."""
+  a = result["alphas"]
+  suffix = f" ({title})" if title else ""
+  left = plots.line_plot(
+    a, result["psnr"], title=f"PSNR vs noise{suffix}", xlabel="alpha", ylabel="PSNR (dB)"
+  )
+  right = plots.line_plot(
+    a,
+    result["ssim"],
+    title=f"SSIM vs noise{suffix}",
+    xlabel="alpha",
+    ylabel="SSIM",
+    color=(214, 39, 40),
+  )
+  return np.concatenate([left, right], axis=1)
+
+
+def _beta_stats(betas: Mapping[str, np.ndarray]) -> dict[str, dict[str, float]]:
+  return {
+    n: {"d": int(b.size), "mean": float(b.mean()), "min": float(b.min()), "max": float(b.max())}
+    for n, b in betas.items()
+  }
+
+
+def write_noise(out: str, run: Run, result: Mapping[str, Any]) -> list[str]:
+  """Writes out/noise.json and out/noise.png; returns their paths."""
+  record = {
+    "workdir": os.path.abspath(run.workdir),
+    "step": int(result["step"]),
+    "setting": components.setting(run.config),
+    "quantisation": result["quantisation"],
+    "num_images": int(result["num_images"]),
+    "alphas": [round(float(a), 10) for a in result["alphas"]],
+    "psnr": [float(v) for v in result["psnr"]],
+    "ssim": [float(v) for v in result["ssim"]],
+    "psnr_std": [float(v) for v in np.std(result["psnr_per_image"], axis=1)],
+    "beta": _beta_stats(result["beta"]),
+  }
+  paths = [os.path.join(out, "noise.json"), os.path.join(out, "noise.png")]
+  with open(paths[0], "w", encoding="utf-8") as f:
+    json.dump(record, f, indent=1)
+  title = f"{components.setting(run.config)}, step {result['step']}, {result['num_images']} images"
+  plots.write_png(paths[1], noise_figure(result, title=title))
+  return paths

@@ -1,0 +1,110 @@
+"""A trained view-synthesis run restored from its workdir: config, pose system, model,
+parameters and pipelines (for evaluation, figures and regression targets).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import flax
+import flax.serialization
+import flax.struct
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from camrep import pose as P
+from camrep.runtime import workdir as workdir_lib
+from camrep.synthesis import components
+from camrep.synthesis import step as step_lib
+
+Array = jax.Array
+
+
+@dataclasses.dataclass
+class Run:
+  """A trained run, restored from its workdir.
+
+  Attributes:
+    workdir: the training workdir.
+    config: the run's config, read back from workdir/config.json.
+    spec: its pose system.
+    model: its view-synthesis model (flax module).
+    params: {"model": flax params, "rep": pose-system params} of the restored checkpoint.
+    step: the restored checkpoint's step.
+    train_pipe: training-split pipeline (context views of the evaluation set).
+    test_pipe: held-out-view pipeline (for_eval).
+  """
+
+  workdir: str
+  config: ml_collections.ConfigDict
+  spec: P.PoseSystemSpec
+  model: Any
+  params: dict
+  step: int
+  train_pipe: Any
+  test_pipe: Any
+
+
+def _zeros(x):
+  return np.zeros(x.shape, x.dtype)
+
+
+def load_run(workdir: str, *, step: int | None = None) -> Run:
+  """Rebuilds a run as `train.train_and_evaluate` does and restores a checkpoint's parameters.
+
+  Args:
+    workdir: a training workdir (config.json, checkpoints/).
+    step: the checkpoint step to restore; None: the latest readable one.
+
+  Returns:
+    The `Run`.
+
+  Raises:
+    FileNotFoundError: no workdir, no config.json, or no checkpoint.
+    camrep.runtime.checkpoint.CheckpointError: the requested step is missing, or no checkpoint is
+      readable or matches the config's model.
+  """
+  from camrep.runtime import checkpoint as ckpt_lib
+
+  config = workdir_lib.read_config(workdir)
+  try:
+    checkpointer = ckpt_lib.Checkpointer(workdir, read_only=True)
+  except ckpt_lib.CheckpointError:
+    raise FileNotFoundError(f"no checkpoint in {workdir!r} (no checkpoints/ directory)") from None
+  try:
+    steps = checkpointer.all_steps()
+    if not steps:
+      raise FileNotFoundError(f"no checkpoint in {checkpointer.directory}")
+    if step is not None and step not in steps:
+      raise ckpt_lib.CheckpointError(
+        f"no checkpoint for step {step} in {checkpointer.directory}; available: {steps}"
+      )
+    # As train.train_and_evaluate (the template's shapes come from the training layout).
+    train_pipe = components.make_pipeline(config, "train", num_devices=jax.local_device_count())
+    test_pipe = components.make_pipeline(config, "test", num_devices=1, for_eval=True)
+    spec = components.pose_spec(config)
+    model = components.make_model(config, components.num_train_scenes(train_pipe))
+    init_key = jax.random.split(jax.random.key(config.seed))[0]
+    template = jax.eval_shape(
+      lambda: step_lib.create_train_state(init_key, config, model, spec, train_pipe.batch(0))
+    )
+    state_d, _, restored = checkpointer.restore(
+      step_lib.state_dict(jax.tree.map(_zeros, template)), step=step
+    )
+  finally:
+    checkpointer.close()
+  state = flax.serialization.from_state_dict(template, state_d)
+  params = jax.tree.map(jnp.asarray, state.params)
+  return Run(
+    workdir=workdir,
+    config=config,
+    spec=spec,
+    model=model,
+    params=params,
+    step=int(restored),
+    train_pipe=train_pipe,
+    test_pipe=test_pipe,
+  )

@@ -1,0 +1,150 @@
+"""The package's layout: layers import only downwards, modules say what they hold, no twin names.
+
+Layers, lowest first (a module may import its own layer and those below):
+
+  0  camrep.lie, camrep.metrics                 Lie operators, image metrics
+  1  camrep.pose, camrep.data, camrep.runtime   the pose system; data; checkpoints, writers, plots
+  2  camrep.pose_inputs                         every pose input a decoder can take
+  3  camrep.models                              Flax modules
+  4  camrep.synthesis                           view-synthesis training and evaluation
+  5  camrep.regression                          pose regression and its tables
+  6  camrep.main                                the entry point
+"""
+
+from __future__ import annotations
+
+import ast
+import pathlib
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "camrep"
+
+LAYERS = {
+  "camrep.lie": 0,
+  "camrep.metrics": 0,
+  "camrep.pose": 1,
+  "camrep.data": 1,
+  "camrep.runtime": 1,
+  "camrep.pose_inputs": 2,
+  "camrep.models": 3,
+  "camrep.synthesis": 4,
+  "camrep.regression": 5,
+  "camrep.main": 6,
+}
+# Near-twins that name a real pair, not a muddle.
+NOT_TWINS = {frozenset({"decoder", "encoder"})}
+
+
+def _module_name(path: pathlib.Path) -> str:
+  parts = path.relative_to(ROOT).with_suffix("").parts
+  return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _layer(module: str) -> int:
+  if module == "camrep":  # the package's own __init__: a docstring
+    return 0
+  for prefix in sorted(LAYERS, key=len, reverse=True):
+    if module == prefix or module.startswith(prefix + "."):
+      return LAYERS[prefix]
+  raise KeyError(f"{module} is in no layer: add it to LAYERS in tests/test_layout.py")
+
+
+def _imports(path: pathlib.Path) -> list[tuple[int, str]]:
+  """Every camrep module the file imports, at any depth (function-level imports included)."""
+  out = []
+  for node in ast.walk(ast.parse(path.read_text())):
+    if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+      if node.module.startswith("camrep"):
+        for a in node.names:  # `from camrep.x import y`: y may be a module or a name in x
+          sub = f"{node.module}.{a.name}"
+          try:
+            _layer(sub)
+            out.append((node.lineno, sub))
+          except KeyError:
+            out.append((node.lineno, node.module))
+    elif isinstance(node, ast.Import):
+      out += [(node.lineno, a.name) for a in node.names if a.name.startswith("camrep")]
+  return out
+
+
+MODULES = sorted(PACKAGE.rglob("*.py"))
+
+
+def test_every_module_is_in_a_layer():
+  for path in MODULES:
+    _layer(_module_name(path))
+
+
+@pytest.mark.parametrize("path", MODULES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_imports_run_downwards(path):
+  me = _module_name(path)
+  for line, target in _imports(path):
+    if target == "camrep":
+      continue
+    assert _layer(target) <= _layer(me), (
+      f"{path.relative_to(ROOT)}:{line} imports {target} (layer {_layer(target)}) from layer "
+      f"{_layer(me)}: move the shared code down, or the importer up"
+    )
+
+
+def test_the_layer_check_sees_function_level_imports(tmp_path):
+  src = tmp_path / "m.py"
+  src.write_text("def f():\n  from camrep.synthesis import train\n  import camrep.lie\n")
+  found = [t for _, t in _imports(src)]
+  assert found == ["camrep.synthesis.train", "camrep.lie"]
+  assert _layer(found[0]) > _layer("camrep.pose")  # what test_imports_run_downwards refuses
+
+
+def test_nothing_outside_experiments_imports_experiments():
+  for path in [*MODULES, *(ROOT / "tests").rglob("*.py"), *(ROOT / "configs").rglob("*.py")]:
+    for node in ast.walk(ast.parse(path.read_text())):
+      names = []
+      if isinstance(node, ast.ImportFrom) and node.module:
+        names = [node.module]
+      elif isinstance(node, ast.Import):
+        names = [a.name for a in node.names]
+      assert not any(n == "experiments" or n.startswith("experiments.") for n in names), path
+
+
+@pytest.mark.parametrize("path", MODULES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_module_says_what_it_holds(path):
+  doc = ast.get_docstring(ast.parse(path.read_text()))
+  assert doc and len(doc.splitlines()[0]) > 20, f"{path.relative_to(ROOT)}: no module docstring"
+
+
+def _distance(a: str, b: str) -> int:
+  prev = list(range(len(b) + 1))
+  for i, ca in enumerate(a, 1):
+    cur = [i]
+    for j, cb in enumerate(b, 1):
+      cur.append(min(prev[j] + 1, cur[j - 1] + 1, prev[j - 1] + (ca != cb)))
+    prev = cur
+  return prev[-1]
+
+
+def twins(names) -> list[tuple[str, str]]:
+  """Pairs of module names a reader would confuse: one a prefix of the other without a word
+  boundary (regress / regression), or a small edit apart (writer / writers, decoder / encoder)."""
+  names = sorted(set(names))
+  out = []
+  for i, a in enumerate(names):
+    for b in names[i + 1 :]:
+      short, long = sorted((a, b), key=len)
+      prefix = long.startswith(short) and not long[len(short) :].startswith("_")
+      close = _distance(a, b) <= (2 if min(len(a), len(b)) >= 7 else 1)
+      if (prefix or close) and frozenset({a, b}) not in NOT_TWINS:
+        out.append((a, b))
+  return out
+
+
+def test_no_module_names_are_twins():
+  names = [p.stem for p in MODULES if not p.stem.startswith("__")]
+  names += [p.name for p in PACKAGE.iterdir() if p.is_dir() and (p / "__init__.py").exists()]
+  assert twins(names) == []
+
+
+def test_the_twin_check_catches_the_old_names():
+  assert ("regress", "regression") in twins(["regress", "regression", "targets"])
+  assert twins(["pose", "pose_inputs"]) == []
