@@ -222,6 +222,62 @@ def test_pose_table_agrees_with_raw_pose_files():
       assert np.abs(other[:3, :3] - pose[:3, :3]).max() < 0.02
 
 
+def test_packed_pose_tables_ship_with_the_package():
+  names, c2w = seven_scenes.packed_pose_table("stairs", "test")
+  assert len(names) == 1000 and c2w.shape == (1000, 4, 4)
+  assert names[0].startswith("seq-") and names[0].endswith(".color.png")
+  np.testing.assert_allclose(
+    c2w[:, :3, :3] @ c2w[:, :3, :3].transpose(0, 2, 1),
+    np.broadcast_to(np.eye(3), (1000, 3, 3)),
+    atol=1e-5,
+  )
+  with pytest.raises(DataError, match="no pose table 'attic_test'"):
+    seven_scenes.packed_pose_table("attic", "test")
+
+
+@needs_tables
+def test_packed_pose_tables_equal_the_text_tables(tmp_path):
+  # Exact: the text has 6 decimals and the file stores integers of 1e-6.
+  for path in sorted(POSE_TABLES.glob("*_t*.txt")):
+    scene, split = path.stem.rsplit("_", 1)
+    names, c2w = seven_scenes.read_pose_table(path)
+    packed_names, packed = seven_scenes.packed_pose_table(scene, split)
+    assert packed_names == names
+    np.testing.assert_array_equal(packed, c2w)
+  # Packing again gives the shipped content.
+  out = tmp_path / "poses.npz"
+  counts = seven_scenes.pack_pose_tables(POSE_TABLES, out)
+  assert counts["stairs_train"] == 2000 and len(counts) == 14
+  with np.load(out) as a, np.load(seven_scenes.PACKED_POSES) as b:
+    assert sorted(a.files) == sorted(b.files)
+    for k in a.files:
+      np.testing.assert_array_equal(a[k], b[k])
+
+
+def test_pack_pose_tables_refuses_what_it_cannot_store_exactly(tmp_path):
+  line = "seq-01/frame-000001.color.png 1.0 0.0 0.0 0.0 0.1234567 0.0 0.0 525.0\n"
+  (tmp_path / "x_train.txt").write_text(line)
+  with pytest.raises(DataError, match="more than 6 decimals"):
+    seven_scenes.pack_pose_tables(tmp_path, tmp_path / "out.npz")
+  (tmp_path / "x_train.txt").write_text(
+    line.replace("seq-01/frame-000001", "img1").replace("0.1234567", "0.1")
+  )
+  with pytest.raises(DataError, match="frame name"):
+    seven_scenes.pack_pose_tables(tmp_path, tmp_path / "out.npz")
+
+
+def test_scene6dof_reads_text_tables_when_told(tmp_path, monkeypatch):
+  from camrep.data import procedural
+
+  names, c2w = seven_scenes.packed_pose_table("heads", "train")
+  assert procedural.default_pose_dir() is None or "CAMREP_7SCENES_POSES" in os.environ
+  monkeypatch.setenv("CAMREP_7SCENES_POSES", str(tmp_path))
+  assert procedural.default_pose_dir() == str(tmp_path)
+  fam = procedural.make_family("scene6dof", preset="small", scenes=("heads",))
+  with pytest.raises(DataError, match="heads_train.txt"):
+    fam.poses("train", 0)
+
+
 # ---------------------------------------------------------------------------------------------
 # 7-Scenes: raw layout on the real stairs sample
 

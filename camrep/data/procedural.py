@@ -36,7 +36,6 @@ import abc
 import colorsys
 import dataclasses
 import os
-import pathlib
 from collections.abc import Iterator
 from typing import Any
 
@@ -54,17 +53,10 @@ _TWO_PI = 2.0 * np.pi
 _SEVEN_SCENES = ("chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs")
 
 
-def default_pose_dir() -> str:
-  """Directory of the 7-Scenes pose tables: $CAMREP_7SCENES_POSES, else shared/data/7scenes_poses
-  next to (or inside) the repository root."""
-  env = os.environ.get("CAMREP_7SCENES_POSES")
-  if env:
-    return env
-  root = pathlib.Path(__file__).resolve().parents[2]
-  for base in (root / "shared", root.parent / "shared"):
-    if (base / "data" / "7scenes_poses").is_dir():
-      return str(base / "data" / "7scenes_poses")
-  return str(root.parent / "shared" / "data" / "7scenes_poses")
+def default_pose_dir() -> str | None:
+  """Directory of 7-Scenes pose tables given by $CAMREP_7SCENES_POSES, else None: the tables
+  shipped with camrep (`seven_scenes.PACKED_POSES`)."""
+  return os.environ.get("CAMREP_7SCENES_POSES") or None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -145,7 +137,7 @@ class Scene6DofConfig:
   seed: int = 0
   image_size: int = 128
   scenes: tuple[str, ...] = _SEVEN_SCENES
-  pose_dir: str | None = None  # None: default_pose_dir()
+  pose_dir: str | None = None  # None: $CAMREP_7SCENES_POSES, else the shipped tables
   train_stride: int = 1  # keep every k-th frame of each table
   test_stride: int = 1
   fov_deg: float = 44.6  # 7-Scenes focal 585 px over the central 480 px crop
@@ -907,7 +899,10 @@ class Scene6DofFamily(ProceduralFamily):
     key = (self.scene_name(scene), split)
     if key not in self._tables:
       pose_dir = self.config.pose_dir or default_pose_dir()
-      _, c2w = seven_scenes.read_pose_table(os.path.join(pose_dir, f"{key[0]}_{split}.txt"))
+      if pose_dir:
+        _, c2w = seven_scenes.read_pose_table(os.path.join(pose_dir, f"{key[0]}_{split}.txt"))
+      else:
+        _, c2w = seven_scenes.packed_pose_table(*key)
       self._tables[key] = c2w
     return self._tables[key]
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import os
+import pathlib
 import re
 from collections.abc import Iterator, Sequence
 
@@ -292,14 +293,88 @@ def read_pose_table(path: PathLike) -> tuple[list[str], np.ndarray]:
     rows.append(vals)
   if not rows:
     raise DataError(path, "pose table has no rows")
-  arr = np.array(rows, dtype=np.float64)
+  return names, table_rows_to_c2w(np.array(rows, dtype=np.float64))
+
+
+def table_rows_to_c2w(arr: np.ndarray) -> np.ndarray:
+  """Pose-table rows (N, 7) `qw qx qy qz tx ty tz` (world-to-camera) -> (N, 4, 4) camera-to-world:
+  rotation from the normalised quaternion, centre c = -R^T t."""
   rot_w2c = quat_to_matrix(arr[:, :4])
   rot_c2w = np.swapaxes(rot_w2c, -1, -2)
-  poses = np.zeros((len(rows), 4, 4))
+  poses = np.zeros((len(arr), 4, 4))
   poses[:, :3, :3] = rot_c2w
   poses[:, :3, 3] = -np.einsum("nij,nj->ni", rot_c2w, arr[:, 4:7])
   poses[:, 3, 3] = 1.0
-  return names, poses
+  return poses
+
+
+# The pose tables of all seven scenes, shipped with camrep (`pack_pose_tables` wrote the file):
+# each table's 7 numbers per frame as integers of 1e-6 (the text tables have 6 decimals, so
+# n / 1e6 gives back exactly the float the text parses to) and the frame names as
+# (sequence, frame) integers. Licence: Microsoft Research 7-Scenes non-commercial licence,
+# LICENSE-7scenes.rtf beside the file.
+PACKED_POSES = os.path.join(os.path.dirname(__file__), "seven_scenes_poses.npz")
+_POSE_SCALE = 1_000_000
+_FRAME_NAME = re.compile(r"^seq-(\d+)/frame-(\d+)\.color\.png$")
+
+
+def pack_pose_tables(table_dir: PathLike, out: PathLike = PACKED_POSES) -> dict[str, int]:
+  """Packs every `<scene>_{train,test}.txt` of `table_dir` into one compressed .npz (exact).
+
+  Returns:
+    {"<scene>_<split>": number of frames}.
+
+  Raises:
+    DataError: a table is malformed, a frame name is not `seq-XX/frame-NNNNNN.color.png`, or a
+      value has more than 6 decimals (it would not round-trip exactly).
+  """
+  arrays = {}
+  for path in sorted(pathlib.Path(table_dir).glob("*_t*.txt")):
+    names, _ = read_pose_table(path)
+    vals = np.array([line.split()[1:8] for line in _table_lines(path)], dtype=np.float64)
+    ints = np.round(vals * _POSE_SCALE).astype(np.int64)
+    if not np.array_equal(ints / _POSE_SCALE, vals):
+      raise DataError(path, "values with more than 6 decimals cannot be packed exactly")
+    frames = []
+    for n in names:
+      m = _FRAME_NAME.match(n)
+      if not m:
+        raise DataError(path, f"frame name {n!r} is not seq-XX/frame-NNNNNN.color.png")
+      frames.append((int(m.group(1)), int(m.group(2))))
+    arrays[path.stem] = np.concatenate([np.array(frames, np.int64), ints], axis=1).astype(np.int32)
+  if not arrays:
+    raise DataError(table_dir, "no <scene>_{train,test}.txt pose tables found")
+  np.savez_compressed(out, **arrays)
+  return {k: len(v) for k, v in arrays.items()}
+
+
+def _table_lines(path: PathLike) -> list[str]:
+  with open(path) as f:
+    return [s for s in (line.strip() for line in f) if s and not s.startswith("#")]
+
+
+def packed_pose_table(
+  scene: str, split: str, path: PathLike = PACKED_POSES
+) -> tuple[list[str], np.ndarray]:
+  """`read_pose_table` of `<scene>_<split>.txt`, from the pose tables shipped with camrep.
+
+  Returns:
+    names: N frame names ("seq-02/frame-000226.color.png"); poses_c2w: (N, 4, 4) float64,
+    identical to reading the text table.
+
+  Raises:
+    DataError: the file is missing or holds no such table.
+  """
+  key = f"{scene}_{split}"
+  try:
+    with np.load(path) as z:
+      if key not in z.files:
+        raise DataError(path, f"no pose table {key!r}; it holds {sorted(z.files)}")
+      rows = z[key]
+  except OSError as e:
+    raise DataError(path, f"cannot read the packed pose tables ({e.strerror or e})") from e
+  names = [f"seq-{q:02d}/frame-{f:06d}.color.png" for q, f in rows[:, :2].tolist()]
+  return names, table_rows_to_c2w(rows[:, 2:].astype(np.float64) / _POSE_SCALE)
 
 
 def read_pose_file(path: PathLike) -> np.ndarray:
