@@ -97,6 +97,10 @@ def base() -> ml_collections.ConfigDict:
   c.eval_every_steps = 5000
   c.ckpt_every_steps = 50_000
   c.max_to_keep = 3
+  # Resuming in a workdir whose config.json differs: the fields allowed to change, comma-separated
+  # ("total_steps,optax.lr_model"; a section name such as "evals" allows its fields). Only fields in
+  # camrep.runtime.runconfig.SYNTHESIS_RESUMABLE may change; the changes go to config_history.jsonl.
+  c.allow_changes = ""
 
   c.evals = ml_collections.ConfigDict()
   c.evals.num_scenes = 64  # held-out-view evaluation: scenes (one target view each)

@@ -76,6 +76,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   # frozen randomly initialised MLP embedding.
   c.synthesis_workdir = ""
   c.variant = variant or "paper"
+  # Rerunning in a workdir that holds another config: the fields allowed to differ (comma-separated;
+  # the rerun starts over and the change goes to config_history.jsonl). See camrep.runtime.runconfig.
+  c.allow_changes = ""
 
   # None: the setting's value (settings.<setting>).
   c.total_steps = config_dict.placeholder(int)

@@ -7,6 +7,7 @@ built from fabricated results.json files.
 
 from __future__ import annotations
 
+import copy
 import importlib.util
 import json
 import os
@@ -20,9 +21,11 @@ from camrep.regression import driver as R
 from camrep.regression import tables as C
 from camrep.regression import views as views_lib
 from camrep.runtime import runconfig
+from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import components, train
 from configs import regression as regression_config
 from configs import shapenet_car
+from tests.utils import snapshot
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -94,6 +97,23 @@ def test_baseline_end_to_end(tmp_path, cache):
   np.testing.assert_array_equal(
     d1.train.images[:3], views_lib.make_data(R.resolve_config(config)).train.images[:3]
   )
+  # (issue 19) A rerun in this workdir with another config: refused unless allowed.
+  _check_rerun_with_another_config(wd, config)
+
+
+def _check_rerun_with_another_config(wd, config):
+  before = snapshot(wd)
+  other = copy.deepcopy(config)
+  other.representation = "quat"
+  with pytest.raises(runconfig.ConfigError, match="representation: 'euler' -> 'quat'"):
+    R.run(other, wd, log=lambda s: None)
+  assert snapshot(wd) == before
+  other.allow_changes = "representation"
+  assert R.run(other, wd, log=lambda s: None)["representation"] == "quat"
+  start, rerun = workdir_lib.read_history(wd)
+  assert (start["event"], rerun["event"]) == ("start", "rerun")
+  assert rerun["changes"] == {"representation": ["euler", "quat"]}
+  assert not os.path.exists(os.path.join(wd, workdir_lib.LOCK_FILE))
 
 
 @pytest.fixture(scope="module")

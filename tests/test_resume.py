@@ -20,8 +20,10 @@ import jax
 import numpy as np
 import pytest
 
+from camrep.runtime import workdir as workdir_lib
 from camrep.runtime import writers
-from camrep.synthesis import restore
+from camrep.synthesis import restore, train
+from configs import gqn
 
 # One xdist worker runs the module, so the reference run is made once.
 pytestmark = pytest.mark.xdist_group("resume")
@@ -132,9 +134,34 @@ def test_killed_and_restarted_run_is_bit_identical(sig, reference, tmp_path):
     assert "checkpoint saved" in out
   else:
     assert proc.returncode == -signal.SIGKILL
+    assert os.path.exists(workdir / ".camrep.lock")  # left by the killed process
   r = _run(workdir)
   assert r.returncode == 0, r.stderr[-3000:]
   assert "resumed from step" in r.stdout
+  if sig == signal.SIGKILL:  # (issue 19, e) the dead process's lock is taken over, with a warning
+    assert f"taking over the stale lock of {workdir}: PID {proc.pid}" in r.stderr
+  assert not os.path.exists(workdir / ".camrep.lock")
+  _assert_identical(workdir, reference)
+
+
+def test_second_start_on_a_live_workdir_is_refused(reference, tmp_path):
+  """(issue 19, d) While a run holds its workdir, a second start is refused (exit 2, naming the
+  holder) and writes nothing; the first finishes bit-identical to a run alone."""
+  workdir = tmp_path / "w"
+  proc = _start(workdir)
+  _wait_for_step(proc, workdir, 2)
+  # The second start in this process: refused within milliseconds, while the first still runs
+  # (a second process would need seconds to import JAX; tests/test_workdir.py checks the
+  # command line's exit status 2 on a held workdir).
+  config = gqn.get_config("smoke")
+  config.total_steps, config.ckpt_every_steps, config.eval_every_steps = TOTAL, EVERY, 20
+  before = {p.name: p.stat().st_size for p in workdir.iterdir()}
+  with pytest.raises(workdir_lib.WorkdirError, match=f"in use by another run \\(PID {proc.pid} on"):
+    train.train_and_evaluate(config, str(workdir))
+  assert proc.poll() is None, "the first run ended before the second start was tried"
+  assert set(before) <= {p.name for p in workdir.iterdir()}
+  out, _ = proc.communicate(timeout=600)
+  assert proc.returncode == 0, out[-3000:]
   _assert_identical(workdir, reference)
 
 

@@ -68,3 +68,18 @@ def general_lie_test(f):
       f(method=method, batch=batch, regime=regime)
 
   return wrapper
+
+
+def snapshot(workdir) -> dict[str, bytes]:
+  """Every file of a directory tree, relative path -> bytes (directories as "name/" -> b"")."""
+  import os
+
+  out = {}
+  for root, dirs, files in os.walk(workdir):
+    for d in dirs:
+      out[os.path.relpath(os.path.join(root, d), workdir) + "/"] = b""
+    for f in files:
+      p = os.path.join(root, f)
+      with open(p, "rb") as fh:
+        out[os.path.relpath(p, workdir)] = fh.read()
+  return out

@@ -12,6 +12,7 @@ from ml_collections import config_flags
 
 from camrep.regression import driver
 from camrep.runtime import runconfig
+from camrep.runtime import workdir as workdir_lib
 
 _CONFIG = config_flags.DEFINE_config_file(
   "config", None, "Path to configs/regression.py[:quick|:smoke].", lock_config=True
@@ -28,7 +29,7 @@ def main(argv) -> None:
   print(f"JAX {jax.__version__}, devices {jax.local_devices()}", flush=True)
   try:
     driver.run(_CONFIG.value, _WORKDIR.value, log=lambda s: print(s, flush=True))
-  except runconfig.ConfigError as e:
+  except (runconfig.ConfigError, workdir_lib.WorkdirError) as e:
     print(f"error: {e}", file=sys.stderr, flush=True)
     sys.exit(2)
   except FloatingPointError as e:

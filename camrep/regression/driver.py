@@ -42,6 +42,7 @@ import hashlib
 import json
 import math
 import os
+import shutil
 import time
 from collections.abc import Mapping
 from typing import Any
@@ -56,8 +57,8 @@ from camrep.regression import learner, scoring
 from camrep.regression import targets as T
 from camrep.regression import views as views_lib
 from camrep.runtime import progress as progress_lib
+from camrep.runtime import runconfig, writers
 from camrep.runtime import workdir as workdir_lib
-from camrep.runtime import writers
 from camrep.runtime.runconfig import ConfigError
 from camrep.synthesis import components, restore
 
@@ -262,9 +263,8 @@ class Setup:
 
 
 def prepare(config: ml_collections.ConfigDict, *, log=print) -> Setup:
-  """Resolves the config, restores the pose input and renders the data (in that order, so that a
-  bad config or synthesis workdir fails before minutes of rendering)."""
-  config = resolve_config(config)
+  """Restores the pose input and renders the data of a resolved config (in that order, so that a
+  bad synthesis workdir fails before minutes of rendering)."""
   t0 = time.perf_counter()
   spec, rep_params, rep_info = representation_params(config)
   data = views_lib.make_data(config)
@@ -344,9 +344,21 @@ def write_results(path: str, results: Mapping[str, Any]) -> None:
   os.replace(path + ".tmp", path)
 
 
+def clear_outputs(workdir: str) -> None:
+  """Removes what an earlier run in `workdir` wrote (results.json, errors_*.npz): a rerun starts
+  over, and a stale file would mark an unfinished run as done."""
+  for name in os.listdir(workdir):
+    if name == RESULTS_FILE or (name.startswith("errors_") and name.endswith(".npz")):
+      os.remove(os.path.join(workdir, name))
+
+
 def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[str, Any]:
   """Trains and evaluates one regressor; writes config.json, metrics.jsonl, results.json and
-  errors_<split>.npz into `workdir` (an existing results.json is overwritten).
+  errors_<split>.npz into `workdir`.
+
+  A rerun in a workdir starts over (its results.json and errors files are removed first); when
+  the workdir holds another config, only the fields named in `config.allow_changes` may differ,
+  and the change is recorded in config_history.jsonl. One run per workdir at a time (a lock).
 
   Args:
     config: a configs/regression.py config (resolved here).
@@ -357,28 +369,43 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
     The results.json content.
 
   Raises:
-    ConfigError: bad config or synthesis workdir.
+    ConfigError: bad config or synthesis workdir, or a config that differs from the workdir's.
+    WorkdirError: the workdir cannot be written, or another run holds it.
     FloatingPointError: the loss became non-finite.
   """
+  config = resolve_config(config)
+  existed = os.path.isdir(workdir)
   workdir_lib.check_workdir(workdir)
-  path = os.path.join(workdir, RESULTS_FILE)
-  if os.path.exists(path):  # a rerun: a stale file would mark an unfinished run as done
-    os.remove(path)
-  setup = prepare(config, log=log)
-  config = setup.config
-  writer = writers.MetricWriter(workdir)
-  writer.truncate_after(0)
-  writer.write_config(config)
-  predict_fn = jax.jit(learner.predict_poses)
-  eval_sets = {k: views_lib.eval_batches(config, e) for k, e in setup.data.evals.items()}
+  stored = workdir_lib.read_stored_config(workdir)
+  changes = {}
+  if stored is not None:
+    changes = runconfig.check_changes(stored, config, resumable=None, workdir=workdir, what="rerun")
+  lock = workdir_lib.WorkdirLock(workdir)
+  lock.acquire()
   try:
-    state, last, train_seconds = train(setup, writer, eval_sets, predict_fn=predict_fn, log=log)
-    t_eval = time.perf_counter()
-    summaries, extra = evaluate_splits(
-      setup, state, writer, eval_sets, predict_fn=predict_fn, workdir=workdir
-    )
+    try:
+      setup = prepare(config, log=log)
+    except BaseException:
+      if not existed:
+        shutil.rmtree(workdir, ignore_errors=True)  # holds nothing but the lock
+      raise
+    clear_outputs(workdir)
+    writer = writers.MetricWriter(workdir)
+    writer.truncate_after(0)
+    writer.write_config(config)
+    workdir_lib.append_history(workdir, 0, changes, what="rerun" if stored else "start")
+    predict_fn = jax.jit(learner.predict_poses)
+    eval_sets = {k: views_lib.eval_batches(config, e) for k, e in setup.data.evals.items()}
+    try:
+      state, last, train_seconds = train(setup, writer, eval_sets, predict_fn=predict_fn, log=log)
+      t_eval = time.perf_counter()
+      summaries, extra = evaluate_splits(
+        setup, state, writer, eval_sets, predict_fn=predict_fn, workdir=workdir
+      )
+    finally:
+      writer.close()
   finally:
-    writer.close()
+    lock.release()
   results = {
     "setting": config.setting,
     "representation": config.representation,
@@ -399,7 +426,7 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
     "test": summaries[config.evals.test_split],
     "extra": extra,
   }
-  write_results(path, results)
+  write_results(os.path.join(workdir, RESULTS_FILE), results)
   overall = results["test"]["all"]
   log(
     f"test ({config.evals.test_split}): "

@@ -151,6 +151,19 @@ def _like_template(restored: Any, template: Any) -> Any:
   return restored
 
 
+def _shape_mismatch(restored: PyTree, template: PyTree, limit: int = 4) -> str:
+  """'path: saved shape -> template shape' for the first `limit` leaves whose shapes differ."""
+  out = []
+  flat_r = jax.tree_util.tree_leaves_with_path(restored)
+  flat_t = jax.tree_util.tree_leaves(template)
+  for (path, a), b in zip(flat_r, flat_t, strict=True):
+    sa, sb = tuple(np.shape(a)), tuple(getattr(b, "shape", np.shape(b)))
+    if sa != sb:
+      out.append(f"{jax.tree_util.keystr(path)}: {sa} -> {sb}")
+  more = f" and {len(out) - limit} more" if len(out) > limit else ""
+  return "; ".join(out[:limit]) + more
+
+
 class Checkpointer:
   """Saves and restores `(state, extra)` under `workdir/checkpoints` with Orbax.
 
@@ -448,6 +461,12 @@ class Checkpointer:
         warnings.warn(msg, CorruptCheckpointWarning, stacklevel=2)
         logging.warning(msg)
         continue
+      shapes = _shape_mismatch(state, state_template)
+      if shapes:
+        raise CheckpointError(
+          f"Checkpoint step {s} in {self.directory} holds arrays of other shapes than the "
+          f"config builds ({shapes}): the config differs from the one that saved it"
+        )
       if s != candidates[0]:
         logging.warning("Restored checkpoint step %d from %s (fallback).", s, self.directory)
       return state, extra, s

@@ -1,9 +1,131 @@
-"""The config of a run as a whole: the one error a bad config raises, whatever the stage
-(view synthesis or regression), so that every command line maps it to exit status 2."""
+"""The config of a run as a whole: the one error a bad config raises, whatever the stage (view
+synthesis or regression), and what may change when a run resumes in the same workdir.
+
+A workdir's config.json must describe every step in it. Resuming with another config is refused
+unless every differing field is one a run may change midway (`RESUMABLE` of the stage: durations,
+cadences, learning rates, loss weights; never the model, the pose system or the data) and is named
+in `config.allow_changes` ("total_steps,optax.lr_model", or a section: "evals"); allowed changes
+are recorded in the workdir's config_history.jsonl with the step they took effect at.
+"""
 
 from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+# Fields that change how a run goes on, never what its parameters mean or their shapes.
+# A name ending in "." covers its whole section.
+SYNTHESIS_RESUMABLE = (
+  "total_steps",
+  "log_every_steps",
+  "eval_every_steps",
+  "ckpt_every_steps",
+  "max_to_keep",
+  "seed",
+  "evals.",
+  "optax.lr_model",
+  "optax.lr_rep",
+  "loss.rec_weight",
+  "loss.rot_weight",
+  "loss.dir_weight",
+  "loss.n_pairs",
+  "data.dir",
+)
+# Fields that change only speed or where output goes: they differ silently (still recorded).
+FREE = ("allow_changes", "data.num_threads", "data.prefetch")
 
 
 class ConfigError(ValueError):
   """A config whose parts do not fit together or name something unknown (raised before any data
   or model is built)."""
+
+
+def as_plain(config: Any) -> dict[str, Any]:
+  """A ConfigDict (or mapping) as plain JSON values: what config.json holds."""
+  if hasattr(config, "to_json_best_effort"):
+    return json.loads(config.to_json_best_effort())
+  return json.loads(json.dumps(dict(config), default=str))
+
+
+def flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+  """{"a": {"b": 1}} -> {"a.b": 1}."""
+  out = {}
+  for k, v in tree.items():
+    if isinstance(v, Mapping) and v:
+      out.update(flatten(v, f"{prefix}{k}."))
+    else:
+      out[f"{prefix}{k}"] = v
+  return out
+
+
+def differences(old: Mapping[str, Any], new: Mapping[str, Any]) -> dict[str, tuple[Any, Any]]:
+  """{field: (old value, new value)} over the flattened configs; a missing side is None."""
+  a, b = flatten(as_plain(old)), flatten(as_plain(new))
+  return {k: (a.get(k), b.get(k)) for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)}
+
+
+def _covered(field: str, names: Iterable[str]) -> bool:
+  return any(field == n or (n.endswith(".") and field.startswith(n)) for n in names)
+
+
+def parse_allow_changes(value: str) -> tuple[str, ...]:
+  """ "total_steps, optax.lr_model,evals" -> ("total_steps", "optax.lr_model", "evals")."""
+  return tuple(n.strip() for n in (value or "").split(",") if n.strip())
+
+
+def check_changes(
+  old: Mapping[str, Any],
+  new: Any,
+  *,
+  resumable: Iterable[str] | None,
+  workdir: str,
+  what: str = "resume",
+) -> dict[str, tuple[Any, Any]]:
+  """The differences between a workdir's stored config and the requested one, if allowed.
+
+  Args:
+    old: the stored config (config.json).
+    new: the requested config; its `allow_changes` ("" when absent) names what may differ.
+    resumable: the stage's fields that may differ at all; None: any field, when named in
+      `allow_changes` (a stage that starts over instead of resuming, like regression).
+    workdir: for the message.
+    what: the verb of the message ("resume", "rerun").
+
+  Returns:
+    {field: (old, new)} of every difference (allowed and free ones).
+
+  Raises:
+    ConfigError: some field differs that is not free and not allowed; the message names each
+      (old -> new) and the ways out.
+  """
+  diffs = differences(old, new)
+  diffs.pop("allow_changes", None)  # the permission itself is not a change of the run
+  allowed = parse_allow_changes(as_plain(new).get("allow_changes", ""))
+  sections = tuple(a + "." for a in allowed)  # a section name allows its fields
+  refused, need_flag = [], []
+  for field, (a, b) in diffs.items():
+    if _covered(field, FREE):
+      continue
+    if resumable is not None and not _covered(field, resumable):
+      refused.append(f"  {field}: {a!r} -> {b!r}")
+    elif not (_covered(field, allowed) or _covered(field, sections)):
+      need_flag.append(field)
+  if not refused and not need_flag:
+    return diffs
+  lines = [f"cannot {what} in {workdir}: its config.json differs from the requested config"]
+  if refused:
+    shown = (
+      refused if len(refused) <= 12 else [*refused[:12], f"  ... and {len(refused) - 12} more"]
+    )
+    lines += ["fields that change the model, pose system or data (never allowed):", *shown]
+    lines.append("use a new --workdir for this config")
+  if need_flag:
+    lines += ["fields that may change but were not named in allow_changes:"]
+    lines += [f"  {f}: {diffs[f][0]!r} -> {diffs[f][1]!r}" for f in need_flag]
+    if not refused:
+      lines.append(
+        f"use a new --workdir, or add --config.allow_changes={','.join(need_flag)} to record "
+        "the change in config_history.jsonl"
+      )
+  raise ConfigError("\n".join(lines))

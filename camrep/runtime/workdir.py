@@ -1,21 +1,41 @@
-"""The workdir of a run: checked before any work starts, and its config read back."""
+"""The workdir of a run: checked before any work starts, held by one writer at a time, and its
+config and config history read back.
+
+Files this module owns in a workdir:
+
+  .camrep.lock          {"pid", "host", "started", "argv"} of the process writing the workdir;
+                        removed when it ends. A lock whose process is gone (same host, PID not
+                        running) is stale and is taken over with a warning.
+  config_history.jsonl  one line per start: {"step", "time", "host", "pid", "changes":
+                        {field: [old, new]}}; `changes` is empty for a fresh start.
+"""
 
 from __future__ import annotations
 
+import datetime
 import json
 import os
+import socket
+import sys
 import tempfile
+import warnings
+from collections.abc import Mapping
+from typing import Any
 
-import jax
 import ml_collections
 
 from camrep.runtime import writers
 
-Array = jax.Array
+LOCK_FILE = ".camrep.lock"
+HISTORY_FILE = "config_history.jsonl"
 
 
 class WorkdirError(RuntimeError):
-  """The workdir cannot be created or written to."""
+  """The workdir cannot be created or written to, or another process is writing it."""
+
+
+class StaleLockWarning(UserWarning):
+  """A workdir lock left by a process that no longer runs was taken over."""
 
 
 def check_workdir(workdir: str) -> None:
@@ -51,3 +71,132 @@ def read_config(workdir: str) -> ml_collections.ConfigDict:
     )
   with open(path, encoding="utf-8") as f:
     return ml_collections.ConfigDict(json.load(f))
+
+
+def read_stored_config(workdir: str) -> dict[str, Any] | None:
+  """workdir/config.json as plain JSON values, or None when the workdir holds none.
+
+  Raises:
+    WorkdirError: the file exists but is not JSON.
+  """
+  path = os.path.join(workdir, writers.CONFIG_FILE)
+  if not os.path.exists(path):
+    return None
+  try:
+    with open(path, encoding="utf-8") as f:
+      return json.load(f)
+  except (OSError, json.JSONDecodeError) as e:
+    raise WorkdirError(f"{path} cannot be read as JSON: {e}") from e
+
+
+def _now() -> str:
+  return datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+
+
+def _pid_running(pid: int) -> bool:
+  try:
+    os.kill(pid, 0)
+  except ProcessLookupError:
+    return False
+  except PermissionError:  # exists, owned by someone else
+    return True
+  return True
+
+
+class WorkdirLock:
+  """One writer per workdir: `.camrep.lock`, created atomically, removed by `release`.
+
+  Usage:
+    lock = WorkdirLock(workdir)
+    lock.acquire()      # WorkdirError if a live process holds it
+    try: ... finally: lock.release()
+  """
+
+  def __init__(self, workdir: str):
+    self.workdir = workdir
+    self.path = os.path.join(workdir, LOCK_FILE)
+    self.held = False
+
+  def holder(self) -> dict[str, Any] | None:
+    """The lock's content, or None when there is no lock file ({} when it is unreadable)."""
+    try:
+      with open(self.path, encoding="utf-8") as f:
+        return json.load(f)
+    except FileNotFoundError:
+      return None
+    except (OSError, json.JSONDecodeError):
+      return {}
+
+  def _create(self) -> bool:
+    try:
+      fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+    except FileExistsError:
+      return False
+    me = {"pid": os.getpid(), "host": socket.gethostname(), "started": _now(), "argv": sys.argv}
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+      json.dump(me, f)
+    return True
+
+  def acquire(self) -> None:
+    """Takes the lock, taking over a stale one (with a `StaleLockWarning`).
+
+    Raises:
+      WorkdirError: a live process (or one on another host) holds the lock; the message names it.
+    """
+    for _ in range(2):
+      if self._create():
+        self.held = True
+        return
+      h = self.holder()
+      if h is None:  # released between our two looks
+        continue
+      host, pid = h.get("host"), h.get("pid")
+      if host == socket.gethostname() and isinstance(pid, int) and not _pid_running(pid):
+        msg = (
+          f"taking over the stale lock of {self.workdir}: PID {pid} on {host} "
+          f"(started {h.get('started', '?')}) no longer runs"
+        )
+        warnings.warn(msg, StaleLockWarning, stacklevel=2)
+        print(f"warning: {msg}", file=sys.stderr, flush=True)
+        os.remove(self.path)
+        continue
+      who = f"PID {pid} on {host}, started {h.get('started', '?')}" if h else "an unreadable lock"
+      raise WorkdirError(
+        f"workdir {self.workdir} is in use by another run ({who}; {self.path}). Wait for it to "
+        "finish, or use another --workdir; if that process is gone (another host, a crashed "
+        "machine), delete the lock file."
+      )
+    raise WorkdirError(f"could not take the lock {self.path} (it keeps changing hands)")
+
+  def release(self) -> None:
+    """Removes the lock if this object holds it."""
+    if self.held:
+      self.held = False
+      h = self.holder()
+      if h and h.get("pid") == os.getpid():
+        os.remove(self.path)
+
+
+def append_history(
+  workdir: str, step: int, changes: Mapping[str, tuple[Any, Any]], *, what: str = "start"
+) -> None:
+  """Appends one line to config_history.jsonl: the step at which `changes` took effect."""
+  row = {
+    "step": int(step),
+    "event": what,
+    "time": _now(),
+    "host": socket.gethostname(),
+    "pid": os.getpid(),
+    "changes": {k: list(v) for k, v in changes.items()},
+  }
+  with open(os.path.join(workdir, HISTORY_FILE), "a", encoding="utf-8") as f:
+    f.write(json.dumps(row, default=str) + "\n")
+
+
+def read_history(workdir: str) -> list[dict[str, Any]]:
+  """config_history.jsonl back (an empty list when there is none)."""
+  path = os.path.join(workdir, HISTORY_FILE)
+  if not os.path.exists(path):
+    return []
+  with open(path, encoding="utf-8") as f:
+    return [json.loads(line) for line in f if line.strip()]

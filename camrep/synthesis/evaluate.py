@@ -22,6 +22,9 @@ import numpy as np
 from absl import logging as absl_logging
 
 from camrep import pose as P
+from camrep.data.errors import DataError
+from camrep.runtime.checkpoint import CheckpointError
+from camrep.runtime.runconfig import ConfigError
 from camrep.synthesis import components, restore
 from camrep.synthesis import gram as gram_lib
 from camrep.synthesis import noise as noise_lib
@@ -109,7 +112,8 @@ def main(argv: Sequence[str] | None = None) -> int:
   log = lambda s: print(s, flush=True)
   try:
     run = restore.load_run(args.workdir, step=args.step)
-  except FileNotFoundError as e:
+  except (FileNotFoundError, CheckpointError, ConfigError, DataError) as e:
+    # A checkpoint whose arrays do not fit the workdir's config.json is refused here (exit 2).
     print(f"error: {e}", file=sys.stderr, flush=True)
     return 2
   if args.num_scenes is not None:

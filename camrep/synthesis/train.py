@@ -35,7 +35,7 @@ import ml_collections
 import numpy as np
 
 from camrep import pose as P
-from camrep.runtime import grids
+from camrep.runtime import grids, runconfig
 from camrep.runtime import progress as progress_lib
 from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import components, heldout
@@ -88,71 +88,137 @@ class Job:
   Attributes:
     config, workdir: as given.
     lead: whether this process logs, evaluates and writes (process 0).
-    writer: metrics / images writer (a NullWriter off the lead process).
     checkpointer: the workdir's checkpoints.
     train_pipe, test_pipe: training batches of this process's shard; held-out views.
     spec, model: the pose system and the view-synthesis model.
+    lock: the workdir lock (lead process only).
+    changes: {field: (old, new)} between the workdir's stored config and this one.
+    writer: metrics / images writer (a NullWriter off the lead process), set by `commit_start`.
   """
 
   config: ml_collections.ConfigDict
   workdir: str
   lead: bool
-  writer: Any
   checkpointer: Any
   train_pipe: Any
   test_pipe: Any
   spec: P.PoseSystemSpec
   model: Any
+  lock: workdir_lib.WorkdirLock | None
+  changes: dict[str, tuple[Any, Any]]
+  writer: Any = None
+
+
+def _has_checkpoints(workdir: str) -> bool:
+  from camrep.runtime import checkpoint as ckpt_lib
+
+  d = os.path.join(workdir, ckpt_lib.CHECKPOINT_SUBDIR)
+  return os.path.isdir(d) and any(name.isdigit() for name in os.listdir(d))
 
 
 def build_job(config: ml_collections.ConfigDict, workdir: str) -> Job:
-  """Checks the config and the workdir, then builds the writer, data, pose system and model."""
+  """Checks the config, the workdir (its stored config, its lock), then builds the data, pose
+  system and model. Writes nothing into the workdir but the lock (released on failure).
+
+  Raises:
+    ConfigError: the config is inconsistent, or differs from the workdir's stored config in a
+      field that may not change (or was not named in `allow_changes`).
+    WorkdirError: the workdir cannot be written or another process is writing it.
+  """
   from camrep.runtime import checkpoint as ckpt_lib
-  from camrep.runtime import writers
 
   components.check_config(config)
-  pidx, pcount = jax.process_index(), jax.process_count()
-  lead = pidx == 0  # several processes: only process 0 logs, evaluates and prints
+  lead = jax.process_index() == 0  # several processes: only process 0 logs, evaluates, writes
+  existed = os.path.isdir(workdir)
   workdir_lib.check_workdir(workdir)
-  writer = writers.MetricWriter(workdir) if lead else writers.NullWriter()
-  writer.write_config(config)
-  train_pipe = components.make_pipeline(
-    config, "train", num_devices=jax.local_device_count(), process_index=pidx, process_count=pcount
-  )
-  test_pipe = components.make_pipeline(config, "test", num_devices=1, for_eval=True)
-  return Job(
-    config=config,
-    workdir=workdir,
-    lead=lead,
-    writer=writer,
-    checkpointer=ckpt_lib.Checkpointer(workdir, max_to_keep=config.max_to_keep),
-    train_pipe=train_pipe,
-    test_pipe=test_pipe,
-    spec=components.pose_spec(config),
-    model=components.make_model(config, components.num_train_scenes(train_pipe)),
-  )
+  stored = workdir_lib.read_stored_config(workdir)
+  changes = {}
+  if stored is not None and _has_checkpoints(workdir):
+    changes = runconfig.check_changes(
+      stored, config, resumable=runconfig.SYNTHESIS_RESUMABLE, workdir=workdir
+    )
+  lock = workdir_lib.WorkdirLock(workdir) if lead else None
+  if lock is not None:
+    lock.acquire()
+  try:
+    pidx, pcount = jax.process_index(), jax.process_count()
+    train_pipe = components.make_pipeline(
+      config,
+      "train",
+      num_devices=jax.local_device_count(),
+      process_index=pidx,
+      process_count=pcount,
+    )
+    test_pipe = components.make_pipeline(config, "test", num_devices=1, for_eval=True)
+    return Job(
+      config=config,
+      workdir=workdir,
+      lead=lead,
+      checkpointer=ckpt_lib.Checkpointer(workdir, max_to_keep=config.max_to_keep),
+      train_pipe=train_pipe,
+      test_pipe=test_pipe,
+      spec=components.pose_spec(config),
+      model=components.make_model(config, components.num_train_scenes(train_pipe)),
+      lock=lock,
+      changes=changes,
+    )
+  except BaseException:
+    abandon_start(workdir, lock, existed=existed)
+    raise
+
+
+def abandon_start(workdir: str, lock: workdir_lib.WorkdirLock | None, *, existed: bool) -> None:
+  """Undoes a start that failed before `commit_start`: the lock, an empty checkpoints/ directory,
+  and the workdir itself when this start created it and it is empty."""
+  from camrep.runtime import checkpoint as ckpt_lib
+
+  if lock is not None:
+    lock.release()
+  for d in (os.path.join(workdir, ckpt_lib.CHECKPOINT_SUBDIR), *([] if existed else [workdir])):
+    try:
+      os.rmdir(d)  # only when empty
+    except OSError:
+      pass
 
 
 def restore_or_init(job: Job, init_key: Array) -> tuple[step_lib.TrainState, int]:
   """The state to start from and its step: the workdir's latest checkpoint, else a fresh init.
 
-  Metrics logged after the start step (by a run killed before its next checkpoint) are dropped.
+  Raises:
+    CheckpointError: checkpoints exist but none fits the config (e.g. other shapes).
   """
   # Jitted: eager init of the pose system and model costs seconds of op dispatch.
   init_fn = jax.jit(lambda k, b: step_lib.create_train_state(k, job.config, job.model, job.spec, b))
   first = job.train_pipe.batch(0)
   batch0 = {k: first[k] for k in ("image", "pose", "scene")}
-  latest = job.checkpointer.latest_step()
-  if latest is None:
-    job.writer.truncate_after(0)
+  if job.checkpointer.latest_step() is None:
     return init_fn(init_key, batch0), 0
   template = jax.eval_shape(init_fn, init_key, batch0)
   state_d, _, start = job.checkpointer.restore(step_lib.state_dict(jax.tree.map(_zeros, template)))
   state = jax.tree.map(jnp.asarray, flax.serialization.from_state_dict(template, state_d))
-  job.writer.truncate_after(start)
   if job.lead:
     print(f"resumed from step {start} in {job.workdir}", flush=True)
   return state, start
+
+
+def commit_start(job: Job, start: int) -> None:
+  """The first writes of an accepted start: metrics logged after `start` by an interrupted run
+  are dropped, config.json becomes this config, config_history.jsonl records the start (and any
+  config change, with its step), and a resume with changes is marked in the metrics."""
+  from camrep.runtime import writers
+
+  if not job.lead:
+    job.writer = writers.NullWriter()
+    return
+  job.writer = writers.MetricWriter(job.workdir)
+  job.writer.truncate_after(start)
+  job.writer.write_config(job.config)
+  event = "resume" if start > 0 else "start"
+  workdir_lib.append_history(job.workdir, start, job.changes, what=event)
+  if start > 0 and job.changes:
+    job.writer.write_scalars(start, {"resume/config_changes": len(job.changes)})
+    changed = ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in job.changes.items())
+    print(f"config changed at step {start}: {changed}", flush=True)
 
 
 def raise_if_not_finite(job: Job, step: int, metrics: Mapping[str, Array]) -> None:
@@ -209,8 +275,11 @@ def stop_requested(signals) -> bool:
 
 
 def write_final_metrics(job: Job, step: int, last: Mapping[str, float]) -> None:
+  """final_metrics.json: the last logged scalars, and the config changes of the run's history."""
+  history = workdir_lib.read_history(job.workdir)
+  changes = [{"step": h["step"], "changes": h["changes"]} for h in history if h["changes"]]
   with open(os.path.join(job.workdir, "final_metrics.json"), "w") as f:
-    json.dump({"step": int(step), **last}, f, indent=1)
+    json.dump({"step": int(step), **last, "config_changes": changes}, f, indent=1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -236,9 +305,16 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
   """
   from camrep.runtime import checkpoint as ckpt_lib
 
+  existed = os.path.isdir(workdir)
   job = build_job(config, workdir)
   init_key, loop_key = jax.random.split(jax.random.key(config.seed))
-  state, start = restore_or_init(job, init_key)
+  try:
+    state, start = restore_or_init(job, init_key)
+    commit_start(job, start)
+  except BaseException:
+    job.checkpointer.close()
+    abandon_start(workdir, job.lock, existed=existed)
+    raise
 
   n_dev = jax.local_device_count()
   p_step = step_lib.make_p_train_step(config, job.model, job.spec)
@@ -278,10 +354,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
       if stop:
         print(f"stopping at step {step} on a signal; checkpoint saved", flush=True)
         break
+    if job.lead:
+      write_final_metrics(job, step, last)
   finally:
     signals.uninstall()
     job.checkpointer.close()
     job.writer.close()
-  if job.lead:
-    write_final_metrics(job, step, last)
+    if job.lock is not None:
+      job.lock.release()
   return last
