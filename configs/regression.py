@@ -68,7 +68,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c = ml_collections.ConfigDict()
   c.setting = "car"
   # One of camrep.regression.targets.REPRESENTATIONS: ours, mlp, euler, axis_angle, sincos, quat,
-  # logq.
+  # logq, rot6d, svd9d.
   c.representation = "quat"
   c.seed = 0
   # A `camrep.main` workdir of the same setting: "ours" takes its learned pose system (required);
@@ -76,8 +76,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   # frozen randomly initialised MLP embedding.
   c.synthesis_workdir = ""
   c.variant = variant or "paper"
-  # Rerunning in a workdir that holds another config: the fields allowed to differ (comma-separated;
-  # the rerun starts over and the change goes to config_history.jsonl). See camrep.runtime.runconfig.
+  # Rerunning in a workdir that holds another config: the fields allowed to differ
+  # (comma-separated; the rerun starts over and the change goes to config_history.jsonl).
   c.allow_changes = ""
 
   # None: the setting's value (settings.<setting>).

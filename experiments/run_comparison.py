@@ -56,10 +56,10 @@ SYNTHESIS_CONFIGS = {
   "seven_scenes": "configs/seven_scenes.py",
 }
 REPRESENTATIONS = {
-  "car": ("ours", "mlp", "euler", "axis_angle", "sincos", "quat", "logq"),
+  "car": ("ours", "mlp", "euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d"),
   "gqn": ("ours", "euler", "sincos", "quat", "logq"),
   "gibson": ("ours", "euler", "sincos", "quat", "logq"),
-  "seven_scenes": ("ours", "quat", "logq"),
+  "seven_scenes": ("ours", "quat", "logq", "rot6d", "svd9d"),
 }
 
 

@@ -196,7 +196,7 @@ def test_equalise_params_matches_ours_at_reduced_width(setting):
 
   ours = count("ours")
   assert (ours - count("quat")) / ours > 0.2
-  for rep in ("euler", "sincos", "quat", "logq"):
+  for rep in ("euler", "sincos", "quat", "logq", "rot6d", "svd9d"):
     n = count(rep, equalise_params=True)
     assert abs(n - ours) / ours < 0.01, (rep, n, ours)
   assert count("ours", equalise_params=True) == ours  # ours has no extra layer to size
@@ -356,6 +356,23 @@ def test_training_reduces_the_loss():
   errors = scoring.evaluate_regression(state, [data])
   # Chance level is ~90 degrees.
   assert errors["rotation_error_deg"].shape == (64,) and np.mean(errors["rotation_error_deg"]) < 60
+
+
+@pytest.mark.parametrize("rep", ["rot6d", "svd9d"])
+def test_continuous_rotation_targets_train(rep):
+  """The 6-D / 9-D targets through the real step: finite matrix losses that fall, rotations out."""
+  rng = np.random.default_rng(0)
+  data = _synthetic_car_batch(_random_poses("car", (32,), rng))
+  reg = learner.make_regressor("car", rep, width=1 / 8)
+  state = learner.init(jax.random.key(0), reg, data)
+  step = jax.jit(learner.train_step)
+  losses = []
+  for _ in range(30):
+    state, m = step(state, data)
+    losses.append(float(m["loss"]))
+  assert np.all(np.isfinite(losses)) and np.mean(losses[-5:]) < np.mean(losses[:5])
+  pred = np.asarray(learner.predict_poses(state, data))
+  assert pred.shape == (32, 2) and np.all(np.isfinite(pred))
 
 
 def test_train_step_homoscedastic_and_batch_norm():

@@ -94,6 +94,76 @@ def test_rotation_vector_gradients_finite_at_identity():
   assert_close(np.asarray(g2)[:, 1:], 2 * np.eye(3), atol=1e-6)
 
 
+def test_rot6d_and_svd9d_round_trip_scipy_rotations():
+  R = _rotations().as_matrix().astype(np.float32)
+  got6 = np.asarray(T.rot6d_to_matrix(T.matrix_to_rot6d(jnp.asarray(R))))
+  assert_close(got6, R, atol=2e-6, rtol=0)
+  got9 = np.asarray(T.svd_orthogonalise(jnp.asarray(R)))
+  assert_close(got9, R, atol=2e-6, rtol=0)
+  # Gram-Schmidt of any 6 numbers is a rotation; so is the SVD projection of any 9.
+  rng = np.random.default_rng(1)
+  for M in (
+    T.rot6d_to_matrix(rng.normal(size=(50, 6))),
+    T.svd_orthogonalise(rng.normal(size=(50, 3, 3))),
+  ):
+    M = np.asarray(M)
+    assert_close(M @ np.swapaxes(M, -1, -2), np.broadcast_to(np.eye(3), M.shape), atol=1e-5, rtol=0)
+    assert_close(np.linalg.det(M), np.ones(50), atol=1e-5, rtol=0)
+
+
+def test_svd_projection_is_the_nearest_rotation_as_scipy_finds_it():
+  # scipy's from_matrix orthogonalises a non-orthogonal matrix to its nearest rotation
+  # (Frobenius norm; Markley 2008), the same as the SVD projection of Levinson et al.
+  rng = np.random.default_rng(2)
+  R = _rotations(60, seed=3).as_matrix()
+  noisy = R + 0.2 * rng.normal(size=R.shape)
+  want = Rotation.from_matrix(noisy).as_matrix()
+  with x64():
+    got = np.asarray(T.svd_orthogonalise(jnp.asarray(noisy)))
+  assert_close(got, want, atol=1e-6, rtol=0)
+
+
+def test_rot6d_and_svd9d_are_continuous_where_quaternions_jump():
+  # Rotations about a fixed axis through angle pi: the w >= 0 quaternion flips sign there, the
+  # Euler angles wrap; the 6-D and 9-D representations move by about the angle step.
+  angles = np.linspace(math.pi - 0.05, math.pi + 0.05, 101)
+  axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+  R = Rotation.from_rotvec(angles[:, None] * axis).as_matrix().astype(np.float32)
+  step = angles[1] - angles[0]
+  jump = lambda x: float(np.max(np.linalg.norm(np.diff(np.asarray(x), axis=0), axis=-1)))
+  assert jump(T.matrix_to_rot6d(jnp.asarray(R))) < 3 * step
+  assert jump(jnp.asarray(R).reshape(-1, 9)) < 3 * step
+  assert jump(T.matrix_to_quat(jnp.asarray(R))) > 1.0  # q -> -q at the crossing
+
+
+def test_matrix_losses_are_the_frobenius_distance_of_rotations():
+  # Two rotations about z differing by theta: ||R1 - R2||_F^2 = 4 (1 - cos theta).
+  theta = 0.7
+  R1 = Rotation.from_rotvec([0, 0, 0.2]).as_matrix()
+  R2 = Rotation.from_rotvec([0, 0, 0.2 + theta]).as_matrix()
+  want = 4 * (1 - math.cos(theta))
+  six = lambda R: T.matrix_to_rot6d(jnp.asarray(R[None], jnp.float32))
+  got6 = T.head_loss("gram_schmidt_frobenius", 2.5 * six(R2), six(R1))  # scale does not matter
+  assert float(got6) == pytest.approx(want, rel=1e-5)
+  nine = lambda R: jnp.asarray(R.reshape(1, 9), jnp.float32)
+  assert float(T.head_loss("svd_frobenius", 3.0 * nine(R2), nine(R1))) == pytest.approx(
+    want, rel=1e-5
+  )
+  # Finite gradients, zero at the target.
+  g = jax.grad(lambda x: T.head_loss("svd_frobenius", x, nine(R1)))(nine(R2) + 0.01)
+  assert np.all(np.isfinite(np.asarray(g)))
+  assert float(T.head_loss("gram_schmidt_frobenius", six(R1), six(R1))) == pytest.approx(
+    0, abs=1e-10
+  )
+  # With a position head (gqn), positions take the L2 loss, the orientation the matrix loss.
+  heads = T.head_specs("rot6d", "gqn")
+  tgt = T.encode("rot6d", "gqn", jnp.array([[0.1, 0.2, 0.3]]))
+  pred = {"position": tgt["position"] + jnp.array([[0.3, 0.4]]), "orientation": tgt["orientation"]}
+  g = T.group_losses("gram_schmidt_frobenius", pred, tgt, heads)
+  assert float(g["position"]) == pytest.approx(0.25, rel=1e-5)
+  assert float(g["orientation"]) == pytest.approx(0, abs=1e-10)
+
+
 def test_euler_sxyz_matches_scipy_and_seven_scenes_module():
   from camrep.data import seven_scenes
 
@@ -373,6 +443,8 @@ def test_head_sizes():
   assert sizes("axis_angle", "car") == {"orientation": 3}
   assert sizes("sincos", "car") == {"orientation": 4}
   assert sizes("euler", "seven_scenes") == {"position": 3, "orientation": 3}
+  assert sizes("rot6d", "seven_scenes") == {"position": 3, "orientation": 6}
+  assert sizes("svd9d", "car") == {"orientation": 9}
   groups = {h.name: h.group for h in T.head_specs("ours", "seven_scenes")}
   assert [groups[k] for k in ("x", "y", "z")] == ["position"] * 3
   assert [groups[k] for k in ("theta", "phi", "psi")] == ["orientation"] * 3
@@ -475,4 +547,5 @@ def test_defaults_table():
     for r in T.BASELINES:
       cfg = T.defaults(s, r)
       assert cfg.extra_fc == fc and cfg.init_s == (0.0, -3.0) and cfg.weighting == "homoscedastic"
-      assert cfg.loss == ("mse" if r in ("euler", "sincos") else "l1")
+      want = {"euler": "mse", "sincos": "mse", "rot6d": "gram_schmidt_frobenius"}
+      assert cfg.loss == {**want, "svd9d": "svd_frobenius"}.get(r, "l1")

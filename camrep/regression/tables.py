@@ -42,13 +42,15 @@ TABLE1_COLUMNS = (
   ("gibson_y", "area y (m)", "gibson", "y_error"),
   ("gibson_ori", "area yaw (deg)", "gibson", "yaw_error_deg"),
 )
-TABLE1_ROWS = ("euler", "axis_angle", "sincos", "quat", "logq", "mlp", "ours")
+TABLE1_ROWS = ("euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d", "mlp", "ours")
 ROW_LABELS = {
   "euler": "(x, y, α) Euler",
   "axis_angle": "(x, y, axis-angle)",
   "sincos": "(x, y, sin α, cos α)",
   "quat": "(x, y, q)",
   "logq": "(x, y, log q)",
+  "rot6d": "(x, y, 6-D Gram-Schmidt) [Zhou 2019; not in the paper]",
+  "svd9d": "(x, y, 9-D SVD) [Levinson 2020; not in the paper]",
   "mlp": "MLP embedding",
   "ours": "ours",
 }
@@ -92,7 +94,7 @@ PAPER_TABLE2: dict[str, tuple[float, float]] = {
 """The paper's Table 2, ours (digest 4.4): median position (m) / rotation (deg) error per scene
 of the real 7-Scenes data."""
 
-TABLE2_ROWS = ("ours", "quat", "logq")
+TABLE2_ROWS = ("ours", "quat", "logq", "rot6d", "svd9d")
 
 # Per setting: (error, statistic, the paper's "ours" value) averaged into the validation score.
 SELECTION_METRICS: dict[str, tuple[tuple[str, str, float], ...]] = {

@@ -27,6 +27,15 @@ Representations (`REPRESENTATIONS`):
   quat        unit quaternion (w, x, y, z), sign-normalised to w >= 0.
   logq        log quaternion, 3 numbers: log q = arccos(w) (x, y, z) / |(x, y, z)| = axis-angle / 2.
   axis_angle  rotation vector, 3 numbers: angle * axis, angle in [0, pi].
+  rot6d       the first two columns of the rotation matrix, 6 numbers (Zhou et al., CVPR 2019);
+              decoded by Gram-Schmidt; loss: squared Frobenius distance of the Gram-Schmidt
+              matrix to the true one (their L2 on matrices).
+  svd9d       the 9 entries of the rotation matrix (Levinson et al., NeurIPS 2020); decoded by
+              the SVD projection onto SO(3), U diag(1, 1, det(U V^T)) V^T; loss: squared
+              Frobenius distance of that projection to the true matrix (their loss).
+              Both are continuous in the rotation, which quaternions with w >= 0 and Euler angles
+              are not. For the yaw-only settings (gqn, gibson) the matrix is a rotation about +z,
+              so 6 and 9 numbers carry one angle (4 of the 6 and 5 of the 9 are constant).
 
 Baselines put the position, raw, in a "position" head; learned representations have one head per
 DOF, named after the DOF. Every head belongs to a loss group, "position" or "orientation"
@@ -52,10 +61,12 @@ from camrep.models import pose_regressor
 Array = jax.Array
 
 SETTINGS = records.SETTINGS
-REPRESENTATIONS = ("ours", "mlp", "euler", "axis_angle", "sincos", "quat", "logq")
+REPRESENTATIONS = ("ours", "mlp", "euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d")
 LEARNED = ("ours", "mlp")
-BASELINES = ("euler", "axis_angle", "sincos", "quat", "logq")
-LOSSES = ("l2", "mse", "l1")
+BASELINES = ("euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d")
+MATRIX_REPRESENTATIONS = ("rot6d", "svd9d")
+LOSSES = ("l2", "mse", "l1", "gram_schmidt_frobenius", "svd_frobenius")
+_MATRIX_LOSSES = ("gram_schmidt_frobenius", "svd_frobenius")
 
 TWO_PI = 2.0 * math.pi
 
@@ -248,6 +259,30 @@ def quat_exp(u: Array) -> Array:
     (..., 4).
   """
   return axis_angle_to_quat(2.0 * u)
+
+
+def matrix_to_rot6d(R: Array) -> Array:
+  """(..., 3, 3) -> (..., 6): the first two columns (Zhou et al. 2019), column after column."""
+  return jnp.concatenate([R[..., :, 0], R[..., :, 1]], axis=-1)
+
+
+def rot6d_to_matrix(x: Array) -> Array:
+  """(..., 6) -> (..., 3, 3) rotations by Gram-Schmidt (Zhou et al. 2019, eq. 16): b1 = a1 / |a1|,
+  b2 = the unit part of a2 orthogonal to b1, b3 = b1 x b2; columns (b1, b2, b3)."""
+  a1, a2 = x[..., :3], x[..., 3:]
+  b1 = a1 / jnp.maximum(jnp.linalg.norm(a1, axis=-1, keepdims=True), 1e-8)
+  a2 = a2 - jnp.sum(b1 * a2, axis=-1, keepdims=True) * b1
+  b2 = a2 / jnp.maximum(jnp.linalg.norm(a2, axis=-1, keepdims=True), 1e-8)
+  return jnp.stack([b1, b2, jnp.cross(b1, b2)], axis=-1)
+
+
+def svd_orthogonalise(M: Array) -> Array:
+  """(..., 3, 3) -> the nearest rotation in Frobenius norm (Levinson et al. 2020, SVDO+):
+  U diag(1, 1, det(U V^T)) V^T of M = U S V^T."""
+  U, _, Vt = jnp.linalg.svd(M, full_matrices=False)
+  det = jnp.linalg.det(U @ Vt)
+  D = jnp.concatenate([jnp.ones_like(U[..., :2, 0]), det[..., None]], axis=-1)
+  return (U * D[..., None, :]) @ Vt
 
 
 def _rz(a: Array) -> Array:
@@ -463,9 +498,8 @@ def _check_spec(setting: str, spec: P.PoseSystemSpec) -> None:
 
 def _orientation_size(setting: str, representation: str) -> int:
   n_angles = len(_ANGLE_PERIODIC[setting])
-  return {"euler": n_angles, "sincos": 2 * n_angles, "quat": 4, "logq": 3, "axis_angle": 3}[
-    representation
-  ]
+  sizes = {"euler": n_angles, "sincos": 2 * n_angles, "quat": 4, "logq": 3, "axis_angle": 3}
+  return {**sizes, "rot6d": 6, "svd9d": 9}[representation]
 
 
 def head_specs(
@@ -476,7 +510,8 @@ def head_specs(
   Learned ("ours", "mlp"): one head of size spec.dim per DOF (96 at paper size; 7-Scenes 32),
   group "position" for polar / linear DOFs and "orientation" for angles; norm "block" for a polar
   DOF with block_norm (ours), "unit" otherwise. Baselines: "position" (2 or 3, none for car) and
-  "orientation" (euler 1/2/3, sincos 2/4/6, quat 4, logq 3, axis_angle 3), both unnormalised.
+  "orientation" (euler 1/2/3, sincos 2/4/6, quat 4, logq 3, axis_angle 3, rot6d 6, svd9d 9), both
+  unnormalised.
 
   Args:
     representation: one of `REPRESENTATIONS`.
@@ -507,10 +542,6 @@ def head_specs(
     )
   )
   return tuple(heads)
-
-
-# --------------------------------------------------------------------------------------------
-# The supplement's MLP embedding.
 
 
 # --------------------------------------------------------------------------------------------
@@ -566,6 +597,8 @@ def encode(
       "quat": lambda: q,
       "logq": lambda: quat_log(q),
       "axis_angle": lambda: quat_to_axis_angle(q),
+      "rot6d": lambda: matrix_to_rot6d(quat_to_matrix(q)),
+      "svd9d": lambda: quat_to_matrix(q).reshape(*q.shape[:-1], 9),
     }[representation]()
   out = {"position": pos} if POSITION_DIM[setting] else {}
   out["orientation"] = ori
@@ -588,7 +621,8 @@ def decode(
   ours: `camrep.pose.decode` (arg-min over the candidate list, eq. 12, then `refine_steps`
   Gauss-Newton steps; 0 gives the authors' plain arg-min). mlp: arg-min over the same candidate
   lists. Baselines: positions as predicted; euler angles wrapped (periodic) or clipped to
-  [0, pi]; sincos via atan2; quat / logq / axis_angle via the quaternion (`angles_from_quat`).
+  [0, pi]; sincos via atan2; quat / logq / axis_angle / rot6d (Gram-Schmidt) / svd9d (SVD
+  projection) via the quaternion (`angles_from_quat`).
 
   Args:
     heads: {head name: (..., size)}; extra entries are ignored.
@@ -616,7 +650,13 @@ def decode(
     sc = ori.reshape(*ori.shape[:-1], -1, 2)
     ang = wrap_angles(setting, jnp.arctan2(sc[..., 0], sc[..., 1]))
   else:
-    to_q = {"quat": lambda x: x, "logq": quat_exp, "axis_angle": axis_angle_to_quat}
+    to_q = {
+      "quat": lambda x: x,
+      "logq": quat_exp,
+      "axis_angle": axis_angle_to_quat,
+      "rot6d": lambda x: matrix_to_quat(rot6d_to_matrix(x)),
+      "svd9d": lambda x: matrix_to_quat(svd_orthogonalise(x.reshape(*x.shape[:-1], 3, 3))),
+    }
     ang = angles_from_quat(setting, to_q[representation](ori))
   if POSITION_DIM[setting]:
     return jnp.concatenate([heads["position"], ang], axis=-1)
@@ -632,7 +672,11 @@ def head_loss(kind: str, pred: Array, target: Array) -> Array:
 
   "l2": mean over examples of the squared L2 distance, mean_b sum_i (pred - target)^2 (ours);
   "mse": mean over all entries of (pred - target)^2 (Euler, sin/cos; torch MSELoss);
-  "l1": mean over all entries of |pred - target| (q, log q, axis-angle; 7-Scenes ours).
+  "l1": mean over all entries of |pred - target| (q, log q, axis-angle; 7-Scenes ours);
+  "gram_schmidt_frobenius": mean over examples of ||GS(pred) - GS(target)||_F^2, pred and target
+  6-D (rot6d, Zhou et al. 2019);
+  "svd_frobenius": mean over examples of ||SVDO+(pred) - target||_F^2, pred and target 9-D
+  (svd9d, Levinson et al. 2020).
 
   Args:
     pred, target: (..., size).
@@ -646,6 +690,13 @@ def head_loss(kind: str, pred: Array, target: Array) -> Array:
     return jnp.mean(diff * diff)
   if kind == "l1":
     return jnp.mean(jnp.abs(diff))
+  if kind == "gram_schmidt_frobenius":
+    d = rot6d_to_matrix(pred) - rot6d_to_matrix(target)
+    return jnp.mean(jnp.sum(d * d, axis=(-2, -1)))
+  if kind == "svd_frobenius":
+    m = lambda x: x.reshape(*x.shape[:-1], 3, 3)
+    d = svd_orthogonalise(m(pred)) - m(target)
+    return jnp.mean(jnp.sum(d * d, axis=(-2, -1)))
   raise ValueError(f"unknown loss {kind!r}; choose one of {LOSSES}")
 
 
@@ -661,7 +712,9 @@ def group_losses(
   """
   out = {}
   for h in heads:
-    val = head_loss(kind, pred[h.name], target[h.name])
+    # The matrix losses of rot6d / svd9d are for the orientation; positions take their L2 analogue.
+    k = "l2" if kind in _MATRIX_LOSSES and h.group == "position" else kind
+    val = head_loss(k, pred[h.name], target[h.name])
     out[h.group] = out[h.group] + val if h.group in out else val
   return out
 
@@ -727,7 +780,15 @@ _DEFAULTS_OURS: dict[str, RegressionDefaults] = {
   ),
 }
 _EXTRA_FC = {"gqn": 196, "car": 256, "gibson": 192, "seven_scenes": None}
-_BASELINE_LOSS = {"euler": "mse", "sincos": "mse", "quat": "l1", "logq": "l1", "axis_angle": "l1"}
+_BASELINE_LOSS = {
+  "euler": "mse",
+  "sincos": "mse",
+  "quat": "l1",
+  "logq": "l1",
+  "axis_angle": "l1",
+  "rot6d": "gram_schmidt_frobenius",  # Zhou et al. 2019
+  "svd9d": "svd_frobenius",  # Levinson et al. 2020
+}
 
 DEFAULTS: dict[tuple[str, str], RegressionDefaults] = {}
 """The table: (setting, representation) -> `RegressionDefaults`."""
