@@ -26,16 +26,15 @@ from configs import gibson, gqn, seven_scenes, shapenet_car
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
-@pytest.fixture(scope="module")
-def workdir(tmp_path_factory, fast_compile):
-  config = gqn.get_config("smoke")
-  config.total_steps = 2  # checkpoint and eval at step 2
-  wd = str(tmp_path_factory.mktemp("evaluate") / "run")
-  train.train_and_evaluate(config, wd)
-  return wd
+@pytest.fixture(scope="session")
+def workdir(gqn_smoke_run):
+  """The session's shared 4-step GQN :smoke run (checkpoints 2 and 4, eval at 4); read-only."""
+  return gqn_smoke_run
 
 
-@pytest.fixture(scope="module")
+# Session scope: a module-scoped fixture is rebuilt whenever xdist runs another module's test
+# in between (load_run renders the evaluation data: ~20 s each time).
+@pytest.fixture(scope="session")
 def run(workdir):
   return restore.load_run(workdir)
 
@@ -45,11 +44,11 @@ def _train_eval(workdir):
 
 
 def test_load_run_restores_checkpoint_params(workdir, run):
-  assert run.step == 2 and components.setting(run.config) == "gqn"
+  assert run.step == 4 and components.setting(run.config) == "gqn"
   assert run.config.data.n_context == 3 and run.spec == components.pose_spec(
     gqn.get_config("smoke")
   )
-  raw = ocp.PyTreeCheckpointer().restore(os.path.join(workdir, "checkpoints", "2", "state"))
+  raw = ocp.PyTreeCheckpointer().restore(os.path.join(workdir, "checkpoints", "4", "state"))
   want = dict(jax.tree_util.tree_flatten_with_path(raw["params"])[0])
   got = dict(jax.tree_util.tree_flatten_with_path(run.params)[0])
   assert want.keys() == got.keys()
@@ -85,7 +84,7 @@ def test_noise_levels(workdir, run):
   res = noise_lib.noise_robustness(
     run, key=key, alphas=[0.0, 0.2, 0.2], quantisation="nearest", batches=batches
   )
-  assert res["step"] == 2 and res["quantisation"] == "nearest"
+  assert res["step"] == 4 and res["quantisation"] == "nearest"
   n = sum(len(b["scene"]) for b in batches)
   assert res["num_images"] == n and res["psnr_per_image"].shape == (3, n)
   # alpha = 0 with rounding is the training loop's evaluation.
@@ -149,7 +148,7 @@ def test_cli_writes_all_files(workdir, tmp_path, capsys):
   names = {"noise.json", "noise.png", "gram_xy.png", "gram_yaw.png", "gram.npz"}
   assert names <= set(os.listdir(out))
   record = json.load(open(os.path.join(out, "noise.json")))
-  assert record["alphas"] == [0.0, 0.025] and record["step"] == 2
+  assert record["alphas"] == [0.0, 0.025] and record["step"] == 4
   assert record["quantisation"] == "random" and len(record["psnr"]) == 2
   assert record["beta"]["xy"]["d"] == 8 and record["beta"]["yaw"]["mean"] > 0
   for f in ("noise.png", "gram_xy.png", "gram_yaw.png"):

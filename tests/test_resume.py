@@ -101,7 +101,9 @@ def _params(workdir):
   return run.params
 
 
-@pytest.fixture(scope="module")
+# Session scope: xdist interleaves other modules' tests on this worker, which tears module-scoped
+# fixtures down between this module's tests (it was built three times).
+@pytest.fixture(scope="session")
 def reference(tmp_path_factory):
   """The uninterrupted run."""
   workdir = tmp_path_factory.mktemp("reference")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import pathlib
+import shutil
 import subprocess
 import sys
 
@@ -72,10 +73,12 @@ def test_check_config_rejects_layouts_the_step_cannot_run(tmp_path):
     components.check_config(c)
 
 
-def test_gqn_smoke_trains_evaluates_and_resumes(tmp_path):
+def test_gqn_smoke_trains_evaluates_and_resumes(tmp_path, gqn_smoke_run):
+  """The session's shared 4-step run (conftest.gqn_smoke_run), then resumed here to step 6."""
   config = gqn.get_config("smoke")
   workdir = str(tmp_path / "w")
-  last = train.train_and_evaluate(config, workdir)
+  shutil.copytree(gqn_smoke_run, workdir)
+  last = json.load(open(os.path.join(workdir, "final_metrics.json")))
   for f in ("config.json", "metrics.jsonl", "final_metrics.json"):
     assert os.path.exists(os.path.join(workdir, f)), f
   assert sorted(os.listdir(os.path.join(workdir, "checkpoints")))[-1] == "4"
@@ -97,7 +100,7 @@ def test_gqn_smoke_trains_evaluates_and_resumes(tmp_path):
   assert any(f.endswith(".png") for f in os.listdir(os.path.join(workdir, "images")))
   assert json.load(open(os.path.join(workdir, "config.json")))["task"] == "gqn"
   # Resume: the same command with more steps continues from the checkpoint at step 4.
-  config.total_steps = 6
+  config.total_steps, config.allow_changes = 6, "total_steps"
   train.train_and_evaluate(config, workdir)
   steps = [r["step"] for r in writers.read_metrics(workdir) if "train/loss" in r]
   assert steps == [2, 4, 6]
@@ -175,12 +178,13 @@ def test_two_host_devices_match_one(tmp_path):
     assert np.abs(a[k] - b[k]).max() <= bound, k
 
 
-def test_non_finite_stops_and_keeps_last_good_checkpoint(tmp_path):
+def test_non_finite_stops_and_keeps_last_good_checkpoint(tmp_path, gqn_smoke_run):
   config = gqn.get_config("smoke")
-  workdir = str(tmp_path)
-  train.train_and_evaluate(config, workdir)  # good checkpoint at step 4
+  workdir = str(tmp_path / "w")
+  shutil.copytree(gqn_smoke_run, workdir)  # good checkpoint at step 4
   config.total_steps = 8
   config.optax.lr_model = float("nan")
+  config.allow_changes = "total_steps,optax.lr_model"
   with pytest.raises(FloatingPointError, match="step 5"):
     train.train_and_evaluate(config, workdir)
   assert sorted(os.listdir(os.path.join(workdir, "checkpoints")))[-1] == "4"

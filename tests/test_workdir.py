@@ -107,10 +107,10 @@ def test_stale_lock_is_taken_over_with_a_warning(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-  """A finished 4-step GQN :smoke run."""
+def trained(tmp_path_factory, gqn_smoke_run):
+  """A finished 4-step GQN :smoke run: this module's copy of the session's shared one."""
   wd = str(tmp_path_factory.mktemp("trained") / "w")
-  train.train_and_evaluate(gqn.get_config("smoke"), wd)
+  shutil.copytree(gqn_smoke_run, wd)
   return wd
 
 
