@@ -284,7 +284,7 @@ def plan_regression(
   return first, later
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument("--size", choices=sorted(PLANS), default="quick")
   p.add_argument("--out", required=True, help="output directory (synthesis/, regression/, ...)")
@@ -304,16 +304,35 @@ def main(argv: Sequence[str] | None = None) -> int:
   )
   p.add_argument("--python", default=sys.executable, help="interpreter of the subprocesses")
   args = p.parse_args(argv)
-  plan = PLANS[args.size]
-  settings = [s.strip() for s in args.settings.split(",") if s.strip()]
-  bad = set(settings) - set(SETTINGS)
+  args.settings = [s.strip() for s in args.settings.split(",") if s.strip()]
+  bad = set(args.settings) - set(SETTINGS)
   if bad:
     p.error(f"unknown settings {sorted(bad)}; choose from {SETTINGS}")
+  return args
+
+
+@dataclasses.dataclass
+class Launch:
+  """Every job of one comparison: synthesis and phase-1 regression jobs, phase-2 (setting,
+  representation, seed) triples whose lr phase 1 chooses, tables and figures."""
+
+  plan: Plan
+  out: str
+  python: str
+  settings: list[str]
+  synth: list[Job]
+  first: list[Job]
+  later: list[tuple[str, str, int]]
+  tables: list[Job]
+  figures: list[Job]
+
+
+def make_launch(args: argparse.Namespace) -> Launch:
+  plan = PLANS[args.size]
+  settings = args.settings
   only = {r.strip() for r in args.representations.split(",") if r.strip()}
   reps = {s: tuple(r for r in REPRESENTATIONS[s] if not only or r in only) for s in settings}
   out, py = os.path.abspath(args.out), args.python
-  logs = os.path.join(out, "logs")
-
   kinds = mlp_synthesis_supported()
   names = [s for s in settings if "ours" in reps[s]]
   if kinds and "mlp" in reps.get("car", ()):
@@ -324,56 +343,78 @@ def main(argv: Sequence[str] | None = None) -> int:
   first, later = plan_regression(out, plan, settings, reps, py, full_grid=args.full_grid)
   tables = table_jobs(out, py, settings)
   figures = [] if args.skip_figures else figure_jobs(out, plan, synth, py)
+  return Launch(plan, out, py, settings, synth, first, later, tables, figures)
 
-  todo_first = [j for j in synth + first if not j.done()]
-  n_later = len(later)
-  est = sum(j.estimate_s for j in todo_first) + sum(plan.regression_s[s] for s, _, _ in later)
-  est += sum(plan.data_s[s] for s in settings if not os.path.isdir(os.path.join(out, "cache")))
-  est += sum(j.estimate_s for j in tables + figures if not j.done())
-  n_runs = len(first) + n_later
+
+def print_plan(launch: Launch, size: str, *, commands: bool) -> None:
+  """The summary line (runs, estimate of what is not done yet); with `commands`, every job."""
+  L, plan = launch, launch.plan
+  todo_first = [j for j in L.synth + L.first if not j.done()]
+  est = sum(j.estimate_s for j in todo_first) + sum(plan.regression_s[s] for s, _, _ in L.later)
+  est += sum(plan.data_s[s] for s in L.settings if not os.path.isdir(os.path.join(L.out, "cache")))
+  est += sum(j.estimate_s for j in L.tables + L.figures if not j.done())
+  n_runs = len(L.first) + len(L.later)
   print(
-    f"{args.size} comparison into {out}: {len(synth)} view-synthesis runs, {n_runs} regression "
-    f"runs ({len(first)} in phase 1, {n_later} in phase 2), {len(tables)} tables, "
-    f"{len(figures)} figure steps; estimated {progress_lib.format_duration(est)} for what is not "
-    f"done yet{' (on 2 CPU cores)' if args.size == 'quick' else ' (GPU; rough guess)'}.",
+    f"{size} comparison into {L.out}: {len(L.synth)} view-synthesis runs, {n_runs} regression "
+    f"runs ({len(L.first)} in phase 1, {len(L.later)} in phase 2), {len(L.tables)} tables, "
+    f"{len(L.figures)} figure steps; estimated {progress_lib.format_duration(est)} for what is not "
+    f"done yet{' (on 2 CPU cores)' if size == 'quick' else ' (GPU; rough guess)'}.",
     flush=True,
   )
-  if args.dry_run:
-    for j in synth + first:
-      state = "done" if j.done() else f"~{progress_lib.format_duration(j.estimate_s)}"
-      print(f"[{state}] {j.command()}")
-    for s, rep, seed in later:
-      job = regression_job(out, plan, s, rep, None, seed, py)
-      print(f"[~{progress_lib.format_duration(plan.regression_s[s])}, phase 2] {job.command()}")
-    print("  (phase 2: <LR> = the lr chosen on seed 0's validation errors)")
-    for j in tables + figures:
-      print(f"[~{progress_lib.format_duration(j.estimate_s)}] {j.command()}")
-    return 0
+  if not commands:
+    return
+  for j in L.synth + L.first:
+    state = "done" if j.done() else f"~{progress_lib.format_duration(j.estimate_s)}"
+    print(f"[{state}] {j.command()}")
+  for s, rep, seed in L.later:
+    job = regression_job(L.out, plan, s, rep, None, seed, L.python)
+    print(f"[~{progress_lib.format_duration(plan.regression_s[s])}, phase 2] {job.command()}")
+  print("  (phase 2: <LR> = the lr chosen on seed 0's validation errors)")
+  for j in L.tables + L.figures:
+    print(f"[~{progress_lib.format_duration(j.estimate_s)}] {j.command()}")
 
+
+def execute(launch: Launch) -> list[str]:
+  """Runs what is not done yet, in order: phase 1, phase 2 at the chosen lr, tables, figures.
+
+  Returns:
+    The names of the jobs that failed.
+  """
+  L = launch
+  logs = os.path.join(L.out, "logs")
   failed = []
-  t0 = time.perf_counter()
-  total_first = len(synth) + len(first)
-  for i, job in enumerate(synth + first):
-    if job.done():
-      continue
-    if not run_job(job, logs, index=f"{i + 1}/{total_first}"):
+  total_first = len(L.synth) + len(L.first)
+  for i, job in enumerate(L.synth + L.first):
+    if not job.done() and not run_job(job, logs, index=f"{i + 1}/{total_first}"):
       failed.append(job.name)
-  for i, (s, rep, seed) in enumerate(later):
-    lr = chosen_lr(out, s, rep, plan)
+  for i, (s, rep, seed) in enumerate(L.later):
+    lr = chosen_lr(L.out, s, rep, L.plan)
     if lr is None:
       print(f"[phase 2] {s}/{rep} seed {seed}: no phase-1 results; skipped", flush=True)
       failed.append(f"regression_{s}_{rep}_seed{seed}")
       continue
-    job = regression_job(out, plan, s, rep, lr, seed, py)
-    if not job.done() and not run_job(job, logs, index=f"phase 2: {i + 1}/{n_later}"):
+    job = regression_job(L.out, L.plan, s, rep, lr, seed, L.python)
+    if not job.done() and not run_job(job, logs, index=f"phase 2: {i + 1}/{len(L.later)}"):
       failed.append(job.name)
-  for job in tables + figures:
+  for job in L.tables + L.figures:
     if not job.done() and not run_job(job, logs, index=job.name):
       failed.append(job.name)
+  return failed
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+  args = _parse_args(argv)
+  launch = make_launch(args)
+  print_plan(launch, args.size, commands=args.dry_run)
+  if args.dry_run:
+    return 0
+  t0 = time.perf_counter()
+  failed = execute(launch)
   took = progress_lib.format_duration(time.perf_counter() - t0)
   if failed:
     print(f"finished in {took} with {len(failed)} failures: {', '.join(failed)}", flush=True)
     return 1
+  out = launch.out
   print(f"finished in {took}; tables in {out}/table1.md and {out}/table2.md", flush=True)
   return 0
 

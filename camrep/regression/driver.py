@@ -344,6 +344,31 @@ def write_results(path: str, results: Mapping[str, Any]) -> None:
   os.replace(path + ".tmp", path)
 
 
+def results_record(setup: Setup, state, last, train_seconds, eval_seconds, summaries, extra):
+  """The content of results.json."""
+  config = setup.config
+  return {
+    "setting": config.setting,
+    "representation": config.representation,
+    "seed": int(config.seed),
+    "lr": float(config.optax.lr),
+    "steps": int(config.total_steps),
+    "batch_size": int(config.data.batch_size),
+    "width": float(config.model.width),
+    "variant": config.variant,
+    "params": count_params(state.params["net"]),
+    "representation_params": setup.rep_info,
+    "data": setup.data.info,
+    "final_train": last,
+    "train_seconds": train_seconds,
+    "steps_per_sec": config.total_steps / max(train_seconds, 1e-9),
+    "eval_seconds": eval_seconds,
+    "validation": summaries["validation"],
+    "test": summaries[config.evals.test_split],
+    "extra": extra,
+  }
+
+
 def clear_outputs(workdir: str) -> None:
   """Removes what an earlier run in `workdir` wrote (results.json, errors_*.npz): a rerun starts
   over, and a stale file would mark an unfinished run as done."""
@@ -406,26 +431,9 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
       writer.close()
   finally:
     lock.release()
-  results = {
-    "setting": config.setting,
-    "representation": config.representation,
-    "seed": int(config.seed),
-    "lr": float(config.optax.lr),
-    "steps": int(config.total_steps),
-    "batch_size": int(config.data.batch_size),
-    "width": float(config.model.width),
-    "variant": config.variant,
-    "params": count_params(state.params["net"]),
-    "representation_params": setup.rep_info,
-    "data": setup.data.info,
-    "final_train": last,
-    "train_seconds": train_seconds,
-    "steps_per_sec": config.total_steps / max(train_seconds, 1e-9),
-    "eval_seconds": time.perf_counter() - t_eval,
-    "validation": summaries["validation"],
-    "test": summaries[config.evals.test_split],
-    "extra": extra,
-  }
+  results = results_record(
+    setup, state, last, train_seconds, time.perf_counter() - t_eval, summaries, extra
+  )
   write_results(os.path.join(workdir, RESULTS_FILE), results)
   overall = results["test"]["all"]
   log(
