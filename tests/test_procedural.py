@@ -141,6 +141,23 @@ def test_determinism(name):
   assert not np.array_equal(first[0]["image"], first[1]["image"])
 
 
+def test_rooms_wall_styles():
+  """ "distinct" walls (issue 16): four wall materials a quarter turn of hue apart, so a view of a
+  wall tells which wall it is; "tinted" (the default) keeps the old look."""
+  import colorsys
+
+  distinct = family("rooms", wall_style="distinct")
+  pose = distinct.poses("train", 0)[:2]
+  assert not np.array_equal(distinct.render_views(0, pose), family("rooms").render_views(0, pose))
+  for fam, apart in ((distinct, True), (family("rooms"), False)):
+    walls = np.asarray(fam.scene(0).room.material.color_a)[:4]  # ROOM_FACES: -x, +x, -y, +y
+    hues = np.sort([colorsys.rgb_to_hsv(*c)[0] for c in walls])
+    gaps = np.diff(np.concatenate([hues, hues[:1] + 1]))  # around the hue circle
+    assert np.all(gaps > 0.15) == apart, hues
+  with pytest.raises(ValueError, match="wall_style"):
+    procedural.make_family("rooms", "small", wall_style="plain").scene(0)
+
+
 def test_poses_are_visible_in_pixels():
   rooms = family("rooms")
   base = rooms.poses("train", 0)[0]

@@ -84,6 +84,10 @@ class RoomsConfig:
   # Value contrast of the two colours of wall and floor textures (0: nearly flat colours, as
   # in most real GQN rooms; the draws are the same for any range, so scenes keep their layout).
   texture_contrast: tuple[float, float] = (0.25, 0.5)
+  # "tinted": one wall material for the room, each wall slightly tinted (the walls look alike,
+  # so a view of a wall says little about the yaw); "distinct": every wall its own pattern and a
+  # hue a quarter turn from its neighbours', like DeepMind's rooms whose walls can be told apart.
+  wall_style: str = "tinted"
   supersample: int = 1
   shadows: bool = True
   batch_size: int = 32  # images per renderer call (one compile)
@@ -466,21 +470,29 @@ class RoomsFamily(SampledPoseFamily):
     cfg = self.config
     rng = self._scene_rng(scene)
     b = render.SceneBuilder()
-    wall = _surface_material(
-      rng,
+    wall_kw = dict(
       patterns=("checker", "stripes_u", "stripes_v", "noise", "tiles"),
       freq_range=(3.0, 9.0),
       sat=(0.2, 0.7),
       val=(0.45, 0.9),
       contrast=tuple(cfg.texture_contrast),
     )
+    wall = _surface_material(rng, **wall_kw)
     walls = []
-    for _ in range(4):  # each wall slightly tinted, so the four walls differ a little
-      w = dict(wall)
-      tint = rng.uniform(0.85, 1.1, size=3).astype(np.float32)
-      w["color_a"] = np.clip(w["color_a"] * tint, 0, 1)
-      w["color_b"] = np.clip(w["color_b"] * tint, 0, 1)
-      walls.append(w)
+    if cfg.wall_style == "tinted":
+      for _ in range(4):  # each wall slightly tinted, so the four walls differ a little
+        w = dict(wall)
+        tint = rng.uniform(0.85, 1.1, size=3).astype(np.float32)
+        w["color_a"] = np.clip(w["color_a"] * tint, 0, 1)
+        w["color_b"] = np.clip(w["color_b"] * tint, 0, 1)
+        walls.append(w)
+    elif cfg.wall_style == "distinct":
+      hue0 = rng.uniform()
+      for k in range(4):
+        hue = hue0 + 0.25 * k + rng.uniform(-0.04, 0.04)
+        walls.append(_surface_material(rng, hue=hue, **{**wall_kw, "sat": (0.45, 0.8)}))
+    else:
+      raise ValueError(f"unknown wall_style {cfg.wall_style!r}; choose 'tinted' or 'distinct'")
     floor = _surface_material(
       rng,
       patterns=("checker", "noise", "tiles", "stripes_u"),
