@@ -9,6 +9,8 @@ import pytest
 from camrep.data import oracle, procedural
 from camrep.regression import views as views_lib
 
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 
 def test_nearest_view_poses_hand_made():
   refs = np.zeros((3, 2, 2, 1), np.uint8)
@@ -23,26 +25,21 @@ def test_nearest_view_poses_hand_made():
 
 @pytest.mark.parametrize("name", ["rooms", "area"])
 def test_regression_views_are_their_labels_rendered(name, tmp_path):
-  """Every image the regression reads (rendered, then through the on-disk cache) is what the
-  renderer draws from its pose label: images and labels cannot be misaligned on this path
-  (issue 18's first candidate, ruled out)."""
+  """Every image the regression reads (through the on-disk cache) is what the renderer draws
+  from its pose label: images and labels cannot be misaligned on this path (issue 18's first
+  candidate, ruled out)."""
   fam = procedural.make_family(name, preset="small")
-  fresh = views_lib.load_split(fam, "train")
-  views_lib.load_split(fam, "train", cache_dir=str(tmp_path))
-  cached = views_lib.load_split(fam, "train", cache_dir=str(tmp_path))  # read back
-  for views in (fresh, cached):
-    rows = np.random.default_rng(0).choice(len(views.images), 6, replace=False)
-    for r in rows:
-      again = fam.render_views(int(views.scenes[r]), views.poses[r][None])[0]
-      np.testing.assert_array_equal(again, views.images[r])
+  views_lib.load_split(fam, "train", cache_dir=str(tmp_path))  # renders and writes the cache
+  views = views_lib.load_split(fam, "train", cache_dir=str(tmp_path))  # reads it back
+  rows = np.flatnonzero(views.scenes == 1)[::3]
+  np.testing.assert_array_equal(fam.render_views(1, views.poses[rows]), views.images[rows])
 
 
 def test_the_oracle_sees_the_pose_only_where_labels_fit():
   """Dense same-room references: the oracle is well below chance in yaw; with the reference
-  labels permuted (a misalignment) it is at chance."""
+  labels permuted (a misalignment) it is not."""
   fam = procedural.make_family("rooms", preset="small", train_views=96, test_views=6)
   got = oracle.run(fam, num_scenes=2)
-  control = oracle.run(fam, num_scenes=2, shuffle_labels=True)
   assert got["num_queries"] == 12
   assert got["oracle_median"]["yaw"] < 0.7 * got["chance_median"]["yaw"], got
-  assert got["oracle_median"]["yaw"] < 0.7 * control["oracle_median"]["yaw"], control
+  assert got["oracle_median"]["yaw"] < 0.7 * got["control_median"]["yaw"], got
