@@ -54,13 +54,7 @@ def test_shapes_and_elbo_terms(tiny):
     assert np.isfinite(float(v))
   np.testing.assert_allclose(float(terms["elbo"]), float(terms["nll"] + terms["kl"]), rtol=1e-6)
   assert float(terms["kl"]) >= 0
-
-  def f(p):
-    m, a = model.apply({"params": p}, ctx, cvec, qvec, qimg, keys)
-    return convdraw.negative_elbo(m, qimg, a["kl"], 0.7)[0]
-
-  grads = jax.grad(f)(params)
-  assert all(np.all(np.isfinite(np.asarray(g))) for g in jax.tree.leaves(grads))
+  # (Finite gradients: the smoke run below, whose step skips and flags non-finite updates.)
 
 
 def test_kl_is_zero_iff_distributions_agree():
@@ -125,6 +119,7 @@ def test_smoke_run_trains_evaluates_restores_and_takes_the_noise_test(tmp_path):
   assert [r["step"] for r in train_rows] == [2, 4]
   assert train_rows[-1]["train/elbo"] < train_rows[0]["train/elbo"]
   assert train_rows[-1]["train/kl"] >= 0
+  assert all(r["train/finite"] == 1.0 for r in train_rows)
 
   run = restore.load_run(workdir)
   assert run.step == 4 and isinstance(run.model, convdraw.GQNConvDraw)
