@@ -55,6 +55,12 @@ def base() -> ml_collections.ConfigDict:
   # per-scene tables of Gibson / 7-Scenes are initialised at 1; the GQN decoder adds 1 to the
   # encoder's gamma heads).
   c.model.gamma_init_one = False
+  # The view-synthesis model: "decoder" (camrep's decoders, trained on L_rec) or "convdraw" (GQN's
+  # generator, Eslami et al. 2018: tower + ConvDRAW, trained on its ELBO; task "gqn", rep.kind
+  # "lowdim"). convdraw only: generation steps L and latent channels per step.
+  c.model.kind = "decoder"
+  c.model.draw_steps = 12
+  c.model.z_channels = 3
 
   c.rep = ml_collections.ConfigDict()
   # The decoder's pose input: "grid" (the paper's learned system), or for comparisons "lowdim"
@@ -83,12 +89,21 @@ def base() -> ml_collections.ConfigDict:
   c.loss.dir_weight = 0.8  # lambda_4 (binned polar systems)
   c.loss.n_pairs = 4000  # extra rotation-loss pairs per DOF per step
   c.loss.data_pairs = False  # also use the batch's image pairs (0.5 / 0.5 mix)
+  # model.kind "convdraw" only: the ELBO's pixel std, annealed linearly from sigma_initial to
+  # sigma_final over sigma_anneal_steps (GQN: 2.0 -> 0.7 over 200k steps, pixels in [0, 1]).
+  c.loss.sigma_initial = 2.0
+  c.loss.sigma_final = 0.7
+  c.loss.sigma_anneal_steps = 200_000
 
   c.optax = ml_collections.ConfigDict()
   c.optax.lr_model = 1e-4
   c.optax.lr_rep = 1e-2
-  # "constant" (the paper) or "cosine" (both rates decay to 1% over total_steps; short runs).
+  # "constant" (the paper), "cosine" (both rates decay to 1% over total_steps; short runs) or
+  # "linear" (GQN: each rate falls linearly to final_scale times itself over anneal_steps, then
+  # stays; GQN's 5e-4 -> 5e-5 over 1.6M steps).
   c.optax.schedule = "constant"
+  c.optax.final_scale = 0.1
+  c.optax.anneal_steps = 1_600_000
   # Pose-system steps per decoder step on the same batch; 0: one simultaneous step (GQN).
   c.optax.pose_steps = 0
 

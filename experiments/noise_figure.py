@@ -5,7 +5,8 @@ Each workdir is a `python -m camrep.main` run whose noise curve `python -m camre
 pose input (`--config.rep.kind`): the learned representation ("grid"), GQN's low-dimensional
 pose vector ("lowdim") and the supplement's MLP embedding ("mlp"). Noise N(0, (alpha beta_i)^2)
 is added to every element of the query pose input, beta_i being the element's std over the pose
-grid (camrep.synthesis.evaluate.grid_betas), alpha = 0 .. 0.3.
+grid (camrep.synthesis.evaluate.grid_betas), alpha = 0 .. 0.3. A run of configs/gqn_convdraw.py
+(GQN's own generator, noised on its 7-D pose vector) is drawn as a fourth kind, "convdraw".
 
 Writes a PNG (PSNR and SSIM against alpha, one curve per run) and a Markdown table:
 
@@ -33,6 +34,7 @@ LABELS = {
   "grid": "ours (learned)",
   "lowdim": "GQN low-dim pose",
   "mlp": "MLP embedding",
+  "convdraw": "GQN (ConvDRAW generator)",
 }
 
 
@@ -48,6 +50,8 @@ def load(workdir: str) -> dict:
   with open(path, encoding="utf-8") as f:
     noise = json.load(f)
   kind = config.get("rep", {}).get("kind", "grid")
+  if config.get("model", {}).get("kind", "decoder") == "convdraw":  # GQN itself
+    kind = "convdraw"
   return {
     "label": LABELS.get(kind, kind),
     "kind": kind,

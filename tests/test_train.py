@@ -253,6 +253,11 @@ def test_learning_rate_schedules():
   lr = step_lib.learning_rate(config, 1e-3)
   assert float(lr(0)) == pytest.approx(1e-3) and float(lr(100)) == pytest.approx(1e-5)
   assert float(lr(50)) == pytest.approx(1e-3 * (0.01 + 0.99 * 0.5), rel=1e-5)
-  config.optax.schedule = "linear"
-  with pytest.raises(ValueError, match="unknown optax.schedule 'linear'"):
+  config.optax.schedule = "linear"  # GQN's generator (configs/gqn_convdraw.py)
+  config.optax.final_scale, config.optax.anneal_steps = 0.1, 100
+  lr = step_lib.learning_rate(config, 1e-3)
+  assert float(lr(0)) == pytest.approx(1e-3) and float(lr(50)) == pytest.approx(5.5e-4)
+  assert float(lr(100)) == pytest.approx(1e-4) and float(lr(1000)) == pytest.approx(1e-4)
+  config.optax.schedule = "exponential"
+  with pytest.raises(ValueError, match="unknown optax.schedule 'exponential'"):
     step_lib.make_optimizers(config)

@@ -1,6 +1,9 @@
-"""Flax Linen models of camrep: GQN-rooms encoder, decoders, shared layers (digest section 2) and
-pose regressors (digest section 4)."""
+"""Flax Linen models of camrep: GQN-rooms encoder, decoders, shared layers (digest section 2),
+pose regressors (digest section 4) and GQN's own generator (the view-synthesis baseline)."""
 
+from camrep.models.convdraw import GQNConvDraw as GQNConvDraw
+from camrep.models.convdraw import GQNConvDrawTiny as GQNConvDrawTiny
+from camrep.models.convdraw import Tower as Tower
 from camrep.models.decoder import CarDecoder as CarDecoder
 from camrep.models.decoder import CarDecoderTiny as CarDecoderTiny
 from camrep.models.decoder import CarSceneTable as CarSceneTable

@@ -30,6 +30,11 @@ SYNTHESIS_RESUMABLE = (
   "loss.rot_weight",
   "loss.dir_weight",
   "loss.n_pairs",
+  "loss.sigma_initial",
+  "loss.sigma_final",
+  "loss.sigma_anneal_steps",
+  "optax.final_scale",
+  "optax.anneal_steps",
   "data.dir",
 )
 # Fields that change only speed or where output goes: they differ silently (still recorded).

@@ -16,6 +16,7 @@ from camrep.data import pipeline as pipeline_lib
 from camrep.data import records
 from camrep.data.errors import DataError
 from camrep.models.composite import GQNSynthesis, TableSynthesis
+from camrep.models.convdraw import GQNConvDraw
 from camrep.runtime.runconfig import ConfigError
 
 Array = jax.Array
@@ -26,6 +27,21 @@ def setting(config) -> str:
   return records.setting_of_source(config.data.source)
 
 
+# config.model.kind: camrep's decoders (trained on L_rec) or GQN's generator (trained on its ELBO).
+MODEL_KINDS = ("decoder", "convdraw")
+
+# Latent draws of GQN's generator at evaluation: scene s samples from fold_in(key(SAMPLE_SEED), s),
+# so predictions do not depend on the batching, and the noise test at alpha = 0 repeats the eval.
+SAMPLE_SEED = 20180615
+
+
+def model_kind(config) -> str:
+  kind = config.model.get("kind", "decoder")
+  if kind not in MODEL_KINDS:
+    raise ValueError(f"unknown model.kind {kind!r}; choose one of {MODEL_KINDS}")
+  return kind
+
+
 def check_config(config) -> None:
   """Raises ConfigError on combinations the train step cannot run (e.g. GQN layouts without
   query views, or data-pair rotation losses on a batch that holds no pairs)."""
@@ -33,7 +49,8 @@ def check_config(config) -> None:
   try:
     setting(config)
     kind = pose_inputs.rep_kind(config)
-  except ValueError as e:  # unknown data.source or rep.kind
+    mkind = model_kind(config)
+  except ValueError as e:  # unknown data.source, rep.kind or model.kind
     raise ConfigError(str(e)) from None
   if config.total_steps < 1:
     raise ConfigError(f"total_steps must be >= 1, got {config.total_steps}")
@@ -41,6 +58,12 @@ def check_config(config) -> None:
     raise ConfigError(
       f"data.n_context must be in [1, views_per_scene) so that each scene has query views, "
       f"got n_context={d.n_context}, views_per_scene={d.views_per_scene}"
+    )
+  if mkind == "convdraw" and (config.task != "gqn" or kind != "lowdim"):
+    raise ConfigError(
+      "model.kind='convdraw' (GQN's generator) needs task='gqn' and rep.kind='lowdim' (its 7-D "
+      f"pose vector; the ELBO trains the model group only), got task={config.task!r}, "
+      f"rep.kind={kind!r}"
     )
   if L.data_pairs and kind == "grid" and d.mode != "pairs":
     raise ConfigError(
@@ -100,6 +123,8 @@ def pose_spec(config) -> P.PoseSystemSpec:
 def make_model(config, num_scenes: int):
   """The view-synthesis model of the config's setting."""
   m = config.model
+  if model_kind(config) == "convdraw":
+    return GQNConvDraw(width=m.width, steps=m.draw_steps, z_channels=m.z_channels)
   if config.task == "gqn":
     return GQNSynthesis(width=m.width, gamma_offset=1.0 if m.gamma_init_one else 0.0)
   return TableSynthesis(
@@ -111,6 +136,41 @@ def make_model(config, num_scenes: int):
     norm_eps=m.norm_eps,
     gamma_init_one=m.gamma_init_one,
   )
+
+
+def sample_keys(scene_ids: Array) -> Array:
+  """(E,) scene ids -> (E,) PRNG keys of GQN's generator at evaluation (`SAMPLE_SEED`)."""
+  base = jax.random.key(SAMPLE_SEED)
+  return jax.vmap(lambda i: jax.random.fold_in(base, i))(scene_ids)
+
+
+def render_gqn(
+  config,
+  model,
+  params_model,
+  context_images: Array,
+  context_vecs: Array,
+  query_vecs: Array,
+  scene_ids: Array,
+) -> Array:
+  """Predicted query views of the GQN setting: (E, Q, H, W, 3) in [-1, 1].
+
+  camrep's decoder: its output. GQN's generator: the mean image of one prior sample with the
+  scenes' `sample_keys` (deterministic), clipped to [-1, 1].
+  """
+  variables = {"params": params_model}
+  if model_kind(config) == "convdraw":
+    pred, _ = model.apply(
+      variables,
+      context_images,
+      context_vecs,
+      query_vecs,
+      sample_keys(scene_ids),
+      method="sample",
+    )
+    return jnp.clip(pred, -1.0, 1.0)
+  pred, _ = model.apply(variables, context_images, context_vecs, query_vecs)
+  return pred
 
 
 def make_source(config, split_hint: str = "train"):

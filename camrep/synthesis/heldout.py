@@ -56,8 +56,14 @@ def make_predict(config, model, spec):
     )
     ctx = components.to_float_images(b["context_image"])
     if config.task == "gqn":
-      pred, _ = model.apply(
-        {"params": params["model"]}, ctx, vec(b["context_pose"]), vec(b["target_pose"])
+      pred = components.render_gqn(
+        config,
+        model,
+        params["model"],
+        ctx,
+        vec(b["context_pose"]),
+        vec(b["target_pose"]),
+        b["scene"],
       )
     else:
       pred, _ = model.apply({"params": params["model"]}, b["scene"], vec(b["target_pose"]))

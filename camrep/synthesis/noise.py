@@ -4,7 +4,9 @@ Noise-robustness experiment (paper figure "PSNR vs noise", digest 5): beta_i is 
 element i over the DOF's normalised grid vectors (`pose.grid_std`, computed once per DOF). At
 level alpha every element i of every query pose sub-vector, computed for the exact pose, gets
 independent N(0, (alpha beta_i)^2) noise, without renormalisation; fresh noise per image and per
-level. GQN: only the query (decoder) pose vectors are noised, not the encoder's context poses.
+level. GQN: only the query (decoder) pose vectors are noised, not the encoder's context poses;
+GQN's own generator (model.kind "convdraw") gets the noise on its 7-D query pose vector the same
+way, and samples its latents with the evaluation's fixed per-scene keys (the same at every level).
 The exact pose is quantised by the random lower/upper neighbour rule for the GQN and car
 settings (the authors' test) and by rounding for Gibson and 7-Scenes; the training loop's eval
 always rounds ("nearest"), so alpha = 0 with quantisation="nearest" reproduces its PSNR. The
@@ -159,7 +161,7 @@ def make_noisy_predict(config, model, spec: P.PoseSystemSpec, mode: str):
       ctx = components.to_float_images(b["context_image"])
       c = pose_vectors(params["rep"], spec, b["context_pose"], k_ctx, mode=mode, config=config)
       c = P.concat(c, spec)
-      pred, _ = model.apply({"params": params["model"]}, ctx, c, q)
+      pred = components.render_gqn(config, model, params["model"], ctx, c, q, b["scene"])
     else:
       pred, _ = model.apply({"params": params["model"]}, b["scene"], q)
     target = components.to_float_images(b["target_image"])

@@ -18,6 +18,7 @@ import optax
 
 from camrep import pose as P
 from camrep import pose_inputs
+from camrep.models import convdraw
 from camrep.synthesis import components
 
 Array = jax.Array
@@ -37,14 +38,19 @@ class TrainState:
 
 
 def learning_rate(config, lr: float):
-  """The config's schedule of one group's learning rate: "constant" (the paper) or "cosine"
-  (decay to 1% of `lr` over `total_steps`, a camrep option for short runs)."""
-  schedule = config.optax.get("schedule", "constant")
+  """The config's schedule of one group's learning rate: "constant" (the paper), "cosine"
+  (decay to 1% of `lr` over `total_steps`, a camrep option for short runs) or "linear" (GQN,
+  Eslami et al. 2018: max(lr_f + (lr - lr_f)(1 - n / anneal_steps), lr_f), lr_f = final_scale lr;
+  5e-4 -> 5e-5 over 1.6M steps)."""
+  o = config.optax
+  schedule = o.get("schedule", "constant")
   if schedule == "constant":
     return lr
   if schedule == "cosine":
     return optax.cosine_decay_schedule(lr, max(int(config.total_steps), 1), alpha=0.01)
-  raise ValueError(f"unknown optax.schedule {schedule!r}; choose 'constant' or 'cosine'")
+  if schedule == "linear":
+    return optax.linear_schedule(lr, lr * o.final_scale, max(int(o.anneal_steps), 1))
+  raise ValueError(f"unknown optax.schedule {schedule!r}; choose 'constant', 'cosine' or 'linear'")
 
 
 def make_optimizers(config) -> tuple[optax.GradientTransformation, optax.GradientTransformation]:
@@ -63,7 +69,12 @@ def init_params(
   rep = pose_inputs.init_rep(k_rep, config, spec)
   images = components.to_float_images(jnp.asarray(batch["image"][0]))
   vecs = P.concat(pose_inputs.pose_vectors(config, spec, rep, jnp.asarray(batch["pose"][0])), spec)
-  if config.task == "gqn":
+  if components.model_kind(config) == "convdraw":
+    c = config.data.n_context
+    keys = jax.random.split(k_model, images.shape[0])
+    init = jax.jit(model.init)
+    variables = init(k_model, images[:, :c], vecs[:, :c], vecs[:, c:], images[:, c:], keys)
+  elif config.task == "gqn":
     c = config.data.n_context
     variables = jax.jit(model.init)(k_model, images[:, :c], vecs[:, :c], vecs[:, c:])
   else:
@@ -113,6 +124,30 @@ def reconstruction(model, config, spec, params_model, params_rep, batch, keys, m
     target = images
   per_image = jnp.sum((pred - target) ** 2, axis=(-3, -2, -1))
   return jnp.mean(per_image), (pred, target)
+
+
+def elbo(model, config, spec, params_model, batch, keys, step):
+  """GQN's loss (model.kind "convdraw"): the negative ELBO per query image, averaged, with the
+  pixel std annealed by `step` (`convdraw.pixel_sigma`, config.loss.sigma_*).
+
+  Returns:
+    (loss, terms {"elbo", "nll", "kl", "rec", "sigma"}): "rec" is L_rec of the posterior mean
+    image (sum of squared errors per image, comparable with the decoder's train/rec).
+  """
+  L = config.loss
+  images = components.to_float_images(batch["image"])
+  vecs = P.concat(pose_inputs.pose_vectors(config, spec, None, batch["pose"]), spec)
+  c = config.data.n_context
+  target = images[:, c:]
+  mean, aux = model.apply(
+    {"params": params_model}, images[:, :c], vecs[:, :c], vecs[:, c:], target, keys
+  )
+  sigma = convdraw.pixel_sigma(
+    step, initial=L.sigma_initial, final=L.sigma_final, anneal_steps=L.sigma_anneal_steps
+  )
+  loss, terms = convdraw.negative_elbo(mean, target, aux["kl"], sigma)
+  rec = jnp.mean(jnp.sum((mean - target) ** 2, axis=(-3, -2, -1)))
+  return loss, {**terms, "rec": rec, "sigma": sigma}
 
 
 def rotation_objective(config, spec, params_rep, batch, key_pairs, keys):
@@ -169,6 +204,8 @@ def train_step(state: TrainState, batch: Mapping[str, Array], key: Array, *, mod
     (new state, metrics); updates are skipped (state kept) when any loss or gradient is not
     finite, and metrics["train/finite"] is 0 then.
   """
+  if components.model_kind(config) == "convdraw":
+    return elbo_train_step(state, batch, key, model=model, config=config, spec=spec)
   tx_model, tx_rep = make_optimizers(config)
   L = config.loss
   mode = config.rep.quantisation
@@ -220,6 +257,12 @@ def train_step(state: TrainState, batch: Mapping[str, Array], key: Array, *, mod
 
   loss = L.rec_weight * rec + rot_total
   out = {"train/loss": loss, "train/rec": rec, **{f"train/{k}": v for k, v in terms.items()}}
+  return _finish(state, out, new_params, grads, opt_model, opt_rep)
+
+
+def _finish(state, out, new_params, grads, opt_model, opt_rep):
+  """Device-averaged metrics, norms and the finite guard shared by both steps."""
+  params = state.params
   out = jax.lax.pmean(out, AXIS)
   out["train/grad_norm_model"] = _global_norm(grads["model"])
   out["train/grad_norm_rep"] = _global_norm(grads["rep"])
@@ -237,6 +280,29 @@ def train_step(state: TrainState, batch: Mapping[str, Array], key: Array, *, mod
     opt_rep=keep(opt_rep, state.opt_rep),
   )
   return new_state, out
+
+
+def elbo_train_step(state: TrainState, batch, key: Array, *, model, config, spec):
+  """`train_step` of GQN's generator (model.kind "convdraw"): one Adam step of the model group
+  on the negative ELBO (`elbo`); the pose-input group ("lowdim": no parameters) is left as is.
+
+  Metrics: train/loss = train/elbo (negative ELBO per query image, nats) = train/nll + train/kl,
+  train/rec (L_rec of the posterior mean), train/sigma (pixel std of this step), and the norms.
+  """
+  tx_model, _ = make_optimizers(config)
+  params = state.params
+  keys = _scene_keys(jax.random.fold_in(key, state.step), batch["pose"].shape[0])
+
+  def loss_fn(pm):
+    return elbo(model, config, spec, pm, batch, keys, state.step)
+
+  (loss, terms), g_model = jax.value_and_grad(loss_fn, has_aux=True)(params["model"])
+  g_model = jax.lax.pmean(g_model, AXIS)
+  up_m, opt_model = tx_model.update(g_model, state.opt_model, params["model"])
+  new_params = {"model": optax.apply_updates(params["model"], up_m), "rep": params["rep"]}
+  grads = {"model": g_model, "rep": jax.tree.map(jnp.zeros_like, params["rep"])}
+  out = {"train/loss": loss, **{f"train/{k}": v for k, v in terms.items()}}
+  return _finish(state, out, new_params, grads, opt_model, state.opt_rep)
 
 
 def make_p_train_step(config, model, spec):
