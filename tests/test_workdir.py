@@ -63,6 +63,11 @@ def test_check_changes_allows_named_resumable_fields():
   new.model.width, new.allow_changes = 0.0625, "model.width"
   with pytest.raises(runconfig.ConfigError, match="model.width"):
     runconfig.check_changes(old, new, resumable=runconfig.SYNTHESIS_RESUMABLE, workdir="W")
+  # A field the stored config lacks (camrep gained it later) is recorded, not refused.
+  older = gqn.get_config("smoke")
+  del older.model["gamma_init_one"]
+  got = runconfig.check_changes(older, gqn.get_config("smoke"), resumable=(), workdir="W")
+  assert got == {"model.gamma_init_one": (None, False)}
   # A stage that starts over (regression) may change anything it names.
   r_old, r_new = regression.get_config("smoke"), regression.get_config("smoke")
   r_new.representation, r_new.allow_changes = "euler", "representation"

@@ -105,12 +105,17 @@ def check_changes(
       (old -> new) and the ways out.
   """
   diffs = differences(old, new)
+  old_fields = flatten(as_plain(old))
   diffs.pop("allow_changes", None)  # the permission itself is not a change of the run
   allowed = parse_allow_changes(as_plain(new).get("allow_changes", ""))
   sections = tuple(a + "." for a in allowed)  # a section name allows its fields
   refused, need_flag = [], []
   for field, (a, b) in diffs.items():
     if _covered(field, FREE):
+      continue
+    if field not in old_fields:
+      # A field camrep gained after the workdir was written: its default keeps the old
+      # behaviour, so it is recorded, not refused (setting it on resume is still recorded).
       continue
     if resumable is not None and not _covered(field, resumable):
       refused.append(f"  {field}: {a!r} -> {b!r}")
