@@ -47,7 +47,7 @@ def get_config(arg: str | None = None):
   c.total_steps = 500_000
   c.ckpt_every_steps = 3000
   c.eval_every_steps = 5000
-  if variant == "quick":
+  if variant in ("quick", "medium"):
     common.quick(c)
     c.data.family.image_size = 64
     c.data.family.num_scenes = 4
@@ -60,6 +60,9 @@ def get_config(arg: str | None = None):
     c.optax.pose_steps = 1
     c.evals.num_scenes = 4
     c.evals.batch_scenes = 4
+    if variant == "medium":
+      common.medium(c)
+      c.data.family.train_views = 1_000
   elif variant == "smoke":
     common.smoke(c)
     c.model.scene_dim = 16

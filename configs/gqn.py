@@ -52,7 +52,7 @@ def get_config(arg: str | None = None):
   c.ckpt_every_steps = 50_000
   c.eval_every_steps = 10_000
   c.log_every_steps = 100
-  if variant == "quick":
+  if variant in ("quick", "medium"):
     common.quick(c, total_steps=2000, every=500)
     c.data.family.num_train_scenes = 400
     c.data.family.num_test_scenes = 16
@@ -70,6 +70,11 @@ def get_config(arg: str | None = None):
     # AdaIN gamma = 1 + the encoder's head (camrep option; the paper size keeps the authors' raw
     # gamma): +0.2 to +0.5 dB at every evaluation of this run (BUILD_NOTES).
     c.model.gamma_init_one = True
+    if variant == "medium":
+      common.medium(c, total_steps=20_000, every=5_000)
+      c.data.family.num_train_scenes = 2_000
+      c.data.family.num_test_scenes = 64
+      c.data.scenes_per_device = 16
   elif variant == "smoke":
     common.smoke(c, n_pairs=32, eval_scenes=4)
     c.data.n_context = 3

@@ -34,10 +34,11 @@ import sys
 
 # Loaded by path (`--config=configs/x.py`): make `configs.gqn` importable from any directory.
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-from configs import gqn  # noqa: E402
+from configs import common, gqn  # noqa: E402
 
 
 def get_config(arg: str | None = None):
+  common.parse_arg(arg, common.NO_MEDIUM)  # no `:medium` size for the generator yet
   c = gqn.get_config(arg)  # data, layout and durations of the GQN-rooms setting and variant
   c.model.kind = "convdraw"
   c.model.draw_steps = 12

@@ -63,6 +63,26 @@ def _setting(
   return s
 
 
+def _medium(c: ml_collections.ConfigDict) -> None:
+  """`:medium` (one GPU, issue 16): the `:quick` families with the data of the `:medium`
+  view-synthesis configs, a quarter of the paper width, twice the batch and ~4x the steps."""
+  c.log_every_steps = 200
+  c.model.resnet_stages = (2, 2, 2, 2)
+  c.model.fc_dim = 512
+  s = c.settings
+  s.gqn.family.num_train_scenes = 2_000
+  s.gqn.family.num_test_scenes = 64
+  s.car.family.num_train_scenes = 256
+  s.car.family.num_test_scenes = 16
+  s.gibson.family.train_views = 1_000
+  s.seven_scenes.family.train_stride = 10
+  s.seven_scenes.family.test_stride = 25
+  for name, steps in (("gqn", 3_000), ("car", 6_000), ("gibson", 6_000), ("seven_scenes", 6_000)):
+    s[name].total_steps = steps
+    s[name].batch_size *= 2
+    s[name].width = 0.25
+
+
 def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   variant = common.parse_arg(arg)
   c = ml_collections.ConfigDict()
@@ -147,7 +167,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
     family=dict(), total_steps=24_000, batch_size=64, width=1.0, test_split="test"
   )
 
-  if variant == "quick":
+  if variant in ("quick", "medium"):
     c.data.preset = "small"
     c.log_every_steps = 50
     c.evals.batch_size = 128
@@ -197,6 +217,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
       width=0.125,
       test_split="test",
     )
+    if variant == "medium":
+      _medium(c)
   elif variant == "smoke":
     c.data.preset = "small"
     c.data.n_context = 3

@@ -24,6 +24,9 @@ sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 from configs import common  # noqa: E402
 
 
+SCENES = ("chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs")
+
+
 def get_config(arg: str | None = None):
   variant = common.parse_arg(arg)
   c = common.base()
@@ -50,7 +53,7 @@ def get_config(arg: str | None = None):
   c.total_steps = 100_001
   c.ckpt_every_steps = 4000
   c.eval_every_steps = 4000
-  if variant == "quick":
+  if variant in ("quick", "medium"):
     common.quick(c)
     c.data.family.train_stride = 20
     c.data.family.test_stride = 100
@@ -61,6 +64,11 @@ def get_config(arg: str | None = None):
     c.optax.pose_steps = 1
     c.evals.num_scenes = 2
     c.evals.batch_scenes = 2
+    if variant == "medium":
+      common.medium(c)
+      c.data.family.scenes = SCENES  # all seven (the small preset has chess and heads)
+      c.data.family.train_stride = 10
+      c.data.scenes_per_device = 7
   elif variant == "smoke":
     common.smoke(c)
     c.model.scene_dim = 16

@@ -46,7 +46,7 @@ def get_config(arg: str | None = None):
   c.total_steps = 160_500
   c.ckpt_every_steps = 6420
   c.eval_every_steps = 3210
-  if variant == "quick":
+  if variant in ("quick", "medium"):
     common.quick(c)
     c.data.family.image_size = 64
     c.data.family.num_train_scenes = 64
@@ -59,6 +59,10 @@ def get_config(arg: str | None = None):
     c.optax.lr_rep = 1e-3
     c.optax.pose_steps = 1
     c.evals.num_scenes = 32
+    if variant == "medium":
+      common.medium(c)
+      c.data.family.num_train_scenes = 256
+      c.data.scenes_per_device = 16
   elif variant == "smoke":
     common.smoke(c, eval_scenes=4)
     c.model.scene_dim = 16

@@ -1,10 +1,12 @@
 """Launch the whole pose-regression comparison (paper Tables 1 and 2; issue 5) as subprocesses.
 
   python experiments/run_comparison.py --size quick --out DIR [--dry_run]
+  python experiments/run_comparison.py --size medium --out DIR --jobs 4 [--dry_run]  # one GPU
   python experiments/run_comparison.py --size paper --out DIR [--dry_run]   # for a GPU
 
-Steps, one subprocess at a time (each logs to DIR/logs/<name>.log; finished steps are skipped,
-so an interrupted launch resumes where it stopped):
+Steps, one subprocess at a time, or --jobs N of them at once within each step (each logs to
+DIR/logs/<name>.log; finished steps are skipped, so an interrupted launch resumes where it
+stopped):
 
   1. view-synthesis runs (`python -m camrep.main --config=configs/<setting>.py[:quick]
      --workdir=DIR/synthesis/<setting>`) for gqn, car, gibson, seven_scenes, plus car_mlp (the
@@ -30,12 +32,18 @@ seven_scenes ours, quat, logq (Table 2).
 
 Budget: --dry_run prints every command with an estimated time and the total. The quick size is
 planned for about 2 hours on 2 CPU cores (estimates measured on a shared 2-core machine); the
-paper size is for a GPU (days of view synthesis per setting, as in the paper).
+medium size (the `:medium` config variants: quarter width, 64 px, 10x the quick steps and
+2-5x its data, 3 seeds) for about an hour of one H100 with --jobs 4 (estimates not measured:
+no GPU was lent when it was planned; BUILD_NOTES shows how they were derived); the paper size
+is for a GPU (days of view synthesis per setting, as in the paper). With --jobs N > 1 every
+subprocess gets XLA_PYTHON_CLIENT_MEM_FRACTION = 0.9 / N (unless set), so N JAX processes fit
+on one GPU.
 """
 
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import dataclasses
 import os
 import shlex
@@ -87,6 +95,23 @@ class Plan:
 
 
 PLANS = {
+  # Estimates (seconds on one H100), derived rather than measured (BUILD_NOTES, "Medium size"):
+  # ~15 ms a quarter-width step (the eighth-width quick GQN step measured ~15 ms sharing an H100
+  # with another run), plus ~60 s of start-up, compilation and evaluations per run.
+  "medium": Plan(
+    variant="medium",
+    seeds=(0, 1, 2),
+    lrs={
+      "car": (1e-3, 3e-3),
+      "gqn": (3e-4, 1e-3),
+      "gibson": (3e-3, 1e-2),
+      "seven_scenes": (3e-4, 1e-3),
+    },
+    synthesis_s={"gqn": 360, "car": 360, "gibson": 360, "seven_scenes": 360},
+    regression_s={"gqn": 105, "car": 150, "gibson": 150, "seven_scenes": 150},
+    data_s={"gqn": 150, "car": 120, "gibson": 60, "seven_scenes": 60},
+    evaluate_s=60,
+  ),
   "quick": Plan(
     variant="quick",
     seeds=(0, 1),
@@ -230,8 +255,9 @@ def figure_jobs(out: str, plan: Plan, synth: Sequence[Job], py: str) -> list[Job
   return jobs
 
 
-def run_job(job: Job, logs: str, *, index: str) -> bool:
-  """Runs a job (stdout and stderr to logs/<name>.log); True on success."""
+def run_job(job: Job, logs: str, *, index: str, env: dict[str, str] | None = None) -> bool:
+  """Runs a job (stdout and stderr to logs/<name>.log, environment `env` or this one's); True on
+  success."""
   os.makedirs(logs, exist_ok=True)
   log_path = os.path.join(logs, f"{job.name}.log")
   print(
@@ -241,7 +267,7 @@ def run_job(job: Job, logs: str, *, index: str) -> bool:
   with open(log_path, "w", encoding="utf-8") as log:
     log.write(f"$ {job.command()}\n")
     log.flush()
-    rc = subprocess.call(job.argv, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+    rc = subprocess.call(job.argv, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, env=env)
   took = progress_lib.format_duration(time.perf_counter() - t0)
   if rc == 0:
     print(f"    done in {took}", flush=True)
@@ -252,6 +278,33 @@ def run_job(job: Job, logs: str, *, index: str) -> bool:
   for line in tail:
     print(f"      {line}", flush=True)
   return False
+
+
+def job_env(jobs: int) -> dict[str, str] | None:
+  """The subprocesses' environment: with `jobs` > 1 at once, each JAX process may take 0.9 / jobs
+  of a GPU's memory (XLA_PYTHON_CLIENT_MEM_FRACTION, unless set); None: this one's."""
+  if jobs <= 1 or "XLA_PYTHON_CLIENT_MEM_FRACTION" in os.environ:
+    return None
+  return {**os.environ, "XLA_PYTHON_CLIENT_MEM_FRACTION": f"{0.9 / jobs:.3f}"}
+
+
+def run_jobs(jobs: Sequence[Job], logs: str, *, at_once: int, label: str) -> list[str]:
+  """Runs the jobs that are not done, `at_once` subprocesses at a time (they must not depend on
+  each other); returns the names of those that failed."""
+  todo = [j for j in jobs if not j.done()]
+  env = job_env(at_once)
+
+  def one(i_job: tuple[int, Job]) -> str | None:
+    i, job = i_job
+    ok = run_job(job, logs, index=f"{label}{i + 1}/{len(todo)}", env=env)
+    return None if ok else job.name
+
+  if at_once <= 1:
+    results = [one(x) for x in enumerate(todo)]
+  else:
+    with concurrent.futures.ThreadPoolExecutor(max_workers=at_once) as pool:
+      results = list(pool.map(one, enumerate(todo)))
+  return [name for name in results if name]
 
 
 def chosen_lr(out: str, setting: str, rep: str, plan: Plan) -> float | None:
@@ -303,11 +356,16 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     help="also train gqn_lowdim and gqn_mlp synthesis runs for the GQN noise figure (+~20 min)",
   )
   p.add_argument("--python", default=sys.executable, help="interpreter of the subprocesses")
+  p.add_argument(
+    "--jobs", type=int, default=1, help="subprocesses at once within each step (GPU: 4 for medium)"
+  )
   args = p.parse_args(argv)
   args.settings = [s.strip() for s in args.settings.split(",") if s.strip()]
   bad = set(args.settings) - set(SETTINGS)
   if bad:
     p.error(f"unknown settings {sorted(bad)}; choose from {SETTINGS}")
+  if args.jobs < 1:
+    p.error(f"--jobs must be at least 1, got {args.jobs}")
   return args
 
 
@@ -346,19 +404,22 @@ def make_launch(args: argparse.Namespace) -> Launch:
   return Launch(plan, out, py, settings, synth, first, later, tables, figures)
 
 
-def print_plan(launch: Launch, size: str, *, commands: bool) -> None:
-  """The summary line (runs, estimate of what is not done yet); with `commands`, every job."""
+def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -> None:
+  """The summary line (runs, estimate of what is not done yet, divided by `at_once` jobs at a
+  time: the best case); with `commands`, every job."""
   L, plan = launch, launch.plan
   todo_first = [j for j in L.synth + L.first if not j.done()]
   est = sum(j.estimate_s for j in todo_first) + sum(plan.regression_s[s] for s, _, _ in L.later)
   est += sum(plan.data_s[s] for s in L.settings if not os.path.isdir(os.path.join(L.out, "cache")))
   est += sum(j.estimate_s for j in L.tables + L.figures if not j.done())
   n_runs = len(L.first) + len(L.later)
+  where = {"quick": " (on 2 CPU cores)", "medium": " (one H100; derived, not measured)"}
+  at = f", {at_once} jobs at a time at best" if at_once > 1 else ""
   print(
     f"{size} comparison into {L.out}: {len(L.synth)} view-synthesis runs, {n_runs} regression "
     f"runs ({len(L.first)} in phase 1, {len(L.later)} in phase 2), {len(L.tables)} tables, "
-    f"{len(L.figures)} figure steps; estimated {progress_lib.format_duration(est)} for what is not "
-    f"done yet{' (on 2 CPU cores)' if size == 'quick' else ' (GPU; rough guess)'}.",
+    f"{len(L.figures)} figure steps; estimated {progress_lib.format_duration(est / at_once)} for "
+    f"what is not done yet{where.get(size, ' (GPU; rough guess)')}{at}.",
     flush=True,
   )
   if not commands:
@@ -374,42 +435,42 @@ def print_plan(launch: Launch, size: str, *, commands: bool) -> None:
     print(f"[~{progress_lib.format_duration(j.estimate_s)}] {j.command()}")
 
 
-def execute(launch: Launch) -> list[str]:
-  """Runs what is not done yet, in order: phase 1, phase 2 at the chosen lr, tables, figures.
+def execute(launch: Launch, *, at_once: int = 1) -> list[str]:
+  """Runs what is not done yet, in order: view synthesis, phase 1, phase 2 at the chosen lr,
+  tables, figures; `at_once` subprocesses at a time within each of these steps.
 
   Returns:
     The names of the jobs that failed.
   """
   L = launch
   logs = os.path.join(L.out, "logs")
-  failed = []
-  total_first = len(L.synth) + len(L.first)
-  for i, job in enumerate(L.synth + L.first):
-    if not job.done() and not run_job(job, logs, index=f"{i + 1}/{total_first}"):
-      failed.append(job.name)
-  for i, (s, rep, seed) in enumerate(L.later):
+  failed = run_jobs(L.synth, logs, at_once=at_once, label="synthesis: ")
+  failed += run_jobs(L.first, logs, at_once=at_once, label="phase 1: ")
+  later = []
+  for s, rep, seed in L.later:
     lr = chosen_lr(L.out, s, rep, L.plan)
     if lr is None:
       print(f"[phase 2] {s}/{rep} seed {seed}: no phase-1 results; skipped", flush=True)
       failed.append(f"regression_{s}_{rep}_seed{seed}")
       continue
-    job = regression_job(L.out, L.plan, s, rep, lr, seed, L.python)
-    if not job.done() and not run_job(job, logs, index=f"phase 2: {i + 1}/{len(L.later)}"):
-      failed.append(job.name)
-  for job in L.tables + L.figures:
-    if not job.done() and not run_job(job, logs, index=job.name):
-      failed.append(job.name)
+    later.append(regression_job(L.out, L.plan, s, rep, lr, seed, L.python))
+  failed += run_jobs(later, logs, at_once=at_once, label="phase 2: ")
+  failed += run_jobs(L.tables, logs, at_once=1, label="")
+  evaluations = [j for j in L.figures if j.name.startswith("evaluate_")]
+  failed += run_jobs(evaluations, logs, at_once=at_once, label="evaluate: ")
+  rest = [j for j in L.figures if j not in evaluations]
+  failed += run_jobs(rest, logs, at_once=1, label="")
   return failed
 
 
 def main(argv: Sequence[str] | None = None) -> int:
   args = _parse_args(argv)
   launch = make_launch(args)
-  print_plan(launch, args.size, commands=args.dry_run)
+  print_plan(launch, args.size, commands=args.dry_run, at_once=args.jobs)
   if args.dry_run:
     return 0
   t0 = time.perf_counter()
-  failed = execute(launch)
+  failed = execute(launch, at_once=args.jobs)
   took = progress_lib.format_duration(time.perf_counter() - t0)
   if failed:
     print(f"finished in {took} with {len(failed)} failures: {', '.join(failed)}", flush=True)

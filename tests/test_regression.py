@@ -309,3 +309,32 @@ def test_run_comparison_dry_run(tmp_path, capsys):
   assert rc.chosen_lr(str(tmp_path), "car", "quat", plan) == 3e-3
   assert rc.main(["--size", "paper", "--out", str(tmp_path), "--dry_run", "--settings", "car"]) == 0
   assert "--config=configs/regression.py " in capsys.readouterr().out
+  args = ["--size", "medium", "--out", str(tmp_path), "--dry_run", "--jobs", "4"]
+  assert rc.main(args) == 0
+  text = capsys.readouterr().out
+  assert "4 jobs at a time" in text.splitlines()[0] and "derived, not measured" in text
+  assert "--config=configs/gqn.py:medium" in text
+  assert "--config=configs/regression.py:medium" in text
+
+
+def test_run_comparison_runs_jobs_at_once(tmp_path, monkeypatch):
+  """--jobs N: N subprocesses at a time, each told its share of GPU memory; failures named."""
+  rc = _script("run_comparison")
+  monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)
+  assert rc.job_env(1) is None and rc.job_env(3)["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.300"
+  marks = tmp_path / "marks"
+  marks.mkdir()
+  # Each job waits (up to 20 s) until the other has started: only passes if both run at once.
+  code = (
+    "import os, sys, time; m, me, other, frac = sys.argv[1:]; open(os.path.join(m, me), 'w');"
+    "t = time.time()\nwhile not os.path.exists(os.path.join(m, other)) and time.time() - t < 20:"
+    " time.sleep(0.05)\nassert os.path.exists(os.path.join(m, other));"
+    "assert os.environ['XLA_PYTHON_CLIENT_MEM_FRACTION'] == frac"
+  )
+  jobs = [
+    rc.Job(me, [sys.executable, "-c", code, str(marks), me, other, "0.450"], "", 1)
+    for me, other in (("a", "b"), ("b", "a"))
+  ]
+  fail = rc.Job("fails", [sys.executable, "-c", "raise SystemExit(3)"], "", 1)
+  assert rc.run_jobs(jobs + [fail], str(tmp_path / "logs"), at_once=2, label="") == ["fails"]
+  assert sorted(os.listdir(marks)) == ["a", "b"]

@@ -18,7 +18,8 @@ from camrep.models.composite import GQNSynthesis, TableSynthesis
 from camrep.runtime import runconfig, writers
 from camrep.synthesis import components, train
 from camrep.synthesis import step as step_lib
-from configs import gibson, gqn, seven_scenes, shapenet_car
+from configs import gibson, gqn, gqn_convdraw, seven_scenes, shapenet_car
+from configs import regression as regression_config
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CONFIGS = {"gqn": gqn, "shapenet_car": shapenet_car, "gibson": gibson, "seven_scenes": seven_scenes}
@@ -28,7 +29,7 @@ pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
 @pytest.mark.parametrize("name", sorted(CONFIGS))
-@pytest.mark.parametrize("variant", [None, "quick", "smoke"])
+@pytest.mark.parametrize("variant", [None, "quick", "medium", "smoke"])
 def test_configs_build(name, variant):
   config = CONFIGS[name].get_config(variant)
   components.check_config(config)
@@ -49,6 +50,20 @@ def test_configs_build(name, variant):
 def test_config_variant_errors():
   with pytest.raises(ValueError, match="variant"):
     gqn.get_config("huge")
+  with pytest.raises(ValueError, match="variant 'medium'"):  # no medium size for the generator
+    gqn_convdraw.get_config("medium")
+
+
+def test_medium_variant_sits_between_quick_and_paper():
+  for name, module in CONFIGS.items():
+    quick, medium, paper = (module.get_config(v) for v in ("quick", "medium", None))
+    assert quick.model.width < medium.model.width < paper.model.width, name
+    assert quick.total_steps < medium.total_steps < paper.total_steps, name
+    assert medium.data.in_memory and medium.model.image_size == quick.model.image_size, name
+  reg = {v: regression_config.get_config(v) for v in ("quick", "medium")}
+  for setting in regression_config.SETTINGS:
+    q, m = (reg[v].settings[setting] for v in ("quick", "medium"))
+    assert q.width < m.width and q.total_steps < m.total_steps and q.batch_size < m.batch_size
 
 
 def test_check_config_rejects_layouts_the_step_cannot_run(tmp_path):
