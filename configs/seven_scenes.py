@@ -23,7 +23,6 @@ import sys
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 from configs import common  # noqa: E402
 
-
 SCENES = ("chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs")
 
 

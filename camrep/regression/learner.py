@@ -96,7 +96,8 @@ def make_regressor(
     refine_steps: decoding refinement of "ours".
     equalise_params: size a baseline's extra dense layer so that its parameter count equals
       that of "ours" (the paper's fixed units equalise only at paper width; at a reduced width
-      they leave a baseline with about half the parameters of ours).
+      they leave a baseline with about half the parameters of ours). 7-Scenes baselines, which
+      have no extra layer in the paper (MapNet's heads), get one solved the same way.
     **overrides: fields of `targets.RegressionDefaults` to change (lr, extra_fc, loss, ...).
 
   Returns:
@@ -109,6 +110,8 @@ def make_regressor(
     spec = None
   heads = T.head_specs(representation, setting, spec=spec)
   extra = layers.scaled(cfg.extra_fc, width) if cfg.extra_fc else None
+  if equalise_params and representation in T.BASELINES and not extra:
+    extra = 1  # a placeholder: the units are solved from `match` (PoseHeads)
   match = None
   if equalise_params and extra:
     match = sum(h.size for h in T.head_specs("ours", setting, spec=T.default_spec(setting)))
