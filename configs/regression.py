@@ -97,12 +97,27 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.data.validation_fraction = 0.1
   # Rendered splits are cached here (.npz per family config and split); empty: no cache.
   c.data.cache_dir = ""
+  # Real data, read as `camrep.main` reads it: "" = the setting's procedural family; gqn,
+  # srn_cars, gibson or seven_scenes (must match `setting`) read `dir`, a directory prepared by
+  # `python -m camrep.data.prepare --source SOURCE --input RAW --data_dir DIR`.
+  c.data.source = ""
+  c.data.dir = ""
+  # The prepared dataset's builder config ("" = the preset's when prepared, else its only one).
+  c.data.dataset_config = ""
+  # Real data: resize the decoded images to this side (None: as prepared).
+  c.data.image_size = config_dict.placeholder(int)
+  # Real GQN: this share of the prepared scenes (the last by id) is the held-out test scenes.
+  c.data.test_scenes_fraction = 0.1
+  # Real data is decoded into memory; refuse a split larger than this (no streaming yet).
+  c.data.max_memory_gb = 16.0
 
   c.model = ml_collections.ConfigDict()
   c.model.width = config_dict.placeholder(float)
   # Gauss-Newton refinement steps when decoding ours (0: the authors' plain arg-min).
   c.model.refine_steps = 4
-  # seven_scenes ResNet: blocks per stage, fc units, torchvision state dict (.npz/.pth) or "".
+  # seven_scenes ResNet: blocks per stage, fc units, and the ImageNet initialisation: a
+  # torchvision ResNet-34 state dict (.npz; .pth with torch) loaded into the trunk (needs
+  # model.width=1; images then normalised with ImageNet's mean / std), or "": from scratch.
   c.model.resnet_stages = (3, 4, 6, 3)
   c.model.fc_dim = 2048
   c.model.resnet_weights = ""
