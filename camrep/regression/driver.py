@@ -250,9 +250,14 @@ def load_pose_system(
       f"synthesis_workdir {workdir} is a {syn_setting!r} run (data.source "
       f"{syn_config.data.source!r}); this regression's setting is {setting!r}"
     )
+  kind = syn_config.rep.get("kind", "grid")
   if config is not None:
     check_same_data(workdir, syn_config, config)
-  kind = syn_config.rep.get("kind", "grid")
+    if config.representation == "ours" and kind != "grid":
+      raise ConfigError(
+        f"synthesis_workdir {workdir} was trained with another pose system, rep.kind={kind!r}; "
+        '"ours" needs the learned grid system (rep.kind="grid")'
+      )
   spec = components.pose_spec(syn_config)
   try:
     with ckpt_lib.Checkpointer(workdir, read_only=True) as ck:
@@ -489,6 +494,7 @@ def results_record(setup: Setup, state, last, train_seconds, eval_seconds, summa
     "variant": config.variant,
     "params": count_params(state.params["net"]),
     "representation_params": setup.rep_info,
+    "resnet_weights": config.model.get("resnet_weights", "") or None,
     "data": setup.data.info,
     "final_train": last,
     "train_seconds": train_seconds,
