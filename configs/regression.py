@@ -1,7 +1,8 @@
 """Pose regression for the paper's Tables 1 and 2 (section 4.4; digest sections 4.1-4.5).
 
 One run trains one pose regressor for one (setting, representation, learning rate, seed) on the
-setting's procedural family (gqn: rooms, car: object, gibson: area, seven_scenes: scene6dof),
+setting's procedural family (gqn: rooms, car: object, gibson: area, seven_scenes: scene6dof) or
+on a prepared real dataset (`data.source`, `data.dir`),
 picks nothing itself, and writes results.json (validation and test errors) for
 `experiments/table1.py` / `table2.py`, which choose the learning rate on the validation errors.
 "ours" (and "mlp" when the run has one) takes its targets from a view-synthesis workdir.
@@ -28,6 +29,12 @@ paper's, `camrep.regression.targets.DEFAULTS`).
     (results/table1.md, mean of seeds 0 and 1 at the validation-chosen lr): car ours 3.71 deg
     mean rotation error, sin/cos 4.50, quat 7.73 (paper, real data: 2.85 / 7.29 / 4.28); rooms
     (GQN) every representation at chance (x, y ~0.41, yaw ~89 deg) at this budget.
+  python -m camrep.regression --config=configs/regression.py:quick --workdir=/tmp/reg_7s \
+      --config.setting=seven_scenes --config.representation=quat \
+      --config.data.source=seven_scenes --config.data.dir=/data/tfds
+    real data prepared by `python -m camrep.data.prepare --source seven_scenes --input RAW
+    --data_dir /data/tfds` (likewise srn_cars / gqn / gibson for car / gqn / gibson); the paper's
+    splits per dataset, see camrep/regression/views.py. Not yet measured at quick size.
   python -m camrep.regression --config=configs/regression.py:smoke --workdir=/tmp/reg_s \
       --config.setting=car --config.representation=euler
     seconds; for tests.

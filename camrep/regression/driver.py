@@ -1,4 +1,4 @@
-"""Pose-regression runs for the paper's Tables 1 and 2 (section 4.4) on procedural data.
+"""Pose-regression runs for the paper's Tables 1 and 2 (section 4.4) on procedural or real data.
 
 `python -m camrep.regression --config=configs/regression.py[:quick|:smoke] --workdir=DIR
 [--config.setting=gqn --config.representation=ours --config.synthesis_workdir=W ...]` trains one
@@ -29,10 +29,21 @@ when set):
               (rooms "test": held-out views of training rooms, context from their training
               views; object "test_scenes": held-out cars).
 
+Real data: with `data.source` a real source (gqn, srn_cars, gibson, seven_scenes; it must be of
+`setting`) and `data.dir` a directory prepared by `camrep.data.prepare`, the views come from that
+dataset with the paper's splits per dataset (`views.make_real_data`; its module docstring lists
+them), decoded once (cached in `data.cache_dir`, keyed by dataset, split and size) and held in
+memory. results.json's "data" then names the source, the directory, the dataset path, the test
+split, what each evaluation split is, and the number of test views.
+
 Representations: baselines need nothing more; "ours" restores the frozen pose system of a
 view-synthesis workdir (`load_pose_system`, via `camrep.synthesis`'s `load_run`); "mlp" uses that
 workdir's MLP embedding when it was trained with rep.kind="mlp", else a frozen randomly
 initialised MLP embedding (`targets.init_mlp`; the supplement's MLP is trained by view synthesis).
+The synthesis workdir must have been trained on the same data (`check_same_data`: same source,
+same prepared directory and dataset) and, for "ours", with the learned grid system.
+`model.resnet_weights` (seven_scenes) loads a torchvision ResNet-34 state dict into the trunk
+(`load_resnet_weights`).
 """
 
 from __future__ import annotations
