@@ -115,8 +115,13 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.data.image_size = config_dict.placeholder(int)
   # Real GQN: this share of the prepared scenes (the last by id) is the held-out test scenes.
   c.data.test_scenes_fraction = 0.1
-  # Real data is decoded into memory; refuse a split larger than this (no streaming yet).
+  # Real data is decoded into memory (and cached); a split larger than this is refused unless
+  # `stream`: then batches are decoded on the fly from the prepared files by `num_threads` grain
+  # reader threads, `prefetch` batches ahead (nothing cached).
   c.data.max_memory_gb = 16.0
+  c.data.stream = False
+  c.data.num_threads = 2
+  c.data.prefetch = 2
 
   c.model = ml_collections.ConfigDict()
   c.model.width = config_dict.placeholder(float)

@@ -435,7 +435,7 @@ def train(setup: Setup, writer, eval_sets, *, predict_fn, log=print):
   config = setup.config
   batches = views_lib.train_batches(config, setup.data.train)
   init_key = jax.random.fold_in(jax.random.key(config.seed), 0)
-  first = next(views_lib.train_batches(config, setup.data.train))
+  first = views_lib.train_batch_fn(config, setup.data.train)(0)
   state = learner.init(init_key, setup.reg, first, rep_params=setup.rep_params)
   state = load_resnet_weights(config, state)
   step_fn = jax.jit(learner.train_step, donate_argnums=0)

@@ -26,7 +26,7 @@ import hashlib
 import math
 import os
 import pathlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import jax
@@ -58,8 +58,10 @@ class ViewSet:
     return len(self.scenes)
 
   def subset(self, rows: np.ndarray) -> ViewSet:
-    """The views at `rows` (int indices or a boolean mask)."""
-    return ViewSet(self.images[rows], self.poses[rows], self.scenes[rows], self.views[rows])
+    """The views at `rows` (int indices or a boolean mask); streamed images stay streamed."""
+    images = self.images
+    images = images.subset(rows) if isinstance(images, StreamedImages) else images[rows]
+    return ViewSet(images, self.poses[rows], self.scenes[rows], self.views[rows])
 
   def scene_ids(self) -> np.ndarray:
     """Sorted distinct scene ids."""
@@ -69,6 +71,40 @@ class ViewSet:
     """Rows of one scene, sorted by view id."""
     rows = np.flatnonzero(self.scenes == scene)
     return rows[np.argsort(self.views[rows], kind="stable")]
+
+
+class StreamedImages:
+  """The images of a prepared split, decoded when indexed (`data.stream`): `x[rows]` reads the
+  PNGs of those rows from the ArrayRecord files (any index shape (...,) -> (..., H, W, 3) uint8),
+  resized to `size` when given. Stands in for `ViewSet.images` when a split does not fit in
+  memory.
+
+  Attributes:
+    stored: the `camrep.data.storage.StoredSplit`.
+    records: int64 (N,), record position of each row.
+    size: output side, or None (as stored).
+  """
+
+  def __init__(self, stored, records: np.ndarray, size: int | None = None):
+    self.stored, self.records, self.size = stored, np.asarray(records, np.int64), size
+
+  @property
+  def shape(self) -> tuple[int, int, int, int]:
+    h, w = (self.size, self.size) if self.size else self.stored.index.image_shape
+    return (len(self.records), h, w, 3)
+
+  def __len__(self) -> int:
+    return len(self.records)
+
+  def subset(self, rows: np.ndarray) -> StreamedImages:
+    """The rows `rows` (int indices or a boolean mask), still streamed."""
+    return StreamedImages(self.stored, self.records[rows], self.size)
+
+  def __getitem__(self, rows) -> np.ndarray:
+    rows = np.asarray(rows)
+    images = self.stored.read_images(self.records[rows])
+    flat = _resize(images.reshape(-1, *images.shape[-3:]), self.size)
+    return flat.reshape(*rows.shape, *flat.shape[1:])
 
 
 def _family_key(family, split: str) -> str:
@@ -260,9 +296,10 @@ def _resize(images: np.ndarray, size: int | None) -> np.ndarray:
 
 def load_real_split(
   path: str, meta: dict[str, Any], split: str, *, image_size: int | None, cache_dir: str = "",
-  max_bytes: float = float("inf"),
+  max_bytes: float = float("inf"), stream: bool = False,
 ) -> ViewSet:  # fmt: skip
-  """Decodes (or reads from `cache_dir`) one split of a prepared dataset, in the sidecar's order.
+  """Decodes (or reads from `cache_dir`) one split of a prepared dataset, in the sidecar's order;
+  with `stream`, the images stay on disk (`StreamedImages`, no cache, no memory limit).
 
   The cache file `<cache_dir>/<source>_<split>_<hash>.npz` is keyed by the dataset directory, its
   camrep_source.json (a re-prepared dataset gets a new key), the split and the image size.
@@ -281,16 +318,19 @@ def load_real_split(
   h, w = meta["image_shape"]
   size = int(image_size) if image_size else None
   n_bytes = counts["num_views"] * (size or h) * (size or w) * 3
-  if n_bytes > max_bytes:
+  if n_bytes > max_bytes and not stream:
     raise ConfigError(
       f"{path} split {split!r}: {counts['num_views']} views need {n_bytes / 2**30:.1f} GiB "
-      f"decoded, more than data.max_memory_gb={max_bytes / 2**30:g}; the regression holds its "
-      "data in memory (streaming is not implemented): lower data.image_size or raise the limit"
+      f"decoded, more than data.max_memory_gb={max_bytes / 2**30:g}: pass "
+      "--config.data.stream=True (decode batches on the fly), lower data.image_size or raise "
+      "the limit"
     )
   key = hashlib.sha256(
     f"{os.path.abspath(path)}|{json_dumps(meta)}|{split}|{size}".encode()
   ).hexdigest()[:16]
-  cache = os.path.join(cache_dir, f"{meta['source']}_{split}_{key}.npz") if cache_dir else ""
+  cache = ""
+  if cache_dir and not stream:
+    cache = os.path.join(cache_dir, f"{meta['source']}_{split}_{key}.npz")
   if cache and os.path.exists(cache):
     with np.load(cache) as z:
       return ViewSet(z["images"], z["poses"], z["scenes"], z["views"])
@@ -299,6 +339,11 @@ def load_real_split(
   except DataError as e:
     raise ConfigError(f"data.dir: {e}") from None
   index = stored.index
+  if stream:
+    return ViewSet(
+      StreamedImages(stored, index.record, size), index.pose.astype(np.float32), index.scene,
+      index.view,
+    )  # fmt: skip
   images = []
   for start in range(0, len(index), 256):
     images.append(_resize(stored.read_images(index.record[start : start + 256]), size))
@@ -368,6 +413,7 @@ def make_real_data(config) -> Data:
     image_size=d.get("image_size"),
     cache_dir=d.cache_dir,
     max_bytes=float(d.get("max_memory_gb", 16.0)) * 2**30,
+    stream=bool(d.get("stream", False)),
   )
   full_train = load_real_split(path, meta, "train", **load)
   gqn = setting == "gqn"
@@ -419,6 +465,7 @@ def make_real_data(config) -> Data:
       + ("; the end of the TrainSplit trajectory)" if setting == "seven_scenes" else ")")
     ),
     "test_split": config.evals.test_split,
+    "streamed": bool(d.get("stream", False)),
     "splits": {name: plan.get(name, "") for name in wanted},
     "num_examples": {},
     "num_test_views": len(evals[config.evals.test_split].queries)
@@ -471,6 +518,62 @@ def _check_gqn_counts(config, train: ViewSet, evals: dict[str, EvalSet]) -> None
     raise ConfigError("a training scene has fewer than n_context + n_query views")
 
 
+def train_batch_fn(config, views: ViewSet) -> Callable[[int], dict[str, np.ndarray]]:
+  """The training batch at a step, a pure function of (seed, step) (`train_batches`' layout).
+
+  Raises:
+    ConfigError: fewer training scenes (gqn) or views than a batch.
+  """
+  bs, seed = config.data.batch_size, config.seed
+  epochs: dict[int, np.ndarray] = {}
+
+  def order(epoch: int, n: int) -> np.ndarray:
+    perm = epochs.get(epoch)
+    if perm is None:
+      if len(epochs) >= 4:  # reader threads only ever need the current epoch(s)
+        epochs.clear()
+      perm = epochs[epoch] = np.random.default_rng([seed, 0, epoch]).permutation(n)
+    return perm
+
+  if config.setting == "gqn":
+    ids = views.scene_ids()
+    rows = [views.scene_rows(s) for s in ids]
+    c, q = config.data.n_context, config.data.n_query
+    per_epoch = len(ids) // bs
+    if per_epoch == 0:
+      raise ConfigError(f"batch of {bs} scenes but only {len(ids)} training scenes")
+
+    def gqn_batch(step: int) -> dict[str, np.ndarray]:
+      epoch, pos = divmod(step, per_epoch)
+      chosen = order(epoch, len(ids))[pos * bs : (pos + 1) * bs]
+      rng = np.random.default_rng([seed, 1, step])
+      picked = np.stack([rng.choice(rows[i], c + q, replace=False) for i in chosen])
+      return {
+        "context_image": views.images[picked[:, :c]],
+        "context_pose": views.poses[picked[:, :c]],
+        "image": views.images[picked[:, c:]],
+        "pose": views.poses[picked[:, c:]],
+        "scene": ids[chosen].astype(np.int32),
+      }
+
+    return gqn_batch
+  n = len(views)
+  per_epoch = n // bs
+  if per_epoch == 0:
+    raise ConfigError(f"batch of {bs} images but only {n} training views")
+
+  def batch(step: int) -> dict[str, np.ndarray]:
+    epoch, pos = divmod(step, per_epoch)
+    rows = order(epoch, n)[pos * bs : (pos + 1) * bs]
+    return {
+      "image": views.images[rows],
+      "pose": views.poses[rows],
+      "scene": views.scenes[rows].astype(np.int32),
+    }
+
+  return batch
+
+
 def train_batches(config, views: ViewSet) -> Iterator[dict[str, np.ndarray]]:
   """Endless training batches in `learner`'s layout, a pure function of (seed, step).
 
@@ -479,44 +582,24 @@ def train_batches(config, views: ViewSet) -> Iterator[dict[str, np.ndarray]]:
   "context_pose" (S, V, P), "image" (S, Q, H, W, 3), "pose" (S, Q, P), "scene" (S,). Others:
   `batch_size` distinct views (epoch permutations of all training views): "image" (B, H, W, 3),
   "pose" (B, P), "scene" (B,).
+
+  Streamed images (`StreamedImages`, data.stream) are decoded by grain reader threads
+  (`data.num_threads`, `data.prefetch` batches ahead), as the view-synthesis pipeline does.
   """
-  bs, seed = config.data.batch_size, config.seed
-  if config.setting == "gqn":
-    ids = views.scene_ids()
-    rows = [views.scene_rows(s) for s in ids]
-    c, q = config.data.n_context, config.data.n_query
-    per_epoch = len(ids) // bs
-    if per_epoch == 0:
-      raise ConfigError(f"batch of {bs} scenes but only {len(ids)} training scenes")
-    step = 0
-    while True:
-      epoch, pos = divmod(step, per_epoch)
-      order = np.random.default_rng([seed, 0, epoch]).permutation(len(ids))[
-        pos * bs : (pos + 1) * bs
-      ]
-      rng = np.random.default_rng([seed, 1, step])
-      picked = np.stack([rng.choice(rows[i], c + q, replace=False) for i in order])
-      yield {
-        "context_image": views.images[picked[:, :c]],
-        "context_pose": views.poses[picked[:, :c]],
-        "image": views.images[picked[:, c:]],
-        "pose": views.poses[picked[:, c:]],
-        "scene": ids[order].astype(np.int32),
-      }
-      step += 1
-  n = len(views)
-  per_epoch = n // bs
-  if per_epoch == 0:
-    raise ConfigError(f"batch of {bs} images but only {n} training views")
+  fn = train_batch_fn(config, views)
+  threads = int(config.data.get("num_threads", 0))
+  if isinstance(views.images, StreamedImages) and threads > 0:
+    import grain
+
+    ds = grain.MapDataset.range(0, 2**62).map(fn)
+    opts = grain.ReadOptions(
+      num_threads=threads, prefetch_buffer_size=max(1, int(config.data.get("prefetch", 2)))
+    )
+    yield from ds.to_iter_dataset(opts)
+    return
   step = 0
   while True:
-    epoch, pos = divmod(step, per_epoch)
-    rows = np.random.default_rng([seed, 0, epoch]).permutation(n)[pos * bs : (pos + 1) * bs]
-    yield {
-      "image": views.images[rows],
-      "pose": views.poses[rows],
-      "scene": views.scenes[rows].astype(np.int32),
-    }
+    yield fn(step)
     step += 1
 
 
@@ -527,8 +610,9 @@ def _pad(x: np.ndarray, n: int) -> np.ndarray:
   return np.concatenate([x, np.repeat(x[-1:], n - len(x), axis=0)])
 
 
-def eval_batches(config, eval_set: EvalSet) -> list[dict[str, np.ndarray]]:
-  """Fixed-shape evaluation batches with a "mask" (False for padding) and the queries' "view" ids.
+def eval_batches(config, eval_set: EvalSet) -> list[dict[str, np.ndarray]] | StreamedBatches:
+  """Fixed-shape evaluation batches with a "mask" (False for padding) and the queries' "view" ids
+  (a list; `StreamedBatches`, decoded batch by batch, when the images are streamed).
 
   gqn: per scene, context = the first n_context views (by id) of `eval_set.context`; queries =
   the scene's query views (minus the context views when both are the same set), padded to the
@@ -543,14 +627,14 @@ def eval_batches(config, eval_set: EvalSet) -> list[dict[str, np.ndarray]]:
       rows = _pad(rows, bs)
       out.append(
         {
-          "image": q_views.images[rows],
+          "image": _take(q_views.images, rows),
           "pose": q_views.poses[rows],
           "scene": q_views.scenes[rows].astype(np.int32),
           "view": q_views.views[rows].astype(np.int32),
           "mask": mask,
         }
       )
-    return out
+    return _batches(out)
   c = config.data.n_context
   same = eval_set.context is q_views
   ctx_rows, query_rows = [], []
@@ -572,13 +656,50 @@ def eval_batches(config, eval_set: EvalSet) -> list[dict[str, np.ndarray]]:
     ctx = eval_set.context
     out.append(
       {
-        "context_image": ctx.images[cr],
+        "context_image": _take(ctx.images, cr),
         "context_pose": ctx.poses[cr],
-        "image": q_views.images[qr],
+        "image": _take(q_views.images, qr),
         "pose": q_views.poses[qr],
         "scene": q_views.scenes[qr[:, 0]].astype(np.int32),
         "view": q_views.views[qr].astype(np.int32),
         "mask": qmask,
       }
     )
+  return _batches(out)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Pending:
+  """Rows of streamed images, decoded when an evaluation batch is used."""
+
+  images: StreamedImages
+  rows: np.ndarray
+
+
+def _take(images, rows: np.ndarray):
+  """images[rows] now (in memory), or a `_Pending` read (streamed)."""
+  if isinstance(images, StreamedImages):
+    return _Pending(images, rows)
+  return images[rows]
+
+
+class StreamedBatches:
+  """Evaluation batches whose streamed images are decoded batch by batch, each time the batches
+  are iterated (so an evaluation set larger than memory is never held whole)."""
+
+  def __init__(self, batches: list[dict[str, Any]]):
+    self._batches = batches
+
+  def __len__(self) -> int:
+    return len(self._batches)
+
+  def __iter__(self) -> Iterator[dict[str, np.ndarray]]:
+    for b in self._batches:
+      yield {k: v.images[v.rows] if isinstance(v, _Pending) else v for k, v in b.items()}
+
+
+def _batches(out: list[dict[str, Any]]):
+  """The batch list itself (in memory), or `StreamedBatches` when some images are streamed."""
+  if any(isinstance(v, _Pending) for b in out for v in b.values()):
+    return StreamedBatches(out)
   return out
