@@ -403,6 +403,56 @@ def test_resnet_weights_refusals(tmp_path):
     R.resolve_config(c)
 
 
+# ------------------------------------------------------------------------------- tables
+
+
+def _table_script(name):
+  import importlib.util
+
+  spec = importlib.util.spec_from_file_location(name, ROOT / "experiments" / f"{name}.py")
+  module = importlib.util.module_from_spec(spec)
+  sys.modules[name] = module
+  spec.loader.exec_module(module)
+  return module
+
+
+def _fake(setting, rep, seed, data, errs, scenes=("0",)):
+  one = {e: {"mean": 1.0, "median": 1.0} for e in errs}
+  summary = {"all": one, **{s: one for s in scenes}}
+  return dict(setting=setting, representation=rep, lr=1e-3, seed=seed, steps=3, params=5,
+              variant="quick", validation=summary, test=summary, data=data)  # fmt: skip
+
+
+def test_tables_state_the_data_of_each_column():
+  srn = {"source": "srn_cars", "dataset": "srn_cars", "dataset_path": "/d/srn_cars/1.0.0",
+         "test_split": "test", "num_test_views": 9}  # fmt: skip
+  rooms = {"family": "rooms", "preset": "small", "test_split": "test_scenes"}
+  area = {"family": "area", "preset": "small", "test_split": "test"}
+  gib = {"source": "gibson", "dataset_path": "/d/gibson/1.0.0", "test_split": "test"}
+  gg = ("x_error", "y_error", "yaw_error_deg")
+  results = [
+    _fake("car", "quat", 0, srn, ("rotation_error_deg",)),
+    _fake("gqn", "euler", 0, rooms, gg),
+    _fake("gibson", "euler", 0, area, gg),
+    _fake("gibson", "euler", 1, gib, gg),
+  ]
+  text = _table_script("table1").build(results)
+  assert "# Table 1: pose regression on mixed data" in text
+  assert (
+    "- car: prepared `srn_cars` (source srn_cars) at /d/srn_cars/1.0.0, test split `test` "
+    "(9 test views)" in text
+  )
+  assert "- rooms: procedural `rooms` family (preset small), test split `test_scenes`" in text
+  assert "- area: MIXED DATA" in text
+  seven = {"source": "seven_scenes", "dataset_path": "/d/7s/1.0.0", "test_split": "test",
+           "num_test_views": 6, "scene_names": {"0": "stairs"}}  # fmt: skip
+  errs = ("position_error", "rotation_error_deg")
+  text = _table_script("table2").build([_fake("seven_scenes", "quat", 0, seven, errs)])
+  assert text.startswith("# Table 2: 6-DOF regression on 7-Scenes (prepared real images)")
+  assert "- all columns: prepared `seven_scenes` (source seven_scenes) at /d/7s/1.0.0" in text
+  assert "- ResNet initialisation: none (from scratch)" in text
+
+
 # ------------------------------------------------------------------------------- launcher
 
 
