@@ -1,7 +1,8 @@
 """Pose regression for the paper's Tables 1 and 2 (section 4.4; digest sections 4.1-4.5).
 
 One run trains one pose regressor for one (setting, representation, learning rate, seed) on the
-setting's procedural family (gqn: rooms, car: object, gibson: area, seven_scenes: scene6dof),
+setting's procedural family (gqn: rooms, car: object, gibson: area, seven_scenes: scene6dof) or
+on a prepared real dataset (`data.source`, `data.dir`),
 picks nothing itself, and writes results.json (validation and test errors) for
 `experiments/table1.py` / `table2.py`, which choose the learning rate on the validation errors.
 "ours" (and "mlp" when the run has one) takes its targets from a view-synthesis workdir.
@@ -28,6 +29,12 @@ paper's, `camrep.regression.targets.DEFAULTS`).
     (results/table1.md, mean of seeds 0 and 1 at the validation-chosen lr): car ours 3.71 deg
     mean rotation error, sin/cos 4.50, quat 7.73 (paper, real data: 2.85 / 7.29 / 4.28); rooms
     (GQN) every representation at chance (x, y ~0.41, yaw ~89 deg) at this budget.
+  python -m camrep.regression --config=configs/regression.py:quick --workdir=/tmp/reg_7s \
+      --config.setting=seven_scenes --config.representation=quat \
+      --config.data.source=seven_scenes --config.data.dir=/data/tfds
+    real data prepared by `python -m camrep.data.prepare --source seven_scenes --input RAW
+    --data_dir /data/tfds` (likewise srn_cars / gqn / gibson for car / gqn / gibson); the paper's
+    splits per dataset, see camrep/regression/views.py. Not yet measured at quick size.
   python -m camrep.regression --config=configs/regression.py:smoke --workdir=/tmp/reg_s \
       --config.setting=car --config.representation=euler
     seconds; for tests.
@@ -117,12 +124,32 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.data.validation_fraction = 0.1
   # Rendered splits are cached here (.npz per family config and split); empty: no cache.
   c.data.cache_dir = ""
+  # Real data, read as `camrep.main` reads it: "" = the setting's procedural family; gqn,
+  # srn_cars, gibson or seven_scenes (must match `setting`) read `dir`, a directory prepared by
+  # `python -m camrep.data.prepare --source SOURCE --input RAW --data_dir DIR`.
+  c.data.source = ""
+  c.data.dir = ""
+  # The prepared dataset's builder config ("" = the preset's when prepared, else its only one).
+  c.data.dataset_config = ""
+  # Real data: resize the decoded images to this side (None: as prepared).
+  c.data.image_size = config_dict.placeholder(int)
+  # Real GQN: this share of the prepared scenes (the last by id) is the held-out test scenes.
+  c.data.test_scenes_fraction = 0.1
+  # Real data is decoded into memory (and cached); a split larger than this is refused unless
+  # `stream`: then batches are decoded on the fly from the prepared files by `num_threads` grain
+  # reader threads, `prefetch` batches ahead (nothing cached).
+  c.data.max_memory_gb = 16.0
+  c.data.stream = False
+  c.data.num_threads = 2
+  c.data.prefetch = 2
 
   c.model = ml_collections.ConfigDict()
   c.model.width = config_dict.placeholder(float)
   # Gauss-Newton refinement steps when decoding ours (0: the authors' plain arg-min).
   c.model.refine_steps = 4
-  # seven_scenes ResNet: blocks per stage, fc units, torchvision state dict (.npz/.pth) or "".
+  # seven_scenes ResNet: blocks per stage, fc units, and the ImageNet initialisation: a
+  # torchvision ResNet-34 state dict (.npz; .pth with torch) loaded into the trunk (needs
+  # model.width=1; images then normalised with ImageNet's mean / std), or "": from scratch.
   c.model.resnet_stages = (3, 4, 6, 3)
   c.model.fc_dim = 2048
   c.model.resnet_weights = ""

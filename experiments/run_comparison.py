@@ -3,6 +3,15 @@
   python experiments/run_comparison.py --size quick --out DIR [--dry_run]
   python experiments/run_comparison.py --size medium --out DIR --jobs 4 [--dry_run]  # one GPU
   python experiments/run_comparison.py --size paper --out DIR [--dry_run]   # for a GPU
+  python experiments/run_comparison.py --size quick --settings seven_scenes \
+      --data seven_scenes=PREPARED_DIR --out DIR     # Table 2 from prepared real 7-Scenes
+
+`--data SETTING=DIR` (repeatable) runs that setting on real data prepared by
+`python -m camrep.data.prepare --source SOURCE --input RAW --data_dir DIR` (SOURCE: gqn for gqn,
+srn_cars for car, gibson, seven_scenes) instead of its procedural family: both the view-synthesis
+and the regression runs get `--config.data.source=SOURCE --config.data.dir=DIR
+--config.data.preset=default` (the prepared dataset's only builder config), and the tables say
+which data each column came from. Without it a setting uses its procedural family.
 
 Steps, one subprocess at a time, or --jobs N of them at once within each step (each logs to
 DIR/logs/<name>.log; finished steps are skipped, so an interrupted launch resumes where it
@@ -57,6 +66,8 @@ from camrep.runtime import progress as progress_lib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SETTINGS = ("gqn", "car", "gibson", "seven_scenes")
+# The real source each setting's --data directory holds (camrep.data.records.SETTING_OF_SOURCE).
+REAL_SOURCES = {"gqn": "gqn", "car": "srn_cars", "gibson": "gibson", "seven_scenes": "seven_scenes"}
 SYNTHESIS_CONFIGS = {
   "gqn": "configs/gqn.py",
   "car": "configs/shapenet_car.py",
@@ -174,9 +185,23 @@ def lr_tag(lr: float) -> str:
   return f"lr{lr:.0e}".replace("e-0", "e-")
 
 
-def synthesis_jobs(out: str, plan: Plan, names: Sequence[str], py: str) -> list[Job]:
+def data_flags(setting: str, data: dict[str, str] | None) -> list[str]:
+  """The config flags that point a run of `setting` at its prepared real data (none without)."""
+  if not data or setting not in data:
+    return []
+  return [
+    f"--config.data.source={REAL_SOURCES[setting]}",
+    f"--config.data.dir={data[setting]}",
+    "--config.data.preset=default",
+  ]
+
+
+def synthesis_jobs(
+  out: str, plan: Plan, names: Sequence[str], py: str, data: dict[str, str] | None = None
+) -> list[Job]:
   """View-synthesis runs: "<setting>" (the learned system) or "<setting>_<kind>" (another pose
-  input, `--config.rep.kind=<kind>`), into DIR/synthesis/<name>."""
+  input, `--config.rep.kind=<kind>`), into DIR/synthesis/<name>; on the setting's prepared
+  real data when `data` names it."""
   suffix = f":{plan.variant}" if plan.variant else ""
   jobs = []
   for name in names:
@@ -187,15 +212,24 @@ def synthesis_jobs(out: str, plan: Plan, names: Sequence[str], py: str) -> list[
     argv.append(f"--workdir={wd}")
     if kind:
       argv.append(f"--config.rep.kind={kind}")
+    argv += data_flags(setting, data)
     est = plan.synthesis_s[setting]
     jobs.append(Job(f"synthesis_{name}", argv, os.path.join(wd, "final_metrics.json"), est))
   return jobs
 
 
 def regression_job(
-  out: str, plan: Plan, setting: str, rep: str, lr: float | None, seed: int, py: str
+  out: str,
+  plan: Plan,
+  setting: str,
+  rep: str,
+  lr: float | None,
+  seed: int,
+  py: str,
+  data: dict[str, str] | None = None,
 ) -> Job:
-  """One regression run's job (lr None: a placeholder "<LR>", for --dry_run's phase 2)."""
+  """One regression run's job (lr None: a placeholder "<LR>", for --dry_run's phase 2), on the
+  setting's prepared real data when `data` names it."""
   suffix = f":{plan.variant}" if plan.variant else ""
   tag = "lr<LR>" if lr is None else lr_tag(lr)
   wd = os.path.join(out, "regression", setting, rep, f"{tag}_seed{seed}")
@@ -210,6 +244,7 @@ def regression_job(
     f"--config.seed={seed}",
     f"--config.optax.lr={'<LR>' if lr is None else format(lr, 'g')}",
     f"--config.data.cache_dir={os.path.join(out, 'cache')}",
+    *data_flags(setting, data),
   ]
   syn = os.path.join(out, "synthesis", setting)
   if rep == "ours":
@@ -323,6 +358,7 @@ def plan_regression(
   py: str,
   *,
   full_grid: bool,
+  data: dict[str, str] | None = None,
 ) -> tuple[list[Job], list[tuple[str, str, int]]]:
   """(phase-1 jobs, phase-2 (setting, rep, seed) whose lr is chosen after phase 1)."""
   first, later = [], []
@@ -331,7 +367,7 @@ def plan_regression(
     for rep in reps[s]:
       for seed in seeds:
         for lr in plan.lrs[s]:
-          first.append(regression_job(out, plan, s, rep, lr, seed, py))
+          first.append(regression_job(out, plan, s, rep, lr, seed, py, data))
       if not full_grid:
         later += [(s, rep, seed) for seed in plan.seeds[1:]]
   return first, later
@@ -355,6 +391,13 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     action="store_true",
     help="also train gqn_lowdim and gqn_mlp synthesis runs for the GQN noise figure (+~20 min)",
   )
+  p.add_argument(
+    "--data",
+    action="append",
+    default=[],
+    metavar="SETTING=DIR",
+    help="run SETTING on real data prepared by camrep.data.prepare in DIR (repeatable)",
+  )
   p.add_argument("--python", default=sys.executable, help="interpreter of the subprocesses")
   p.add_argument(
     "--jobs", type=int, default=1, help="subprocesses at once within each step (GPU: 4 for medium)"
@@ -366,6 +409,15 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.error(f"unknown settings {sorted(bad)}; choose from {SETTINGS}")
   if args.jobs < 1:
     p.error(f"--jobs must be at least 1, got {args.jobs}")
+  data = {}
+  for item in args.data:
+    setting, sep, path = item.partition("=")
+    if not sep or setting not in SETTINGS or not path:
+      p.error(f"--data expects SETTING=DIR with SETTING one of {SETTINGS}, got {item!r}")
+    if not os.path.isdir(path):
+      p.error(f"--data {item}: {path} is not a directory (prepare it with camrep.data.prepare)")
+    data[setting] = os.path.abspath(path)
+  args.data = data
   return args
 
 
@@ -383,6 +435,7 @@ class Launch:
   later: list[tuple[str, str, int]]
   tables: list[Job]
   figures: list[Job]
+  data: dict[str, str] = dataclasses.field(default_factory=dict)
 
 
 def make_launch(args: argparse.Namespace) -> Launch:
@@ -397,11 +450,12 @@ def make_launch(args: argparse.Namespace) -> Launch:
     names.append("car_mlp")
   if kinds and args.noise_runs and "gqn" in settings:
     names += [n for n in ("gqn", "gqn_lowdim", "gqn_mlp") if n not in names]
-  synth = synthesis_jobs(out, plan, names, py)
-  first, later = plan_regression(out, plan, settings, reps, py, full_grid=args.full_grid)
+  data = {s: d for s, d in getattr(args, "data", {}).items() if s in settings}
+  synth = synthesis_jobs(out, plan, names, py, data)
+  first, later = plan_regression(out, plan, settings, reps, py, full_grid=args.full_grid, data=data)
   tables = table_jobs(out, py, settings)
   figures = [] if args.skip_figures else figure_jobs(out, plan, synth, py)
-  return Launch(plan, out, py, settings, synth, first, later, tables, figures)
+  return Launch(plan, out, py, settings, synth, first, later, tables, figures, data)
 
 
 def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -> None:
@@ -422,13 +476,20 @@ def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -
     f"what is not done yet{where.get(size, ' (GPU; rough guess)')}{at}.",
     flush=True,
   )
+  for s in L.settings:
+    where = (
+      f"prepared {REAL_SOURCES[s]} data in {L.data[s]}"
+      if s in L.data
+      else "its procedural family (configs/regression.py settings)"
+    )
+    print(f"  data of {s}: {where}", flush=True)
   if not commands:
     return
   for j in L.synth + L.first:
     state = "done" if j.done() else f"~{progress_lib.format_duration(j.estimate_s)}"
     print(f"[{state}] {j.command()}")
   for s, rep, seed in L.later:
-    job = regression_job(L.out, plan, s, rep, None, seed, L.python)
+    job = regression_job(L.out, plan, s, rep, None, seed, L.python, L.data)
     print(f"[~{progress_lib.format_duration(plan.regression_s[s])}, phase 2] {job.command()}")
   print("  (phase 2: <LR> = the lr chosen on seed 0's validation errors)")
   for j in L.tables + L.figures:
@@ -453,7 +514,7 @@ def execute(launch: Launch, *, at_once: int = 1) -> list[str]:
       print(f"[phase 2] {s}/{rep} seed {seed}: no phase-1 results; skipped", flush=True)
       failed.append(f"regression_{s}_{rep}_seed{seed}")
       continue
-    later.append(regression_job(L.out, L.plan, s, rep, lr, seed, L.python))
+    later.append(regression_job(L.out, L.plan, s, rep, lr, seed, L.python, L.data))
   failed += run_jobs(later, logs, at_once=at_once, label="phase 2: ")
   failed += run_jobs(L.tables, logs, at_once=1, label="")
   evaluations = [j for j in L.figures if j.name.startswith("evaluate_")]

@@ -1,6 +1,8 @@
 """Table 1 of the paper: pose regression with each representation on three settings (mean errors).
 
-Reads the results.json files of `camrep.regression` runs (nothing else), groups them by
+Columns come from procedural families or from prepared real datasets (SRN cars, GQN, Gibson), as
+the runs' results.json record it; the data of each column is stated under the table. Reads the
+results.json files of `camrep.regression` runs (nothing else), groups them by
 (setting, representation), picks each group's learning rate on the validation errors
 (`camrep.regression.tables`: mean of error / paper-ours-error over the setting's columns, averaged over
 the seeds every lr has), and writes a Markdown file with
@@ -49,17 +51,26 @@ def build(results: Sequence[dict]) -> str:
     paper_rows.append([C.ROW_LABELS[rep], *cells])
   seeds = sorted({len(s.runs) for s in selections.values()})
   variants = sorted({str(r.get("variant", "?")) for s in selections.values() for r in s.runs})
+  runs = [r for s in selections.values() for r in s.runs]
+  real = [C.is_real(r) for r in runs]
+  kind = "real data" if real and all(real) else "mixed data" if any(real) else "procedural data"
+  title = "camrep's procedural families" if kind == "procedural data" else kind
+  notes = C.data_notes(selections, [("car", "car"), ("gqn", "rooms"), ("gibson", "area")])
   text = [
-    "# Table 1: pose regression on camrep's procedural families",
+    f"# Table 1: pose regression on {title}",
     "",
-    f"Measured on camrep's procedural data ({', '.join(variants) or 'no'} size; "
+    f"Measured on {kind} ({', '.join(variants) or 'no'} size; "
     f"{len(results)} runs read): mean test errors, mean ± sample std over "
     f"{'/'.join(map(str, seeds)) or '0'} seeds at the learning rate chosen on the validation "
-    "split. Columns: car = `object` family (held-out views of the training cars), rooms = "
-    "`rooms` family like GQN (held-out rooms; scene units, room [-1, 1]^2), area = `area` "
-    "family like Gibson (held-out views; metres).",
+    "split. Procedural columns: car = `object` family (held-out views of the training cars), "
+    "rooms = `rooms` family like GQN (held-out rooms; scene units, room [-1, 1]^2), area = "
+    "`area` family like Gibson (held-out views; metres).",
     "",
     C.markdown_table(header, rows),
+    "",
+    "Data of each column:",
+    "",
+    *notes,
     "",
     "## Paper's Table 1 (for reference: real ShapeNet cars, GQN rooms and Gibson, paper-size "
     "training; not the data above)",

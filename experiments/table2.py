@@ -1,7 +1,8 @@
 """Table 2 of the paper: 6-DOF pose regression per 7-Scenes scene (median errors).
 
 Reads the results.json files of `camrep.regression` runs of the seven_scenes setting (the
-`scene6dof` family: the real 7-Scenes camera trajectories inside procedural rooms), picks each
+`scene6dof` family: the real 7-Scenes camera trajectories inside procedural rooms, or a 7-Scenes
+directory prepared by `camrep.data.prepare`; the data is stated under the table), picks each
 representation's learning rate on the validation errors (`camrep.regression.tables`), and writes a
 Markdown table: per scene the median position error (m) and median rotation error (deg) of the
 test trajectory, ours vs quaternion vs log quaternion, each the mean ± sample std over seeds at
@@ -75,18 +76,38 @@ def build(results: Sequence[dict]) -> str:
   avg.append(f"{ref[0]:.2f} m, {ref[1]:.2f}° (7 scenes)")
   rows.append(avg)
   variants = sorted({str(r.get("variant", "?")) for s in selections.values() for r in s.runs})
+  runs = [r for s in selections.values() for r in s.runs]
+  real = bool(runs) and all(C.is_real(r) for r in runs)
+  if real:
+    title = "# Table 2: 6-DOF regression on 7-Scenes (prepared real images)"
+    what = (
+      f"Measured on a prepared 7-Scenes dataset ({', '.join(variants) or 'no'} size): the real "
+      "7-Scenes images and poses; train = the TrainSplit sequences, test = the TestSplit "
+      "sequences."
+    )
+  else:
+    title = "# Table 2: 6-DOF regression on the scene6dof family (7-Scenes trajectories)"
+    what = (
+      f"Measured on camrep's `scene6dof` family ({', '.join(variants) or 'no'} size): the real "
+      "7-Scenes camera trajectories rendered inside procedural furnished rooms; test = the "
+      "7-Scenes test trajectories."
+    )
+  weights = sorted({str(r.get("resnet_weights") or "none (from scratch)") for r in runs})
   text = [
-    "# Table 2: 6-DOF regression on the scene6dof family (7-Scenes trajectories)",
+    title,
     "",
-    f"Measured on camrep's `scene6dof` family ({', '.join(variants) or 'no'} size): the real "
-    "7-Scenes camera trajectories rendered inside procedural furnished rooms; test = the "
-    "7-Scenes test trajectories. Per scene: median position error (m), median rotation error "
+    what + " Per scene: median position error (m), median rotation error "
     "(deg); mean ± sample std over seeds at the learning rate chosen on the validation split "
     "(the end of each training trajectory). The last column is the paper's result on the real "
     "7-Scenes images (ResNet-34 pretrained on ImageNet, paper-size training), for reference "
     "only.",
     "",
     C.markdown_table(header, rows),
+    "",
+    "Data of the columns:",
+    "",
+    *C.data_notes(selections, [("seven_scenes", "all columns")]),
+    f"- ResNet initialisation: {', '.join(weights)}",
     "",
     "## Learning-rate selection",
     "",

@@ -1,4 +1,4 @@
-"""Pose-regression runs for the paper's Tables 1 and 2 (section 4.4) on procedural data.
+"""Pose-regression runs for the paper's Tables 1 and 2 (section 4.4) on procedural or real data.
 
 `python -m camrep.regression --config=configs/regression.py[:quick|:smoke] --workdir=DIR
 [--config.setting=gqn --config.representation=ours --config.synthesis_workdir=W ...]` trains one
@@ -29,10 +29,21 @@ when set):
               (rooms "test": held-out views of training rooms, context from their training
               views; object "test_scenes": held-out cars).
 
+Real data: with `data.source` a real source (gqn, srn_cars, gibson, seven_scenes; it must be of
+`setting`) and `data.dir` a directory prepared by `camrep.data.prepare`, the views come from that
+dataset with the paper's splits per dataset (`views.make_real_data`; its module docstring lists
+them), decoded once (cached in `data.cache_dir`, keyed by dataset, split and size) and held in
+memory. results.json's "data" then names the source, the directory, the dataset path, the test
+split, what each evaluation split is, and the number of test views.
+
 Representations: baselines need nothing more; "ours" restores the frozen pose system of a
 view-synthesis workdir (`load_pose_system`, via `camrep.synthesis`'s `load_run`); "mlp" uses that
 workdir's MLP embedding when it was trained with rep.kind="mlp", else a frozen randomly
 initialised MLP embedding (`targets.init_mlp`; the supplement's MLP is trained by view synthesis).
+The synthesis workdir must have been trained on the same data (`check_same_data`: same source,
+same prepared directory and dataset) and, for "ours", with the learned grid system.
+`model.resnet_weights` (seven_scenes) loads a torchvision ResNet-34 state dict into the trunk
+(`load_resnet_weights`).
 """
 
 from __future__ import annotations
@@ -53,6 +64,7 @@ import ml_collections
 import numpy as np
 
 from camrep import pose_inputs
+from camrep.data import records
 from camrep.regression import learner, scoring
 from camrep.regression import targets as T
 from camrep.regression import views as views_lib
@@ -93,6 +105,7 @@ def resolve_config(config: ml_collections.ConfigDict) -> ml_collections.ConfigDi
       "--config.synthesis_workdir=DIR (a `python -m camrep.main` workdir of setting "
       f"{config.setting!r})"
     )
+  check_source(config)
   c = ml_collections.ConfigDict(config.to_dict())
   s = c.settings[c.setting]
   with c.ignore_type():
@@ -114,7 +127,60 @@ def resolve_config(config: ml_collections.ConfigDict) -> ml_collections.ConfigDi
     raise ConfigError("total_steps, data.batch_size and optax.lr must be positive")
   if not 0 < c.data.validation_fraction < 1:
     raise ConfigError("data.validation_fraction must be in (0, 1)")
+  weights = c.model.get("resnet_weights", "")
+  if weights:
+    if c.setting != "seven_scenes":
+      raise ConfigError(
+        f"model.resnet_weights initialises the 7-Scenes ResNet-34; setting {c.setting!r} has "
+        "no ResNet"
+      )
+    if not os.path.isfile(weights):
+      raise ConfigError(f"model.resnet_weights {weights} does not exist")
   return c
+
+
+def check_source(config) -> None:
+  """Refuses a data.source of another setting, a real source without an existing data.dir, and
+  a procedural one with a data.dir.
+
+  Raises:
+    ConfigError: as above.
+  """
+  d = config.data
+  source = d.get("source", "")
+  if not source:
+    if d.get("dir", ""):
+      raise ConfigError(
+        "data.dir is set but data.source is empty: name the prepared dataset's source "
+        f"(--config.data.source={records.SOURCE_OF_SETTING.get(config.setting, '...')} is "
+        "procedural; real ones: gqn, srn_cars, gibson, seven_scenes)"
+      )
+    return
+  try:
+    setting = records.setting_of_source(source)
+  except ValueError as e:
+    raise ConfigError(f"data.source: {e}") from None
+  if setting != config.setting:
+    raise ConfigError(
+      f"data.source {source!r} is data of the {setting!r} setting, but setting is "
+      f"{config.setting!r}: pass --config.setting={setting}"
+    )
+  if source in records.PROCEDURAL:
+    if d.dir:
+      raise ConfigError(f"data.source {source!r} is procedural and takes no data.dir")
+    return
+  if not d.dir:
+    raise ConfigError(
+      f"data.source {source!r} is a real dataset: prepare it with `python -m camrep.data.prepare "
+      f"--source {source} --input RAW --data_dir DIR` and pass --config.data.dir=DIR"
+    )
+  if not os.path.isdir(d.dir):
+    raise ConfigError(f"data.dir {d.dir} does not exist (data.source {source!r})")
+
+
+def data_source(config) -> str:
+  """The config's data source: data.source, or the setting's procedural family."""
+  return config.data.get("source", "") or records.SOURCE_OF_SETTING[config.setting]
 
 
 # --------------------------------------------------------------------------------------------
@@ -125,8 +191,49 @@ def resolve_config(config: ml_collections.ConfigDict) -> ml_collections.ConfigDi
 # The frozen representation.
 
 
-def load_pose_system(workdir: str, setting: str, *, cache_dir: str = "") -> dict[str, Any]:
-  """The frozen pose input of a view-synthesis workdir, checked against the setting.
+def check_same_data(workdir: str, syn_config, config) -> None:
+  """Refuses a view-synthesis run trained on other data than this regression reads: another
+  data.source, or (real data) another prepared directory or dataset.
+
+  Raises:
+    ConfigError: as above.
+  """
+  ours, theirs = data_source(config), syn_config.data.source
+  our_dir = os.path.abspath(config.data.dir) if config.data.get("dir", "") else ""
+  their_dir = os.path.abspath(syn_config.data.dir) if syn_config.data.get("dir", "") else ""
+  if ours != theirs or our_dir != their_dir:
+    raise ConfigError(
+      f"synthesis_workdir {workdir} was trained on data.source={theirs!r}"
+      + (f" data.dir={their_dir}" if their_dir else " (procedural)")
+      + f", but this regression reads data.source={ours!r}"
+      + (f" data.dir={our_dir}" if our_dir else " (procedural)")
+      + ': "ours" must regress a pose system learned on the same data'
+    )
+  if not our_dir:
+    return
+  from camrep.data import storage
+  from camrep.data.errors import DataError
+
+  preset = syn_config.data.get("preset", "default")
+  try:
+    theirs_path = storage.dataset_dir(
+      their_dir, theirs, config=preset if preset != "default" else None
+    )
+  except DataError:
+    return  # the run's dataset cannot be resolved any more; source and dir matched
+  ours_path, _ = views_lib.open_dataset(config)
+  if os.path.abspath(theirs_path) != os.path.abspath(ours_path):
+    raise ConfigError(
+      f"synthesis_workdir {workdir} was trained on the prepared dataset {theirs_path}, this "
+      f"regression reads {ours_path} (pass --config.data.dataset_config to pick the same one)"
+    )
+
+
+def load_pose_system(
+  workdir: str, setting: str, *, cache_dir: str = "", config=None
+) -> dict[str, Any]:
+  """The frozen pose input of a view-synthesis workdir, checked against the setting (and, with
+  the regression's `config`, against its data: `check_same_data`).
 
   Restores the latest checkpoint with the synthesis `load_run`; with `cache_dir`, the pose
   parameters are also saved there (keyed by the workdir's path and checkpoint step), so later
@@ -137,7 +244,7 @@ def load_pose_system(workdir: str, setting: str, *, cache_dir: str = "") -> dict
      "step": restored step, "workdir": absolute path}.
 
   Raises:
-    ConfigError: the workdir is missing, has no checkpoint, or its setting differs.
+    ConfigError: the workdir is missing, has no checkpoint, or its setting or data differ.
   """
   import flax.serialization
 
@@ -155,6 +262,13 @@ def load_pose_system(workdir: str, setting: str, *, cache_dir: str = "") -> dict
       f"{syn_config.data.source!r}); this regression's setting is {setting!r}"
     )
   kind = syn_config.rep.get("kind", "grid")
+  if config is not None:
+    check_same_data(workdir, syn_config, config)
+    if config.representation == "ours" and kind != "grid":
+      raise ConfigError(
+        f"synthesis_workdir {workdir} was trained with another pose system, rep.kind={kind!r}; "
+        '"ours" needs the learned grid system (rep.kind="grid")'
+      )
   spec = components.pose_spec(syn_config)
   try:
     with ckpt_lib.Checkpointer(workdir, read_only=True) as ck:
@@ -197,13 +311,13 @@ def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
   system = None
   if config.synthesis_workdir:
     system = load_pose_system(
-      config.synthesis_workdir, config.setting, cache_dir=config.data.cache_dir
+      config.synthesis_workdir, config.setting, cache_dir=config.data.cache_dir, config=config
     )
   if rep == "ours":
     if system["kind"] != "grid":
       raise ConfigError(
-        f"synthesis_workdir {system['workdir']} was trained with rep.kind={system['kind']!r}; "
-        '"ours" needs the learned grid system (rep.kind="grid")'
+        f"synthesis_workdir {system['workdir']} was trained with another pose system, "
+        f'rep.kind={system["kind"]!r}; "ours" needs the learned grid system (rep.kind="grid")'
       )
     info = {"source": "synthesis", "workdir": system["workdir"], "step": system["step"]}
     return system["spec"], system["rep"], info
@@ -232,6 +346,7 @@ def make_regressor(config, spec, num_scenes: int) -> learner.Regressor:
     stage_sizes=tuple(config.model.resnet_stages),
     refine_steps=config.model.refine_steps,
     equalise_params=config.model.equalise_params,
+    image_norm="imagenet" if config.model.get("resnet_weights", "") else "symmetric",
     lr=config.optax.lr,
   )
 
@@ -280,6 +395,37 @@ def prepare(config: ml_collections.ConfigDict, *, log=print) -> Setup:
   return Setup(config, spec, rep_params, rep_info, data, reg)
 
 
+def load_resnet_weights(config, state: learner.RegressionState) -> learner.RegressionState:
+  """The state with its ResNet trunk replaced by `config.model.resnet_weights` (a torchvision
+  ResNet-34 state dict, .npz; the paper's ImageNet initialisation); fc, heads, s unchanged and
+  the optimiser state re-initialised. Unchanged when the field is empty.
+
+  Raises:
+    ConfigError: the file lacks a trunk key or a shape differs from the model's (e.g. a width
+      other than 1, or other `model.resnet_stages`).
+  """
+  from camrep.models import pose_regressor
+
+  path = config.model.get("resnet_weights", "")
+  if not path:
+    return state
+  variables = {"params": state.params["net"], "batch_stats": state.batch_stats}
+  try:
+    loaded = pose_regressor.load_torchvision_resnet34(
+      path, variables=variables, stage_sizes=tuple(config.model.resnet_stages)
+    )
+  except (ValueError, OSError, KeyError) as e:
+    raise ConfigError(
+      f"model.resnet_weights {path}: {e} (torchvision ResNet-34 weights need model.width=1 "
+      f"and model.resnet_stages=(3, 4, 6, 3) or a prefix of them; got width "
+      f"{config.model.width:g}, stages {tuple(config.model.resnet_stages)})"
+    ) from None
+  params = {**state.params, "net": loaded["params"]}
+  return state.replace(
+    params=params, batch_stats=loaded["batch_stats"], opt_state=state.tx.init(params)
+  )
+
+
 def train(setup: Setup, writer, eval_sets, *, predict_fn, log=print):
   """Trains the regressor for config.total_steps; validation errors every eval_every_steps.
 
@@ -289,8 +435,9 @@ def train(setup: Setup, writer, eval_sets, *, predict_fn, log=print):
   config = setup.config
   batches = views_lib.train_batches(config, setup.data.train)
   init_key = jax.random.fold_in(jax.random.key(config.seed), 0)
-  first = next(views_lib.train_batches(config, setup.data.train))
+  first = views_lib.train_batch_fn(config, setup.data.train)(0)
   state = learner.init(init_key, setup.reg, first, rep_params=setup.rep_params)
+  state = load_resnet_weights(config, state)
   step_fn = jax.jit(learner.train_step, donate_argnums=0)
   total = config.total_steps
   progress = progress_lib.Progress(total, every_seconds=20.0)
@@ -358,6 +505,7 @@ def results_record(setup: Setup, state, last, train_seconds, eval_seconds, summa
     "variant": config.variant,
     "params": count_params(state.params["net"]),
     "representation_params": setup.rep_info,
+    "resnet_weights": config.model.get("resnet_weights", "") or None,
     "data": setup.data.info,
     "final_train": last,
     "train_seconds": train_seconds,

@@ -56,6 +56,8 @@ class Regressor:
     config: loss, weighting and optimiser settings (`targets.defaults`, maybe overridden).
     spec: the pose system of a learned representation, else None.
     refine_steps: Gauss-Newton refinement steps when decoding "ours" (0: plain arg-min).
+    image_norm: how uint8 images become network inputs: "symmetric" [-1, 1] (digest 6.1), or
+      "imagenet" ((x / 255 - mean) / std, torchvision's, for ImageNet-pretrained weights).
   """
 
   setting: str
@@ -65,6 +67,12 @@ class Regressor:
   config: T.RegressionDefaults
   spec: P.PoseSystemSpec | None = None
   refine_steps: int = 4
+  image_norm: str = "symmetric"
+
+
+IMAGE_NORMS = ("symmetric", "imagenet")
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 def make_regressor(
@@ -78,6 +86,7 @@ def make_regressor(
   stage_sizes: tuple[int, ...] = R.RESNET34_STAGES,
   refine_steps: int = 4,
   equalise_params: bool = False,
+  image_norm: str = "symmetric",
   **overrides: Any,
 ) -> Regressor:
   """The regressor of a setting and representation at a given width.
@@ -98,6 +107,7 @@ def make_regressor(
       that of "ours" (the paper's fixed units equalise only at paper width; at a reduced width
       they leave a baseline with about half the parameters of ours). 7-Scenes baselines, which
       have no extra layer in the paper (MapNet's heads), get one solved the same way.
+    image_norm: see `Regressor.image_norm`.
     **overrides: fields of `targets.RegressionDefaults` to change (lr, extra_fc, loss, ...).
 
   Returns:
@@ -124,7 +134,9 @@ def make_regressor(
     module = R.GibsonRegressor(heads, num_scenes=num_scenes, **kw)
   else:
     module = R.ResNetRegressor(heads, stage_sizes=tuple(stage_sizes), fc_dim=fc_dim, **kw)
-  return Regressor(setting, representation, module, heads, cfg, spec, refine_steps)
+  if image_norm not in IMAGE_NORMS:
+    raise ValueError(f"image_norm must be one of {IMAGE_NORMS}, got {image_norm!r}")
+  return Regressor(setting, representation, module, heads, cfg, spec, refine_steps, image_norm)
 
 
 def make_optimizer(cfg: T.RegressionDefaults) -> optax.GradientTransformation:
@@ -160,12 +172,16 @@ class RegressionState:
   tx: optax.GradientTransformation = flax.struct.field(pytree_node=False)
 
 
-def prepare_images(images: Array) -> Array:
-  """uint8 [0, 255] -> float32 [-1, 1] (digest 6.1); float images are returned unchanged."""
+def prepare_images(images: Array, norm: str = "symmetric") -> Array:
+  """uint8 [0, 255] -> float32 [-1, 1] (digest 6.1), or with norm="imagenet" torchvision's
+  (x / 255 - mean) / std; float images are returned unchanged."""
   images = jnp.asarray(images)
-  if jnp.issubdtype(images.dtype, jnp.integer):
-    return images.astype(jnp.float32) * (2.0 / 255.0) - 1.0
-  return images
+  if not jnp.issubdtype(images.dtype, jnp.integer):
+    return images
+  if norm == "imagenet":
+    x = images.astype(jnp.float32) / 255.0
+    return (x - jnp.asarray(IMAGENET_MEAN)) / jnp.asarray(IMAGENET_STD)
+  return images.astype(jnp.float32) * (2.0 / 255.0) - 1.0
 
 
 def encode_poses(reg: Regressor, rep_params: Any, poses: Array) -> dict[str, Array]:
@@ -191,9 +207,9 @@ def network_inputs(reg: Regressor, rep_params: Any, batch: Mapping[str, Array]):
   """(images, keyword arguments) of the network for a batch."""
   kw = {"scene": batch.get("scene")}
   if reg.setting == "gqn":
-    kw["context_images"] = prepare_images(batch["context_image"])
+    kw["context_images"] = prepare_images(batch["context_image"], reg.image_norm)
     kw["context_poses"] = context_pose_input(reg, rep_params, batch["context_pose"])
-  return prepare_images(batch["image"]), kw
+  return prepare_images(batch["image"], reg.image_norm), kw
 
 
 def _variables(params: Mapping, batch_stats: Mapping) -> dict:

@@ -70,8 +70,8 @@ def evaluate_regression(
     setting: the setting of the errors; default the state's.
 
   Returns:
-    flat per-example arrays (N,): the `pose_errors` entries, "scene", plus "pose" and "pred"
-    (N, P). Padding (mask false) is dropped.
+    flat per-example arrays (N,): the `pose_errors` entries, "scene", "view" (when the batches
+    carry view ids), plus "pose" and "pred" (N, P). Padding (mask false) is dropped.
   """
   predict_fn = predict_fn or jax.jit(predict_poses)
   setting = setting or state.regressor.setting
@@ -89,6 +89,8 @@ def evaluate_regression(
     for k, v in errs.items():
       out[k].append(np.asarray(v).reshape(-1)[mask])
     out["scene"].append(scene.reshape(-1)[mask])
+    if "view" in batch:
+      out["view"].append(np.broadcast_to(np.asarray(batch["view"]), lead).reshape(-1)[mask])
     out["pose"].append(np.asarray(true).reshape(-1, true.shape[-1])[mask])
     out["pred"].append(np.asarray(pred).reshape(-1, true.shape[-1])[mask])
   return {k: np.concatenate(v) for k, v in out.items()}
@@ -104,7 +106,7 @@ def summarise_errors(errors: Mapping[str, np.ndarray]) -> dict[Any, dict[str, di
     {"all" or scene id: {error name: {"mean": float, "median": float}}}; the paper reports means
     (GQN, car, Gibson) and per-scene medians (7-Scenes).
   """
-  names = [k for k in errors if k not in ("scene", "pose", "pred")]
+  names = [k for k in errors if k not in ("scene", "view", "pose", "pred")]
   scene = np.asarray(errors["scene"])
   groups: dict[Any, np.ndarray] = {"all": np.ones(scene.shape, bool)}
   for s in np.unique(scene):

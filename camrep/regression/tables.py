@@ -7,6 +7,8 @@ Pure Python and NumPy (no JAX), shared by `experiments/table1.py`, `experiments/
   validation_score(s, summ)   the scalar that picks the learning rate (lower is better)
   select(results)             per (setting, representation): the chosen lr and its runs
   seed_stats(runs, ...)       mean, sample std and count over seeds of one test statistic
+  data_label(run)             which data a run used: procedural family or prepared dataset + split
+  data_notes(selections, ...) per table column, the data its runs came from
 
 Learning-rate choice: per (setting, representation), each lr's score is the mean of
 `validation_score` over the seeds that every lr of the grid has (all seeds when they share none);
@@ -191,6 +193,46 @@ def seed_stats(
     return math.nan, math.nan, 0
   std = float(np.std(vals, ddof=1)) if len(vals) > 1 else math.nan
   return float(np.mean(vals)), std, len(vals)
+
+
+def is_real(run: Mapping[str, Any]) -> bool:
+  """Whether a run read a prepared real dataset (its results.json data names a source)."""
+  return bool(run.get("data", {}).get("source"))
+
+
+def data_label(run: Mapping[str, Any]) -> str:
+  """Which data a run used, in words: the procedural family and preset, or the prepared
+  dataset's name, directory and test split (with its number of test views)."""
+  d = run.get("data", {})
+  split = d.get("test_split", "?")
+  if is_real(run):
+    n = d.get("num_test_views")
+    return (
+      f"prepared `{d.get('dataset', d['source'])}` (source {d['source']}) at "
+      f"{d.get('dataset_path', d.get('dir', '?'))}, test split `{split}`"
+      + (f" ({n} test views)" if n is not None else "")
+    )
+  family, preset = d.get("family", "?"), d.get("preset", "?")
+  return f"procedural `{family}` family (preset {preset}), test split `{split}`"
+
+
+def data_notes(
+  selections: Mapping[tuple[str, str], Selection], columns: Sequence[tuple[str, str]]
+) -> list[str]:
+  """Markdown lines "- column: data" for each (setting, column name), flagging a column whose
+  runs used different data (they are averaged together, which is almost certainly unwanted)."""
+  lines = []
+  for setting, name in columns:
+    labels = sorted(
+      {data_label(r) for (s, _), sel in selections.items() if s == setting for r in sel.runs}
+    )
+    if not labels:
+      continue
+    if len(labels) == 1:
+      lines.append(f"- {name}: {labels[0]}")
+    else:
+      lines.append(f"- {name}: MIXED DATA, runs of different data pooled: " + "; ".join(labels))
+  return lines
 
 
 def digits_for(value: float) -> int:
