@@ -163,6 +163,10 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         train_views=10,
         test_views=2,
         texture_contrast=(0.0, 0.08),
+        # Wall hues fixed to the world directions, so that a view tells the yaw (issue 18: with
+        # the old look, wall_style="tinted", every cue that tells a view from its quarter-turn
+        # twins is drawn afresh per room and the regression stays at chance).
+        wall_style="compass",
       ),
       total_steps=600,
       batch_size=4,
