@@ -56,15 +56,25 @@ def _train_and_score(config):
   return out
 
 
-@pytest.mark.parametrize("wall_style", [None, "tinted"])
-def test_quick_rooms_regression_learns_the_yaw(wall_style):
-  """The quick config's rooms (None): yaw far below chance (90 deg) on the training views and on
-  held-out views of the training rooms after 300 steps. The old look ("tinted") stays at chance:
-  the cause, not a bug on the path."""
-  config = _small_quick_config(**({"wall_style": wall_style} if wall_style else {}))
-  got = _train_and_score(config)
-  if wall_style is None:
-    assert got["train"]["yaw_error_deg"] < 45.0, got
-    assert got["test"]["yaw_error_deg"] < 45.0, got
-  else:
-    assert got["test"]["yaw_error_deg"] > 60.0, got
+def _report(got):
+  return {s: {k: round(v, 3) for k, v in d.items()} for s, d in got.items()}
+
+
+def test_quick_rooms_regression_learns_the_yaw():
+  """The quick config's rooms: after 300 steps the yaw error is far below chance (90 deg) on the
+  training views and on held-out views of the training rooms (with the old look the held-out
+  views stay at chance: the next test)."""
+  got = _train_and_score(_small_quick_config())
+  print(_report(got))
+  assert got["train"]["yaw_error_deg"] < 45.0, got
+  assert got["test"]["yaw_error_deg"] < 45.0, got
+
+
+@pytest.mark.slow
+def test_old_rooms_look_stays_at_chance():
+  """The old look (wall_style="tinted", the family's default) at the same size: held-out views
+  of the training rooms stay at chance, whatever the training views do (the cause, kept
+  documented; it is not a bug on the path)."""
+  got = _train_and_score(_small_quick_config(wall_style="tinted"))
+  print(_report(got))
+  assert got["test"]["yaw_error_deg"] > 60.0, got
