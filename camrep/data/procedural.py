@@ -88,6 +88,9 @@ class RoomsConfig:
   # so a view of a wall says little about the yaw); "distinct": every wall its own pattern and a
   # hue a quarter turn from its neighbours', like DeepMind's rooms whose walls can be told apart.
   wall_style: str = "tinted"
+  # The light's azimuth in degrees from +x, the same in every room (a fixed sun: shading and
+  # shadows then tell the yaw), or None: a random azimuth per room.
+  light_azimuth_deg: float | None = None
   supersample: int = 1
   shadows: bool = True
   batch_size: int = 32  # images per renderer call (one compile)
@@ -220,9 +223,17 @@ def _object_material(
 
 
 def _light(
-  b: render.SceneBuilder, rng: np.random.Generator, elevation_deg=(45.0, 70.0), ambient=(0.35, 0.5)
+  b: render.SceneBuilder,
+  rng: np.random.Generator,
+  elevation_deg=(45.0, 70.0),
+  ambient=(0.35, 0.5),
+  azimuth_deg: float | None = None,
 ):
+  """A directional light at a random elevation and ambient level; its azimuth is random, or
+  `azimuth_deg` (the world's fixed sun) when given. The draws are the same either way."""
   az, el = rng.uniform(0, _TWO_PI), np.deg2rad(rng.uniform(*elevation_deg))
+  if azimuth_deg is not None:
+    az = np.deg2rad(azimuth_deg)
   b.light_dir = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], np.float32)
   b.ambient = float(rng.uniform(*ambient))
 
@@ -486,13 +497,17 @@ class RoomsFamily(SampledPoseFamily):
         w["color_a"] = np.clip(w["color_a"] * tint, 0, 1)
         w["color_b"] = np.clip(w["color_b"] * tint, 0, 1)
         walls.append(w)
-    elif cfg.wall_style == "distinct":
+    elif cfg.wall_style in ("distinct", "compass"):
       hue0 = rng.uniform()
+      if cfg.wall_style == "compass":
+        hue0 = 0.0  # the same in every room: -x wall red, +x yellow-green, -y cyan, +y violet
       for k in range(4):
         hue = hue0 + 0.25 * k + rng.uniform(-0.04, 0.04)
         walls.append(_surface_material(rng, hue=hue, **{**wall_kw, "sat": (0.45, 0.8)}))
     else:
-      raise ValueError(f"unknown wall_style {cfg.wall_style!r}; choose 'tinted' or 'distinct'")
+      raise ValueError(
+        f"unknown wall_style {cfg.wall_style!r}; choose 'tinted', 'distinct' or 'compass'"
+      )
     floor = _surface_material(
       rng,
       patterns=("checker", "noise", "tiles", "stripes_u"),
@@ -503,7 +518,7 @@ class RoomsFamily(SampledPoseFamily):
     )
     ceiling = render.material(_hsv(rng.uniform(), 0.1, 0.9))
     b.set_room((-1.0, -1.0, 0.0), (1.0, 1.0, cfg.room_height), walls + [floor, ceiling])
-    _light(b, rng)
+    _light(b, rng, azimuth_deg=cfg.light_azimuth_deg)
     footprints = []
     n = int(rng.integers(cfg.min_objects, cfg.max_objects + 1))
     kinds = {"box": 0, "sphere": 0, "cylinder": 0}
