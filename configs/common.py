@@ -59,6 +59,10 @@ def base() -> ml_collections.ConfigDict:
   # generator, Eslami et al. 2018: tower + ConvDRAW, trained on its ELBO; task "gqn", rep.kind
   # "lowdim"). convdraw only: generation steps L and latent channels per step.
   c.model.kind = "decoder"
+  # Dtype of the decoder model's computation: "float32" (default) or "bfloat16" (mixed precision,
+  # meant for GPUs: parameters, optimiser state, pose system and losses stay float32; on the CPU
+  # it is slower, BUILD_NOTES "Mixed precision"). model.kind "decoder" only.
+  c.model.dtype = "float32"
   c.model.draw_steps = 12
   c.model.z_channels = 3
 

@@ -35,6 +35,18 @@ MODEL_KINDS = ("decoder", "convdraw")
 SAMPLE_SEED = 20180615
 
 
+# config.model.dtype -> the models' `dtype` (None: float32, Flax's inference from the parameters).
+COMPUTE_DTYPES = {"float32": None, "bfloat16": jnp.bfloat16}
+
+
+def compute_dtype(config):
+  """The dtype of the model's computation from `config.model.dtype` (absent: float32)."""
+  name = config.model.get("dtype", "float32")
+  if name not in COMPUTE_DTYPES:
+    raise ValueError(f"unknown model.dtype {name!r}; choose one of {tuple(COMPUTE_DTYPES)}")
+  return COMPUTE_DTYPES[name]
+
+
 def model_kind(config) -> str:
   kind = config.model.get("kind", "decoder")
   if kind not in MODEL_KINDS:
@@ -50,7 +62,8 @@ def check_config(config) -> None:
     setting(config)
     kind = pose_inputs.rep_kind(config)
     mkind = model_kind(config)
-  except ValueError as e:  # unknown data.source, rep.kind or model.kind
+    dtype = compute_dtype(config)
+  except ValueError as e:  # unknown data.source, rep.kind, model.kind or model.dtype
     raise ConfigError(str(e)) from None
   if config.total_steps < 1:
     raise ConfigError(f"total_steps must be >= 1, got {config.total_steps}")
@@ -64,6 +77,11 @@ def check_config(config) -> None:
       "model.kind='convdraw' (GQN's generator) needs task='gqn' and rep.kind='lowdim' (its 7-D "
       f"pose vector; the ELBO trains the model group only), got task={config.task!r}, "
       f"rep.kind={kind!r}"
+    )
+  if mkind == "convdraw" and dtype is not None:
+    raise ConfigError(
+      f"model.dtype={config.model.dtype!r} is implemented for model.kind='decoder' only; "
+      "GQN's generator (convdraw) computes in float32"
     )
   if L.data_pairs and kind == "grid" and d.mode != "pairs":
     raise ConfigError(
@@ -121,12 +139,13 @@ def pose_spec(config) -> P.PoseSystemSpec:
 
 
 def make_model(config, num_scenes: int):
-  """The view-synthesis model of the config's setting."""
+  """The view-synthesis model of the config's setting, computing in `config.model.dtype`."""
   m = config.model
   if model_kind(config) == "convdraw":
     return GQNConvDraw(width=m.width, steps=m.draw_steps, z_channels=m.z_channels)
+  dtype = compute_dtype(config)
   if config.task == "gqn":
-    return GQNSynthesis(width=m.width, gamma_offset=1.0 if m.gamma_init_one else 0.0)
+    return GQNSynthesis(width=m.width, gamma_offset=1.0 if m.gamma_init_one else 0.0, dtype=dtype)
   return TableSynthesis(
     num_scenes=num_scenes,
     scene_dim=m.scene_dim,
@@ -135,6 +154,7 @@ def make_model(config, num_scenes: int):
     per_scene_norm=m.per_scene_norm,
     norm_eps=m.norm_eps,
     gamma_init_one=m.gamma_init_one,
+    dtype=dtype,
   )
 
 
