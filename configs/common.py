@@ -42,8 +42,15 @@ def base() -> ml_collections.ConfigDict:
   c.data.n_context = 6
   # "random" views (GQN) or neighbouring "pairs" (car, Gibson, 7-Scenes).
   c.data.mode = "random"
+  # Reader threads (per worker process, with num_workers) and batches prefetched ahead of the step.
   c.data.num_threads = 2
   c.data.prefetch = 2
+  # Prepared datasets (data.dir): worker processes that read and decode the batches' PNGs; -1:
+  # all usable cores but two (`camrep.data.pipeline.default_num_workers`: 14 on a 16-core GPU
+  # machine, 0 on 2 cores); 0: no worker processes (reader threads only).
+  c.data.num_workers = -1
+  # Batches copied to the accelerators ahead of the step (0: none; each is copied when taken).
+  c.data.device_prefetch = 2
 
   c.model = ml_collections.ConfigDict()
   c.model.width = 1.0

@@ -5,6 +5,7 @@ combinations the train step cannot run before anything is built.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -193,6 +194,15 @@ def render_gqn(
   return pred
 
 
+def num_workers(config) -> int:
+  """Worker processes of a prepared dataset's pipeline: `data.num_workers`, -1 (or absent) for
+  `pipeline.default_num_workers()` (all usable cores but two)."""
+  n = int(config.data.get("num_workers", -1))
+  if n < -1:
+    raise ValueError(f"data.num_workers must be >= -1 (-1: from the core count), got {n}")
+  return pipeline_lib.default_num_workers() if n == -1 else n
+
+
 def make_source(config, split_hint: str = "train"):
   """The procedural family of the config (for in-memory / rendered data)."""
   from camrep.data import procedural
@@ -213,9 +223,10 @@ def make_pipeline(
 ):
   """Batches of `split` laid out for the pmapped step (see camrep.data.pipeline).
 
-  Data comes from `config.data.dir` (a prepared tfds directory) when set; otherwise from the
-  procedural family, held in memory (`data.in_memory`) or rendered batch by batch. With
-  `for_eval` the pipeline only serves `scene_views` (a one-scene, one-view layout).
+  Data comes from `config.data.dir` (a prepared tfds directory) when set, its training batches
+  decoded by `num_workers(config)` worker processes; otherwise from the procedural family, held
+  in memory (`data.in_memory`) or rendered batch by batch. With `for_eval` the pipeline only
+  serves `scene_views` (a one-scene, one-view layout).
   """
   d = config.data
   pcfg = pipeline_lib.PipelineConfig(
@@ -229,6 +240,7 @@ def make_pipeline(
   )
   kw = dict(process_index=process_index, process_count=process_count)
   if d.dir:
+    pcfg = dataclasses.replace(pcfg, num_workers=0 if for_eval else num_workers(config))
     dataset_config = d.preset if d.preset != "default" else None
     return pipeline_lib.tfds_pipeline(
       d.dir, d.source, split, pcfg, dataset_config=dataset_config, **kw
