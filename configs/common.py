@@ -47,7 +47,8 @@ def base() -> ml_collections.ConfigDict:
   c.data.prefetch = 2
   # Prepared datasets (data.dir): worker processes that read and decode the batches' PNGs; -1:
   # all usable cores but two (`camrep.data.pipeline.default_num_workers`: 14 on a 16-core GPU
-  # machine, 0 on 2 cores); 0: no worker processes (reader threads only).
+  # machine, 0 on 2 cores); 0: no worker processes (reader threads only). Several training
+  # processes on one machine each start this many: set it per process then.
   c.data.num_workers = -1
   # Batches copied to the accelerators ahead of the step (0: none; each is copied when taken).
   c.data.device_prefetch = 2

@@ -136,6 +136,21 @@ def test_worker_processes_give_the_same_stream_and_resume(data_dir):
       assert_batches_equal(batch, reference.batch(3 + k))
 
 
+def test_num_workers_config():
+  from camrep.runtime.runconfig import ConfigError
+  from camrep.synthesis import components
+  from configs import gqn
+
+  c = gqn.get_config("smoke")
+  assert c.data.num_workers == -1
+  assert components.num_workers(c) == pipeline.default_num_workers()
+  c.data.num_workers = 3
+  assert components.num_workers(c) == 3
+  c.data.num_workers = -2
+  with pytest.raises(ConfigError, match="num_workers"):
+    components.check_config(c)
+
+
 def test_default_num_workers_from_cores():
   assert pipeline.default_num_workers(16) == 14
   assert pipeline.default_num_workers(2) == 0

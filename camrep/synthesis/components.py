@@ -64,7 +64,8 @@ def check_config(config) -> None:
     kind = pose_inputs.rep_kind(config)
     mkind = model_kind(config)
     dtype = compute_dtype(config)
-  except ValueError as e:  # unknown data.source, rep.kind, model.kind or model.dtype
+    num_workers(config)
+  except ValueError as e:  # unknown data.source, rep.kind, model.kind, model.dtype; num_workers
     raise ConfigError(str(e)) from None
   if config.total_steps < 1:
     raise ConfigError(f"total_steps must be >= 1, got {config.total_steps}")
