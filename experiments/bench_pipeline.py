@@ -23,6 +23,11 @@ Command (about 30 s on a 2-core CPU; no accelerator needed):
   .venv/bin/python experiments/bench_pipeline.py [--source rooms|stand_in] [--scenes 64]
       [--views 10] [--size 64] [--scenes_per_device 8] [--views_per_scene 9] [--steps 30]
       [--threads 2] [--workers 2]
+
+On a 16-core GPU machine, the paper's batch layout (30 scenes x 9 views) against worker counts:
+
+  python experiments/bench_pipeline.py --scenes 256 --scenes_per_device 30 --views_per_scene 9 \
+      --steps 60 --workers 4,8,14
 """
 
 from __future__ import annotations
