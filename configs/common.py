@@ -48,8 +48,16 @@ def base() -> ml_collections.ConfigDict:
   c.data.n_context = 6
   # "random" views (GQN) or neighbouring "pairs" (car, Gibson, 7-Scenes).
   c.data.mode = "random"
+  # Reader threads (per worker process, with num_workers) and batches prefetched ahead of the step.
   c.data.num_threads = 2
   c.data.prefetch = 2
+  # Prepared datasets (data.dir): worker processes that read and decode the batches' PNGs; -1:
+  # all usable cores but two (`camrep.data.pipeline.default_num_workers`: 14 on a 16-core GPU
+  # machine, 0 on 2 cores); 0: no worker processes (reader threads only). Several training
+  # processes on one machine each start this many: set it per process then.
+  c.data.num_workers = -1
+  # Batches copied to the accelerators ahead of the step (0: none; each is copied when taken).
+  c.data.device_prefetch = 2
 
   c.model = ml_collections.ConfigDict()
   c.model.width = 1.0
@@ -65,6 +73,10 @@ def base() -> ml_collections.ConfigDict:
   # generator, Eslami et al. 2018: tower + ConvDRAW, trained on its ELBO; task "gqn", rep.kind
   # "lowdim"). convdraw only: generation steps L and latent channels per step.
   c.model.kind = "decoder"
+  # Dtype of the decoder model's computation: "float32" (default) or "bfloat16" (mixed precision,
+  # meant for GPUs: parameters, optimiser state, pose system and losses stay float32; on the CPU
+  # it is slower, BUILD_NOTES "Mixed precision"). model.kind "decoder" only.
+  c.model.dtype = "float32"
   c.model.draw_steps = 12
   c.model.z_channels = 3
 

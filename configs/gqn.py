@@ -10,6 +10,10 @@ lambda_2 100, lambda_4 0.8, 4000 extra rotation pairs, 6 blocks of 16, 21 x 21 p
     ~80 h. On 2 CPU cores it starts, prints an ETA and trains (far too slowly to finish).
     Expected: the paper's GQN PSNR (not reported in full text) and pose-regression targets of
     Table 1 (x, y errors 0.053, yaw 4.07 degrees).
+    On a GPU, `--config.model.dtype=bfloat16` computes the encoder and decoder in bfloat16
+    (parameters, optimiser state, pose system and losses stay float32; BUILD_NOTES "Mixed
+    precision"); with a prepared dataset (`--config.data.dir=DIR`), `data.num_workers` worker
+    processes decode its PNGs (default: all cores but two).
   python -m camrep.main --config=configs/gqn.py:quick --workdir=/tmp/gqn_quick
     eighth width, 400 in-memory scenes, 3 context + 6 query views, 2000 steps: ~12 minutes on
     2 CPU cores. Measured: held-out-view PSNR 21.03 dB against 19.12 dB for the mean of the 3

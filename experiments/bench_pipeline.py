@@ -7,26 +7,40 @@ temporary data_dir, then reads batches laid out like the GQN train step
 
   memory      the same `BatchPipeline` over images already in RAM (batching code alone)
   tfds        `tfds_pipeline(...).batch(k)` in the caller's thread (PNG decoding included)
-  grain       `tfds_pipeline(...).iterator()`, grain MapDataset + reader threads (what training
-              uses)
+  grain       `tfds_pipeline(...).iterator()`, grain MapDataset + reader threads, no worker
+              processes (`data.num_workers=0`)
+  workers=N   the same iterator with N worker processes (`data.num_workers=N`, grain
+              `mp_prefetch`; each with `--threads` reader threads), for each N of `--workers`
+  +device     the last of those, followed by `pipeline.prefetch_to_device` (2 batches ahead, as
+              the train loop does): batches arrive as device arrays
   dataloader  the same steps through `grain.DataLoader` (IndexSampler, worker_count=0)
 
-Command (about 20 s on a 2-core CPU; no accelerator needed):
+Worker processes are started before the timing (the first, warm-up batch waits for them); the
+line `workers: N (default for this machine's C usable cores: M)` gives the config's default.
+
+Command (about 30 s on a 2-core CPU; no accelerator needed):
 
   .venv/bin/python experiments/bench_pipeline.py [--source rooms|stand_in] [--scenes 64]
       [--views 10] [--size 64] [--scenes_per_device 8] [--views_per_scene 9] [--steps 30]
-      [--threads 2]
+      [--threads 2] [--workers 2]
+
+On a 16-core GPU machine, the paper's batch layout (30 scenes x 9 views) against worker counts:
+
+  python experiments/bench_pipeline.py --scenes 256 --scenes_per_device 30 --views_per_scene 9 \
+      --steps 60 --workers 4,8,14
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import tempfile
 import time
 from collections.abc import Iterator
 
 import cv2
 import grain
+import jax
 import numpy as np
 
 from camrep.data import pipeline, procedural, storage
@@ -122,6 +136,9 @@ def main() -> None:
   parser.add_argument("--mode", default="random", choices=pipeline.MODES)
   parser.add_argument("--steps", type=int, default=30)
   parser.add_argument("--threads", type=int, default=2)
+  parser.add_argument(
+    "--workers", default="2", help="comma-separated worker-process counts to time (0: skip)"
+  )
   args = parser.parse_args()
 
   source, kind = make_source(args.source, args.scenes, args.views, args.size)
@@ -153,11 +170,26 @@ def main() -> None:
     # The in-memory variant over the same views, loaded from the store (not re-rendered).
     images = storage.load(data_dir, source.name, "train").read_images(np.arange(n))
     memory = pipeline.BatchPipeline(stored.index, lambda records: images[records], cfg)
+    workers = [int(w) for w in args.workers.split(",") if int(w) > 0]
+    cores = pipeline.usable_cores()
+    print(
+      f"workers: {workers} (default for this machine's {cores} usable cores: "
+      f"{pipeline.default_num_workers(cores)})"
+    )
+
+    def with_workers(w: int):
+      return pipeline.tfds_pipeline(
+        data_dir, source.name, "train", dataclasses.replace(cfg, num_workers=w)
+      ).iterator()
+
+    # Each iterator is made just before it is timed and closed after, so no worker processes
+    # run during another row's timing.
     runs = {
-      "memory": (memory.batch(k) for k in range(10**9)),
-      "tfds": (stored.batch(k) for k in range(10**9)),
-      "grain": stored.iterator(),
-      "dataloader": iter(
+      "memory": lambda: (memory.batch(k) for k in range(10**9)),
+      "tfds": lambda: (stored.batch(k) for k in range(10**9)),
+      "grain": stored.iterator,
+      **{f"workers={w}": (lambda w=w: with_workers(w)) for w in workers},
+      "dataloader": lambda: iter(
         grain.DataLoader(
           data_source=_Steps(stored, args.steps + 1),
           sampler=grain.samplers.IndexSampler(args.steps + 1, shuffle=False, num_epochs=1),
@@ -166,12 +198,21 @@ def main() -> None:
         )
       ),
     }
-    for label, batches in runs.items():
+    if workers:
+      runs[f"workers={workers[-1]}+device"] = lambda: with_workers(workers[-1])
+    for label, make_batches in runs.items():
+      host = make_batches()
+      batches = host
+      if label.endswith("+device"):
+        batches = (jax.block_until_ready(b) for b in pipeline.prefetch_to_device(host, 2))
       dt = time_batches(batches, args.steps)
       print(
-        f"{label:>10}: {args.steps / dt:8.1f} batches/s  {args.steps * images_per_batch / dt:9.0f}"
-        " images/s"
+        f"{label:>18}: {args.steps / dt:8.1f} batches/s  "
+        f"{args.steps * images_per_batch / dt:9.0f} images/s",
+        flush=True,
       )
+      if hasattr(host, "close"):
+        host.close()
 
 
 if __name__ == "__main__":

@@ -8,8 +8,10 @@ Measures, in one run (these machines are noisy: compare the ratios printed by on
             the jaxpr (`camrep.runtime.flops`: the same on CPU and GPU, where XLA's cost
             analysis leaves cuDNN convolutions out; XLA's count printed beside it), achieved
             FLOP/s, and peak RSS;
-  peak      the fp32 matmul peak of this machine (jnp 2048^3 matmuls), measured in the same run;
-            MFU = achieved FLOP/s / peak;
+  peak      the matmul peak of this machine in each `--dtype` (jnp 2048^3 matmuls), measured in
+            the same run; MFU = achieved FLOP/s / the peak in the step's dtype;
+  dtype     (`--dtype=float32,bfloat16`) the step at each compute dtype (`model.dtype`: bfloat16
+            compute, float32 parameters and optimiser state), and the time ratio;
   grads     the same step with XLA's own conv weight gradients ("xla") against camrep's matmul
             weight gradients ("matmul", `camrep.models.fastconv`); with `--bf16`, one conv
             layer's forward and gradients in bfloat16 against float32;
@@ -19,13 +21,21 @@ Measures, in one run (these machines are noisy: compare the ratios printed by on
   parts     (`--breakdown`) encoder, decoder and rotation losses timed alone (forward +
             backward), with their FLOPs: where the step's time goes.
 
-The last line reads `mfu=<fraction> images_per_s=<number>` (the "step" figures at `--width`).
+The last line reads `mfu=<fraction> images_per_s=<number>` (the "step" figures at `--width`, the
+first `--dtype` and the first `--grad_modes`).
 
 Commands (2-core CPU):
 
   .venv/bin/python experiments/bench_train_step.py --width=quick            # ~2 min
   .venv/bin/python experiments/bench_train_step.py --width=quick --tables   # ~6 min
   .venv/bin/python experiments/bench_train_step.py --width=paper --steps=2  # ~8 min
+  .venv/bin/python experiments/bench_train_step.py --width=quick --grad_modes=matmul \
+    --dtype=float32,bfloat16                                                 # ~3 min
+
+On a GPU (mixed precision is meant for it; conv weight gradients from XLA / cuDNN):
+
+  python experiments/bench_train_step.py --width=paper --grad_modes=xla --steps=30 \
+    --dtype=float32,bfloat16
 """
 
 from __future__ import annotations
@@ -52,6 +62,9 @@ def _parse(argv=None):
   p.add_argument("--scenes", type=int, default=30, help="scenes per step (paper 30)")
   p.add_argument("--steps", type=int, default=3, help="timed steps (median reported)")
   p.add_argument("--grad_modes", default="matmul,xla", help="conv weight gradients to compare")
+  p.add_argument(
+    "--dtype", default="float32", help="compute dtypes (model.dtype) to time, e.g. float32,bfloat16"
+  )
   p.add_argument("--bf16", action="store_true", help="also time a conv layer in bfloat16")
   p.add_argument("--tables", action="store_true", help="batch / image size / device tables")
   p.add_argument("--breakdown", action="store_true", help="time encoder, decoder, rotation loss")
@@ -319,25 +332,38 @@ def main(argv=None) -> None:
     f"step, width {width}, {args.scenes} scenes x 9 views, 64 px",
     flush=True,
   )
-  peak = matmul_peak()
-  print(f"fp32 matmul peak (2048^3): {peak / 1e9:.1f} GFLOP/s", flush=True)
-  config = gqn_config(width, args.scenes)
+  dtypes = args.dtype.split(",")
+  peaks = {}
+  for dtype in dtypes:
+    peaks[dtype] = matmul_peak(dtype=dtype)
+    print(f"{dtype} matmul peak (2048^3): {peaks[dtype] / 1e9:.1f} GFLOP/s", flush=True)
+  peak = peaks[dtypes[0]]
+  modes = args.grad_modes.split(",")
   results = {}
-  for mode in args.grad_modes.split(","):
-    with fastconv.weight_grad(mode):
-      r = time_step(config, steps=args.steps)
-    results[mode] = r
+  for dtype in dtypes:
+    config = gqn_config(width, args.scenes)
+    config.model.dtype = dtype
+    for mode in modes:
+      with fastconv.weight_grad(mode):
+        r = time_step(config, steps=args.steps)
+      results[dtype, mode] = r
+      print(
+        f"  {dtype} weight grad {mode:6s}: {r['sec']:.3f} s/step  {r['images_per_s']:.1f} "
+        f"images/s  {r['flops'] / 1e9:.1f} GFLOP/step (XLA's count {r['xla_flops'] / 1e9:.1f})  "
+        f"{r['flops_per_s'] / 1e9:.1f} GFLOP/s  "
+        f"MFU {r['flops_per_s'] / peaks[dtype]:.3f} (of the {dtype} peak)  "
+        f"compile {r['compile_s']:.1f} s  finite {r['finite']:.0f}",
+        flush=True,
+      )
+  if len(modes) == 2:
+    a, b = (results[dtypes[0], m] for m in modes)
+    print(f"  ratio {modes[1]}/{modes[0]} step time: {b['sec'] / a['sec']:.2f}x", flush=True)
+  for dtype in dtypes[1:]:
+    a, b = results[dtypes[0], modes[0]], results[dtype, modes[0]]
     print(
-      f"  weight grad {mode:6s}: {r['sec']:.3f} s/step  {r['images_per_s']:.1f} images/s  "
-      f"{r['flops'] / 1e9:.1f} GFLOP/step (XLA's count {r['xla_flops'] / 1e9:.1f})  "
-      f"{r['flops_per_s'] / 1e9:.1f} GFLOP/s  "
-      f"MFU {r['flops_per_s'] / peak:.3f}  compile {r['compile_s']:.1f} s",
+      f"  ratio {dtype}/{dtypes[0]} step time ({modes[0]}): {b['sec'] / a['sec']:.2f}x",
       flush=True,
     )
-  modes = list(results)
-  if len(modes) == 2:
-    a, b = (results[m] for m in modes)
-    print(f"  ratio {modes[1]}/{modes[0]} step time: {b['sec'] / a['sec']:.2f}x", flush=True)
   if args.bf16:
     r = conv_dtypes(width, args.scenes)
     print(
@@ -388,7 +414,7 @@ def main(argv=None) -> None:
       f"poses/s, refined (4 Gauss-Newton steps) {d['refined']:.0f} poses/s",
       flush=True,
     )
-  main_r = results[modes[0]]
+  main_r = results[dtypes[0], modes[0]]
   print(f"peak RSS {peak_rss_mb():.0f} MiB", flush=True)
   print(f"mfu={main_r['flops_per_s'] / peak:.4f} images_per_s={main_r['images_per_s']:.2f}")
 

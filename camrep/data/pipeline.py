@@ -38,18 +38,27 @@ Backends share the batching code: `tfds_pipeline` reads the ArrayRecord files wr
 `camrep.data.storage.prepare` (grouping by scene comes from the sidecar index, only the
 selected PNGs are decoded); `memory_pipeline` holds a source's split in memory (tests, quick
 runs). `BatchPipeline.iterator` wraps `batch` in a `grain.MapDataset` over step numbers and
-prefetches with grain's reader threads (cv2 PNG decoding releases the GIL).
+prefetches it: with `num_workers` > 0 in that many worker processes (grain's `mp_prefetch`: worker
+w builds the batches of steps start + w, start + w + num_workers, ..., and the iterator hands them
+out in step order), otherwise in grain reader threads of this process (cv2's PNG decoding releases
+the GIL, but the rest of a batch does not). Either way element i is `batch(start_step + i)`, so the
+data stays a pure function of (seed, step, process) whatever the number of workers or threads.
+`default_num_workers` picks the number from the usable cores, and `prefetch_to_device` keeps the
+next batches on their way to the accelerators while the step runs.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import os
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
 import grain
+import jax
 import numpy as np
+from absl import flags as absl_flags
 
 from camrep.data import storage
 from camrep.data.errors import DataError
@@ -77,8 +86,11 @@ class PipelineConfig:
     mode: "random" or "pairs" (see the module docstring).
     pair_k: "pairs" mode: the partner is drawn among this many nearest views.
     seed: shuffling seed (>= 0).
-    num_threads: grain reader threads for `BatchPipeline.iterator` (0: read in the caller).
-    prefetch: batches grain keeps ready ahead of the consumer.
+    num_threads: grain reader threads for `BatchPipeline.iterator` (0: read in the caller);
+      with `num_workers` > 0, the threads of each worker process.
+    prefetch: batches grain keeps ready ahead of the consumer (per worker with `num_workers`).
+    num_workers: worker processes that build the batches of `BatchPipeline.iterator` (PNG
+      decoding of prepared datasets); 0: none, batches are built by this process's threads.
   """
 
   num_devices: int = 1
@@ -89,6 +101,7 @@ class PipelineConfig:
   seed: int = 0
   num_threads: int = 2
   prefetch: int = 4
+  num_workers: int = 0
 
   @property
   def scenes_per_step(self) -> int:
@@ -118,8 +131,70 @@ class PipelineConfig:
       raise ValueError(f"PipelineConfig.mode must be one of {MODES}, got {self.mode!r}")
     if self.mode == "pairs" and self.views_per_scene % 2:
       raise ValueError(f"'pairs' mode needs an even views_per_scene, got {self.views_per_scene}")
-    if self.seed < 0 or self.num_threads < 0 or self.prefetch < 0:
-      raise ValueError("PipelineConfig.seed, num_threads and prefetch must be >= 0")
+    if self.seed < 0 or self.num_threads < 0 or self.prefetch < 0 or self.num_workers < 0:
+      raise ValueError("PipelineConfig.seed, num_threads, prefetch and num_workers must be >= 0")
+
+
+def usable_cores() -> int:
+  """CPU cores this process may run on (its affinity mask; `os.cpu_count()` where there is none)."""
+  try:
+    return len(os.sched_getaffinity(0))
+  except AttributeError:  # not on Linux
+    return os.cpu_count() or 1
+
+
+def default_num_workers(cores: int | None = None) -> int:
+  """Worker processes for a prepared dataset's batches when `data.num_workers` is -1 ("auto").
+
+  All usable cores but two (one for the training loop, which dispatches the step and feeds the
+  device, one for the grain and XLA threads around it), at most 32: 14 on a 16-core GPU machine,
+  0 on the 2-core CPU machine (no worker processes; reader threads, as before).
+  """
+  cores = usable_cores() if cores is None else cores
+  return max(0, min(32, cores - 2))
+
+
+def prefetch_to_device(
+  batches: Iterable[Mapping[str, np.ndarray]],
+  size: int = 2,
+  *,
+  keys: Sequence[str] = ("image", "pose", "scene"),
+  devices: Sequence[Any] | None = None,
+) -> Iterator[dict[str, jax.Array]]:
+  """Copies batches to the local devices `size` batches ahead of the consumer.
+
+  Each array is split along its leading (device) axis over `devices`, as the pmapped step takes
+  it, by `jax.device_put`, which returns at once: the copies of the next batches run while the
+  current step computes (flax.jax_utils.prefetch_to_device, with today's sharding API).
+
+  Args:
+    batches: host batches, arrays (D, ...) with D = len(devices).
+    size: batches in flight (2 is enough to hide one batch's copy behind a step).
+    keys: the fields to copy (the others are dropped).
+    devices: the devices of the leading axis (default: `jax.local_devices()`).
+
+  Returns:
+    An iterator of {key: jax.Array (D, ...)} in the order of `batches`.
+  """
+  devices = list(jax.local_devices() if devices is None else devices)
+  sharding = jax.sharding.NamedSharding(
+    jax.sharding.Mesh(np.asarray(devices), ("devices",)), jax.sharding.PartitionSpec("devices")
+  )
+  queue: collections.deque = collections.deque()
+  it = iter(batches)
+
+  def enqueue(n: int) -> None:
+    for b in it:
+      queue.append({k: jax.device_put(np.asarray(b[k]), sharding) for k in keys})
+      n -= 1
+      if n <= 0:
+        break
+
+  enqueue(max(1, size))
+  while queue:
+    out = queue.popleft()
+    enqueue(1)
+    yield out
 
 
 def wrap_angle(x: np.ndarray) -> np.ndarray:
@@ -326,7 +401,11 @@ class BatchPipeline:
     return grain.MapDataset.range(start_step, stop).map(self.batch)
 
   def iterator(self, *, start_step: int = 0, num_steps: int | None = None) -> Iterator[Batch]:
-    """Batches from `start_step` on, prefetched by grain reader threads.
+    """Batches from `start_step` on, prefetched by worker processes or reader threads.
+
+    With `config.num_workers` > 0, grain's `mp_prefetch` runs that many (spawned) processes,
+    each with a copy of this pipeline (the stored split reopens itself there) and
+    `config.num_threads` reader threads; close the iterator (`.close()`) to stop them early.
 
     Args:
       start_step: first step (resume point).
@@ -335,13 +414,26 @@ class BatchPipeline:
     Returns:
       A grain DatasetIterator (also supports `get_state`/`set_state`).
     """
+    cfg = self.config
     ds = self.dataset(start_step=start_step, num_steps=num_steps)
-    if self.config.num_threads == 0:
-      return iter(ds.to_iter_dataset())
+    # num_threads 0: read in the consumer's thread (grain's default would be 16 threads and a
+    # 500-batch buffer).
+    threads = cfg.num_threads
     opts = grain.ReadOptions(
-      num_threads=self.config.num_threads, prefetch_buffer_size=max(1, self.config.prefetch)
+      num_threads=threads, prefetch_buffer_size=max(1, cfg.prefetch) if threads else 0
     )
-    return iter(ds.to_iter_dataset(opts))
+    it_ds = ds.to_iter_dataset(opts)
+    if cfg.num_workers > 0:
+      # grain reads absl flags (its worker options) when it starts workers; outside an absl
+      # program (tests, notebooks) they are unparsed: take their defaults.
+      if not absl_flags.FLAGS.is_parsed():
+        absl_flags.FLAGS.mark_as_parsed()
+      it_ds = it_ds.mp_prefetch(
+        grain.MultiprocessingOptions(
+          num_workers=cfg.num_workers, per_worker_buffer_size=max(1, cfg.prefetch)
+        )
+      )
+    return iter(it_ds)
 
   def __iter__(self) -> Iterator[Batch]:
     return self.iterator()

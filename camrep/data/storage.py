@@ -525,6 +525,11 @@ class StoredSplit(Sequence):
   def __len__(self) -> int:
     return len(self.data_source)
 
+  def __reduce__(self):
+    # Pickled as (path, split) and reopened on load: a grain worker process
+    # (`PipelineConfig.num_workers`) opens its own ArrayRecord readers.
+    return (StoredSplit, (self.path, self.split))
+
   def _decode(self, ex: Mapping[str, Any]) -> dict[str, Any]:
     return {
       "image": decode_png(ex["image"]),

@@ -10,9 +10,16 @@ Two kinds, matching the authors' four settings (digest section 2):
 
 Both take pose vectors already computed by `camrep.pose` (the pose system is a separate parameter
 group, trained with its own optimiser), and return (images in [-1, 1], aux).
+
+Mixed precision (`model.dtype`, issue 14): `dtype` is the dtype of the encoder's and decoder's
+computation (bfloat16 on a GPU); parameters are float32 whatever it is, so the optimiser state is
+too, and the images come out in float32, so the losses are float32 sums. Scene codes, AdaIN
+tables and pose vectors stay float32.
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import flax.linen as nn
 import jax
@@ -32,10 +39,12 @@ class GQNSynthesis(nn.Module):
     width: channel multiplier (1.0 = paper width).
     gamma_offset: added to the encoder's AdaIN gammas in the decoder (0 as the authors; see
       `ResAdaINDecoder`).
+    dtype: dtype of the computation (None: float32; "bfloat16" with `model.dtype`).
   """
 
   width: float = 1.0
   gamma_offset: float = 0.0
+  dtype: Any = None
 
   @nn.compact
   def __call__(
@@ -49,11 +58,13 @@ class GQNSynthesis(nn.Module):
       query_vecs: (S, Q, P) pose vectors of the query views.
 
     Returns:
-      images (S, Q, 64, 64, 3) in [-1, 1], and aux with the scene code and decoder styles.
+      images (S, Q, 64, 64, 3) in [-1, 1] (float32), and aux with the scene code and decoder
+      styles.
     """
-    scene, enc_aux = SceneEncoder(width=self.width, name="encoder")(context_images, context_vecs)
+    encoder = SceneEncoder(width=self.width, dtype=self.dtype, name="encoder")
+    scene, enc_aux = encoder(context_images, context_vecs)
     images, dec_aux = ResAdaINDecoder(
-      width=self.width, gamma_offset=self.gamma_offset, name="decoder"
+      width=self.width, gamma_offset=self.gamma_offset, dtype=self.dtype, name="decoder"
     )(scene, query_vecs)
     return images, {"scene": scene, "decoder": dec_aux}
 
@@ -69,6 +80,7 @@ class TableSynthesis(nn.Module):
     per_scene_norm: per-scene instance-norm tables in the decoder (Gibson, 7-Scenes).
     norm_eps: added to |u| before normalising (7-Scenes: 1e-6).
     gamma_init_one: decoder tables' gamma initialised at 1 instead of ~0 (camrep option).
+    dtype: dtype of the decoder's computation (None: float32; "bfloat16" with `model.dtype`).
   """
 
   num_scenes: int
@@ -78,6 +90,7 @@ class TableSynthesis(nn.Module):
   per_scene_norm: bool = False
   norm_eps: float = 0.0
   gamma_init_one: bool = False
+  dtype: Any = None
 
   @nn.compact
   def __call__(self, scene_ids: Array, vecs: Array) -> tuple[Array, dict]:
@@ -88,7 +101,7 @@ class TableSynthesis(nn.Module):
       vecs: (S, V, P) pose vectors.
 
     Returns:
-      images (S, V, H, W, 3) in [-1, 1], and aux.
+      images (S, V, H, W, 3) in [-1, 1] (float32), and aux.
     """
     table = SceneTable(self.num_scenes, self.scene_dim, norm_eps=self.norm_eps, name="scene")
     u, _ = table(scene_ids)  # (S, du)
@@ -100,6 +113,7 @@ class TableSynthesis(nn.Module):
       per_scene_norm=self.per_scene_norm,
       num_scenes=self.num_scenes if self.per_scene_norm else 0,
       gamma_init_one=self.gamma_init_one,
+      dtype=self.dtype,
       name="decoder",
     )
     index = jnp.broadcast_to(scene_ids[:, None], (S, V)) if self.per_scene_norm else None

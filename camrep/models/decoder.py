@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Mapping
+from typing import Any
 
 import flax.linen as nn
 import jax
@@ -58,10 +59,13 @@ class ResAdaINDecoder(nn.Module):
       starts as a small random head output, so the AdaIN branches start nearly silent); 1 is a
       camrep option (`model.gamma_init_one`): the heads learn gamma - 1, so the normalised
       branches pass signal from the first step.
+    dtype: dtype of the computation (e.g. bfloat16, `model.dtype`); None: float32. Parameters
+      are float32 either way, and the images come out in float32 (tanh taken in float32).
   """
 
   width: float = 1.0
   gamma_offset: float = 0.0
+  dtype: Any = None
 
   @nn.compact
   def __call__(self, scene: Mapping[str, Array], poses: Array) -> tuple[Array, dict]:
@@ -73,7 +77,7 @@ class ResAdaINDecoder(nn.Module):
       poses: (scenes, queries, pose_dim) query pose vectors.
 
     Returns:
-      images: (scenes, queries, 64, 64, 3) in [-1, 1].
+      images: (scenes, queries, 64, 64, 3) in [-1, 1], float32 (whatever `dtype`).
       aux: {"style": {name: (scenes, C)} the AdaIN parameters used,
             "rms": {block name: () activation RMS}}.
     """
@@ -99,38 +103,38 @@ class ResAdaINDecoder(nn.Module):
       style = {k: v + self.gamma_offset if k.startswith("gamma") else v for k, v in style.items()}
     acts = {}
 
-    x = layers.dense(4 * 4 * c256, name="fc")(z).reshape((s * q, 4, 4, c256))
+    x = layers.dense(4 * 4 * c256, name="fc", dtype=self.dtype)(z).reshape((s * q, 4, 4, c256))
     acts["fc"] = x
 
     h = layers.upsample2(x)
-    a = layers.conv(c256, 3, name="res8_conv_a")(layers.lrelu(h))
-    a = layers.conv(c256, 3, name="res8_conv_b")(layers.lrelu(a))
+    a = layers.conv(c256, 3, name="res8_conv_a", dtype=self.dtype)(layers.lrelu(h))
+    a = layers.conv(c256, 3, name="res8_conv_b", dtype=self.dtype)(layers.lrelu(a))
     a = layers.lrelu(layers.adain(a, style["gamma8"], style["beta8"]))
-    x = a + layers.conv(c256, 1, name="res8_skip")(h)
+    x = a + layers.conv(c256, 1, name="res8_skip", dtype=self.dtype)(h)
     acts["res8"] = x
 
     h = layers.upsample2(x)
-    a = layers.conv(c256, 3, name="res16_conv_a")(h)
-    a = layers.conv(c256, 3, name="res16_conv_b")(layers.lrelu(a))
+    a = layers.conv(c256, 3, name="res16_conv_a", dtype=self.dtype)(h)
+    a = layers.conv(c256, 3, name="res16_conv_b", dtype=self.dtype)(layers.lrelu(a))
     a = layers.lrelu(layers.adain(a, style["gamma16"], style["beta16"]))
-    x = a + layers.conv(c256, 1, name="res16_skip")(h)
+    x = a + layers.conv(c256, 1, name="res16_skip", dtype=self.dtype)(h)
     acts["res16"] = x
 
     h = layers.upsample2(x)
-    a = layers.conv(c128, 3, name="res32_conv_a")(h)
-    a = layers.lrelu(layers.conv(c128, 3, name="res32_conv_b")(layers.lrelu(a)))
-    x = a + layers.conv(c128, 1, name="res32_skip")(h)
+    a = layers.conv(c128, 3, name="res32_conv_a", dtype=self.dtype)(h)
+    a = layers.lrelu(layers.conv(c128, 3, name="res32_conv_b", dtype=self.dtype)(layers.lrelu(a)))
+    x = a + layers.conv(c128, 1, name="res32_skip", dtype=self.dtype)(h)
     acts["res32"] = x
 
     h = layers.upsample2(x)
-    a = layers.conv(c64, 3, name="res64_conv_a")(h)
-    a = layers.conv(3, 3, name="res64_conv_b")(layers.lrelu(a))
-    x = a + layers.conv(3, 1, name="res64_skip")(h)
+    a = layers.conv(c64, 3, name="res64_conv_a", dtype=self.dtype)(h)
+    a = layers.conv(3, 3, name="res64_conv_b", dtype=self.dtype)(layers.lrelu(a))
+    x = a + layers.conv(3, 1, name="res64_skip", dtype=self.dtype)(h)
     acts["res64"] = x
 
     for k, v in acts.items():
       self.sow("intermediates", f"{k}_out", v)
-    images = jnp.tanh(x).reshape((s, q, *x.shape[1:]))
+    images = jnp.tanh(layers.at_least_f32(x)).reshape((s, q, *x.shape[1:]))
     aux = {
       "style": {k: scene[k] for k in GQN_STYLE_KEYS},
       "rms": {k: layers.rms(v) for k, v in acts.items()},
@@ -154,6 +158,8 @@ class UpConvDecoder(nn.Module):
     gamma_init_one: camrep improvement candidate, off by default for fidelity: initialise the
       gamma tables at 1 + N(0, stddev^2) so that the normalised layers pass signal from the
       first step.
+    dtype: dtype of the computation (e.g. bfloat16, `model.dtype`); None: float32. Parameters
+      (tables included) are float32 either way; the images come out in float32.
   """
 
   width: float = 1.0
@@ -162,6 +168,7 @@ class UpConvDecoder(nn.Module):
   num_scenes: int = 0
   table_init_stddev: float = 1e-3
   gamma_init_one: bool = False
+  dtype: Any = None
 
   def _style(self, name: str, channels: int, scene_index: Array) -> tuple[Array, Array]:
     """Per-scene (gamma, beta) rows for one layer: (..., channels) each."""
@@ -187,7 +194,7 @@ class UpConvDecoder(nn.Module):
       scene_index: (...) integer scene index of each row, required with `per_scene_norm`.
 
     Returns:
-      images: (..., image_size, image_size, 3) in [-1, 1].
+      images: (..., image_size, image_size, 3) in [-1, 1], float32 (whatever `dtype`).
       aux: {"style": {"gamma8": (..., C), "beta8": ..., ...} the looked-up AdaIN parameters
             (empty without `per_scene_norm`), "rms": {layer name: () activation RMS}}.
     """
@@ -216,22 +223,24 @@ class UpConvDecoder(nn.Module):
         x = layers.adain(x, gamma, beta)
       return layers.lrelu(x)
 
-    x = layers.lrelu(layers.dense(4 * 4 * c256, name="fc")(z)).reshape((-1, 4, 4, c256))
+    x = layers.lrelu(layers.dense(4 * 4 * c256, name="fc", dtype=self.dtype)(z)).reshape(
+      (-1, 4, 4, c256)
+    )
     acts["fc"] = x
-    x = norm_act(layers.conv_transpose(c256, 4, strides=2, name="conv8")(x), "8")
+    x = norm_act(layers.conv_transpose(c256, 4, strides=2, name="conv8", dtype=self.dtype)(x), "8")
     acts["conv8"] = x
     for name in list(widths)[1:]:
       h = layers.upsample2(x)
-      x = norm_act(layers.conv(widths[name], 4, name=f"conv{name}")(h), name)
+      x = norm_act(layers.conv(widths[name], 4, name=f"conv{name}", dtype=self.dtype)(h), name)
       if name == "16":
         x = x + h
       acts[f"conv{name}"] = x
-    x = layers.conv(3, 4, name="to_rgb")(layers.upsample2(x))
+    x = layers.conv(3, 4, name="to_rgb", dtype=self.dtype)(layers.upsample2(x))
     acts["to_rgb"] = x
 
     for k, v in acts.items():
       self.sow("intermediates", f"{k}_out", v)
-    images = jnp.tanh(x).reshape((*lead, *x.shape[1:]))
+    images = jnp.tanh(layers.at_least_f32(x)).reshape((*lead, *x.shape[1:]))
     aux = {
       "style": {k: v.reshape((*lead, v.shape[-1])) for k, v in style.items()},
       "rms": {k: layers.rms(v) for k, v in acts.items()},

@@ -27,7 +27,7 @@ so conv1 is followed by ReLU.
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import flax.linen as nn
 import jax
@@ -74,18 +74,22 @@ class SceneEncoder(nn.Module):
     heads: the output heads (default: the generator's u, gamma8, beta8, gamma16, beta16).
     trunk_channels: channels of the strided and h5 convs at width 1.0 (paper 256).
     block_channels: channels of the [3x3 + 1x1] blocks at width 1.0 (paper 128).
+    dtype: dtype of the computation (e.g. bfloat16, `model.dtype`); None: float32 (Flax infers
+      it from the float32 parameters). Parameters are float32 either way, and the heads' outputs
+      are summed over views in float32 and returned in float32.
   """
 
   width: float = 1.0
   heads: tuple[Head, ...] = GQN_GENERATOR_HEADS
   trunk_channels: int = 256
   block_channels: int = 128
+  dtype: Any = None
 
   def _block(self, x: Array, name: str) -> Array:
     """[conv 3x3 + conv 1x1] summed, then ReLU."""
     c = layers.scaled(self.block_channels, self.width)
-    a = layers.conv(c, 3, name=f"{name}_conv3")(x)
-    b = layers.conv(c, 1, name=f"{name}_conv1")(x)
+    a = layers.conv(c, 3, name=f"{name}_conv3", dtype=self.dtype)(x)
+    b = layers.conv(c, 1, name=f"{name}_conv1", dtype=self.dtype)(x)
     return nn.relu(a + b)
 
   @nn.compact
@@ -113,16 +117,16 @@ class SceneEncoder(nn.Module):
     p = poses.reshape((s * v, poses.shape[-1]))
     tc = layers.scaled(self.trunk_channels, self.width)
 
-    x = nn.relu(layers.conv(tc, 2, strides=2, name="conv1")(x))
+    x = nn.relu(layers.conv(tc, 2, strides=2, name="conv1", dtype=self.dtype)(x))
     x = self._block(x, "block2")
-    x = nn.relu(layers.conv(tc, 2, strides=2, name="conv3")(x))
+    x = nn.relu(layers.conv(tc, 2, strides=2, name="conv3", dtype=self.dtype)(x))
     tiled = jnp.broadcast_to(p[:, None, None, :], (*x.shape[:3], p.shape[-1])).astype(x.dtype)
     x = jnp.concatenate([x, tiled], axis=-1)
     x = self._block(x, "block4")
-    h5 = nn.relu(layers.conv(tc, 3, name="conv5")(x))
-    x = nn.relu(layers.conv(tc, 2, strides=2, name="conv6")(h5))
+    h5 = nn.relu(layers.conv(tc, 3, name="conv5", dtype=self.dtype)(x))
+    x = nn.relu(layers.conv(tc, 2, strides=2, name="conv6", dtype=self.dtype)(h5))
     h7 = self._block(x, "block7")
-    x = nn.relu(layers.conv(tc, 2, strides=2, name="conv8")(h7))
+    x = nn.relu(layers.conv(tc, 2, strides=2, name="conv8", dtype=self.dtype)(h7))
     h9 = self._block(x, "block9")
     feats = {"h5": h5, "h7": h7, "h9": h9}
     for k, f in feats.items():
@@ -133,8 +137,8 @@ class SceneEncoder(nn.Module):
       if head.source not in feats:
         raise ValueError(f"head {head.name}: unknown source {head.source!r}, not in {SOURCES}")
       c = layers.scaled(head.channels, self.width) if head.scaled else head.channels
-      y = layers.global_avg_pool(layers.conv(c, 3, name=f"head_{head.name}")(feats[head.source]))
-      y = y.reshape((s, v, c))
+      y = layers.conv(c, 3, name=f"head_{head.name}", dtype=self.dtype)(feats[head.source])
+      y = layers.global_avg_pool(layers.at_least_f32(y)).reshape((s, v, c))
       per_view[head.name] = y
       out[head.name] = jnp.sum(y, axis=1)
     aux = {"per_view": per_view, "rms": {k: layers.rms(f) for k, f in feats.items()}}

@@ -19,6 +19,10 @@ Which weight gradient is used is decided when the step is traced:
   "matmul" / "xla": forced, e.g. by `experiments/bench_train_step.py` to compare the two.
 Set it with `weight_grad("xla")` as a context manager around tracing, or `set_weight_grad`.
 Layouts other than NHWC / HWIO, dilations and feature groups fall back to XLA's conv.
+
+bfloat16 (`model.dtype`): the forward conv and the input gradient run in the inputs' dtype, as
+XLA's; the tap matmuls of the kernel gradient accumulate in float32 (`preferred_element_type`)
+and their result is cast to the kernel's dtype (tests/test_mixed_precision.py).
 """
 
 from __future__ import annotations
@@ -80,7 +84,8 @@ def kernel_grad_matmul(x: Array, dy: Array, kernel_hw: tuple[int, int], strides,
     pads: ((top, bottom), (left, right)) explicit padding of the forward conv.
 
   Returns:
-    (kh, kw, Cin, Cout) dW = sum over n, h, w of x_pad[n, sh*h + i, sw*w + j, :] dy[n, h, w, :].
+    (kh, kw, Cin, Cout) dW = sum over n, h, w of x_pad[n, sh*h + i, sw*w + j, :] dy[n, h, w, :],
+    accumulated and returned in float32 (or wider, for float64 inputs).
   """
   (kh, kw), (sh, sw) = kernel_hw, strides
   n, ho, wo, cout = dy.shape
@@ -93,7 +98,8 @@ def kernel_grad_matmul(x: Array, dy: Array, kernel_hw: tuple[int, int], strides,
       patch = lax.slice(
         xp, (0, i, j, 0), (n, i + sh * (ho - 1) + 1, j + sw * (wo - 1) + 1, cin), (1, sh, sw, 1)
       )
-      taps.append(jnp.dot(patch.reshape(n * ho * wo, cin).T, g))
+      p = patch.reshape(n * ho * wo, cin).T
+      taps.append(jnp.dot(p, g, preferred_element_type=jnp.promote_types(p.dtype, jnp.float32)))
   return jnp.stack(taps).reshape(kh, kw, cin, cout)
 
 

@@ -12,6 +12,11 @@ once so that every model follows them:
 
 Images are NHWC with any number of leading batch axes: (..., H, W, C).
 
+Mixed precision (`model.dtype`): the layer helpers take `dtype`, the dtype of the computation;
+parameters stay float32 (Flax's `param_dtype`) and are cast when used. Instance-norm statistics
+and the AdaIN affine are computed in float32 whatever the activations' dtype, and their result is
+cast back to it.
+
 Also here: `SceneTable`, the learned per-scene code u of the car, Gibson and 7-Scenes models
 (digest 2.2-2.3), and `param_count` / `intermediate_shapes` helpers for logging.
 """
@@ -46,6 +51,19 @@ def scaled(channels: int, width: float) -> int:
   return max(1, int(round(channels * width)))
 
 
+def at_least_f32(x: Array) -> Array:
+  """x in float32 when its dtype is narrower (bfloat16, float16); unchanged otherwise."""
+  return x.astype(jnp.promote_types(x.dtype, jnp.float32))
+
+
+def _normalise(x: Array, eps: float) -> Array:
+  """(x - mu) / sqrt(var + eps) per sample and channel over (H, W), in at least float32."""
+  x = at_least_f32(x)
+  mu = jnp.mean(x, axis=(-3, -2), keepdims=True)
+  var = jnp.mean(jnp.square(x - mu), axis=(-3, -2), keepdims=True)
+  return (x - mu) / jnp.sqrt(var + eps)
+
+
 def instance_norm(x: Array, eps: float = IN_EPS) -> Array:
   """Instance normalisation without affine terms, as the authors' TF code.
 
@@ -54,12 +72,10 @@ def instance_norm(x: Array, eps: float = IN_EPS) -> Array:
     eps: added to the variance inside the square root.
 
   Returns:
-    (..., H, W, C): (x - mu) / sqrt(var + eps), with mu and the biased variance var taken per
-    sample and channel over (H, W).
+    (..., H, W, C) in x's dtype: (x - mu) / sqrt(var + eps), with mu and the biased variance var
+    taken per sample and channel over (H, W) (in float32 when x is bfloat16).
   """
-  mu = jnp.mean(x, axis=(-3, -2), keepdims=True)
-  var = jnp.mean(jnp.square(x - mu), axis=(-3, -2), keepdims=True)
-  return (x - mu) / jnp.sqrt(var + eps)
+  return _normalise(x, eps).astype(x.dtype)
 
 
 def adain(x: Array, gamma: Array, beta: Array, eps: float = IN_EPS) -> Array:
@@ -72,9 +88,10 @@ def adain(x: Array, gamma: Array, beta: Array, eps: float = IN_EPS) -> Array:
     eps: instance-norm epsilon inside the square root.
 
   Returns:
-    (..., H, W, C).
+    (..., H, W, C) in x's dtype (normalised and scaled in float32 when x is bfloat16).
   """
-  return gamma[..., None, None, :] * instance_norm(x, eps) + beta[..., None, None, :]
+  y = gamma[..., None, None, :] * _normalise(x, eps) + beta[..., None, None, :]
+  return y.astype(x.dtype)
 
 
 def upsample2(x: Array) -> Array:
@@ -87,8 +104,9 @@ def global_avg_pool(x: Array) -> Array:
   return jnp.mean(x, axis=(-3, -2))
 
 
-def conv(features: int, kernel: int, *, strides: int = 1, name: str) -> nn.Conv:
-  """TF-style conv: k x k kernel, 'SAME' padding, glorot_uniform kernel, zero bias.
+def conv(features: int, kernel: int, *, strides: int = 1, name: str, dtype: Any = None) -> nn.Conv:
+  """TF-style conv: k x k kernel, 'SAME' padding, glorot_uniform kernel, zero bias; computed in
+  `dtype` (inputs and the float32 parameters are cast to it; None: Flax infers it, float32).
 
   Also stands in for the authors' stride-1 `conv2d_transpose` layers: with stride 1 a transposed
   conv is a conv with a flipped kernel, which does not matter when training from scratch (digest
@@ -102,12 +120,16 @@ def conv(features: int, kernel: int, *, strides: int = 1, name: str) -> nn.Conv:
     kernel_init=kernel_init,
     bias_init=bias_init,
     conv_general_dilated=fastconv.conv_general_dilated,
+    dtype=dtype,
     name=name,
   )
 
 
-def conv_transpose(features: int, kernel: int, *, strides: int, name: str) -> nn.ConvTranspose:
-  """TF-style `conv2d_transpose`: 'SAME' padding (output = input * strides), glorot, zero bias."""
+def conv_transpose(
+  features: int, kernel: int, *, strides: int, name: str, dtype: Any = None
+) -> nn.ConvTranspose:
+  """TF-style `conv2d_transpose`: 'SAME' padding (output = input * strides), glorot, zero bias;
+  computed in `dtype`."""
   return nn.ConvTranspose(
     features,
     (kernel, kernel),
@@ -115,13 +137,15 @@ def conv_transpose(features: int, kernel: int, *, strides: int, name: str) -> nn
     padding="SAME",
     kernel_init=kernel_init,
     bias_init=bias_init,
+    dtype=dtype,
     name=name,
   )
 
 
-def dense(features: int, *, name: str) -> nn.Dense:
-  """Dense layer with glorot_uniform kernel and zero bias (TF1 `tf.layers.dense` defaults)."""
-  return nn.Dense(features, kernel_init=kernel_init, bias_init=bias_init, name=name)
+def dense(features: int, *, name: str, dtype: Any = None) -> nn.Dense:
+  """Dense layer with glorot_uniform kernel and zero bias (TF1 `tf.layers.dense` defaults);
+  computed in `dtype`."""
+  return nn.Dense(features, kernel_init=kernel_init, bias_init=bias_init, dtype=dtype, name=name)
 
 
 def rms(x: Array) -> Array:

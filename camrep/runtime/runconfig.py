@@ -36,9 +36,16 @@ SYNTHESIS_RESUMABLE = (
   "optax.final_scale",
   "optax.anneal_steps",
   "data.dir",
+  "model.dtype",
 )
 # Fields that change only speed or where output goes: they differ silently (still recorded).
-FREE = ("allow_changes", "data.num_threads", "data.prefetch")
+FREE = (
+  "allow_changes",
+  "data.num_threads",
+  "data.prefetch",
+  "data.num_workers",
+  "data.device_prefetch",
+)
 
 
 class ConfigError(ValueError):

@@ -5,6 +5,7 @@ combinations the train step cannot run before anything is built.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -35,6 +36,18 @@ MODEL_KINDS = ("decoder", "convdraw")
 SAMPLE_SEED = 20180615
 
 
+# config.model.dtype -> the models' `dtype` (None: float32, Flax's inference from the parameters).
+COMPUTE_DTYPES = {"float32": None, "bfloat16": jnp.bfloat16}
+
+
+def compute_dtype(config):
+  """The dtype of the model's computation from `config.model.dtype` (absent: float32)."""
+  name = config.model.get("dtype", "float32")
+  if name not in COMPUTE_DTYPES:
+    raise ValueError(f"unknown model.dtype {name!r}; choose one of {tuple(COMPUTE_DTYPES)}")
+  return COMPUTE_DTYPES[name]
+
+
 def model_kind(config) -> str:
   kind = config.model.get("kind", "decoder")
   if kind not in MODEL_KINDS:
@@ -50,7 +63,9 @@ def check_config(config) -> None:
     setting(config)
     kind = pose_inputs.rep_kind(config)
     mkind = model_kind(config)
-  except ValueError as e:  # unknown data.source, rep.kind or model.kind
+    dtype = compute_dtype(config)
+    num_workers(config)
+  except ValueError as e:  # unknown data.source, rep.kind, model.kind, model.dtype; num_workers
     raise ConfigError(str(e)) from None
   if config.total_steps < 1:
     raise ConfigError(f"total_steps must be >= 1, got {config.total_steps}")
@@ -64,6 +79,11 @@ def check_config(config) -> None:
       "model.kind='convdraw' (GQN's generator) needs task='gqn' and rep.kind='lowdim' (its 7-D "
       f"pose vector; the ELBO trains the model group only), got task={config.task!r}, "
       f"rep.kind={kind!r}"
+    )
+  if mkind == "convdraw" and dtype is not None:
+    raise ConfigError(
+      f"model.dtype={config.model.dtype!r} is implemented for model.kind='decoder' only; "
+      "GQN's generator (convdraw) computes in float32"
     )
   if L.data_pairs and kind == "grid" and d.mode != "pairs":
     raise ConfigError(
@@ -121,12 +141,13 @@ def pose_spec(config) -> P.PoseSystemSpec:
 
 
 def make_model(config, num_scenes: int):
-  """The view-synthesis model of the config's setting."""
+  """The view-synthesis model of the config's setting, computing in `config.model.dtype`."""
   m = config.model
   if model_kind(config) == "convdraw":
     return GQNConvDraw(width=m.width, steps=m.draw_steps, z_channels=m.z_channels)
+  dtype = compute_dtype(config)
   if config.task == "gqn":
-    return GQNSynthesis(width=m.width, gamma_offset=1.0 if m.gamma_init_one else 0.0)
+    return GQNSynthesis(width=m.width, gamma_offset=1.0 if m.gamma_init_one else 0.0, dtype=dtype)
   return TableSynthesis(
     num_scenes=num_scenes,
     scene_dim=m.scene_dim,
@@ -135,6 +156,7 @@ def make_model(config, num_scenes: int):
     per_scene_norm=m.per_scene_norm,
     norm_eps=m.norm_eps,
     gamma_init_one=m.gamma_init_one,
+    dtype=dtype,
   )
 
 
@@ -173,6 +195,15 @@ def render_gqn(
   return pred
 
 
+def num_workers(config) -> int:
+  """Worker processes of a prepared dataset's pipeline: `data.num_workers`, -1 (or absent) for
+  `pipeline.default_num_workers()` (all usable cores but two)."""
+  n = int(config.data.get("num_workers", -1))
+  if n < -1:
+    raise ValueError(f"data.num_workers must be >= -1 (-1: from the core count), got {n}")
+  return pipeline_lib.default_num_workers() if n == -1 else n
+
+
 def make_source(config, split_hint: str = "train"):
   """The procedural family of the config (for in-memory / rendered data)."""
   from camrep.data import procedural
@@ -193,9 +224,10 @@ def make_pipeline(
 ):
   """Batches of `split` laid out for the pmapped step (see camrep.data.pipeline).
 
-  Data comes from `config.data.dir` (a prepared tfds directory) when set; otherwise from the
-  procedural family, held in memory (`data.in_memory`) or rendered batch by batch. With
-  `for_eval` the pipeline only serves `scene_views` (a one-scene, one-view layout).
+  Data comes from `config.data.dir` (a prepared tfds directory) when set, its training batches
+  decoded by `num_workers(config)` worker processes; otherwise from the procedural family, held
+  in memory (`data.in_memory`) or rendered batch by batch. With `for_eval` the pipeline only
+  serves `scene_views` (a one-scene, one-view layout).
   """
   d = config.data
   pcfg = pipeline_lib.PipelineConfig(
@@ -209,6 +241,7 @@ def make_pipeline(
   )
   kw = dict(process_index=process_index, process_count=process_count)
   if d.dir:
+    pcfg = dataclasses.replace(pcfg, num_workers=0 if for_eval else num_workers(config))
     dataset_config = d.preset if d.preset != "default" else None
     return pipeline_lib.tfds_pipeline(
       d.dir, d.source, split, pcfg, dataset_config=dataset_config, **kw

@@ -35,6 +35,7 @@ import ml_collections
 import numpy as np
 
 from camrep import pose as P
+from camrep.data import pipeline as pipeline_lib
 from camrep.runtime import grids, runconfig
 from camrep.runtime import progress as progress_lib
 from camrep.runtime import workdir as workdir_lib
@@ -329,7 +330,14 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
   progress = progress_lib.Progress(total, start_step=start)
   rate = StepRate()
   signals = ckpt_lib.install_signal_handlers()
-  batches = job.train_pipe.iterator(start_step=start, num_steps=max(total - start, 0))
+  host_batches = job.train_pipe.iterator(start_step=start, num_steps=max(total - start, 0))
+  # The next batches are copied to the devices while the step runs (data.device_prefetch).
+  n_ahead = int(config.data.get("device_prefetch", 2))
+  batches = (
+    pipeline_lib.prefetch_to_device(host_batches, n_ahead, devices=jax.local_devices())
+    if n_ahead > 0
+    else host_batches
+  )
   last: dict[str, float] = {}
   step = start
   try:
@@ -358,6 +366,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict[
       write_final_metrics(job, step, last)
   finally:
     signals.uninstall()
+    if hasattr(host_batches, "close"):  # stops grain's worker processes, if any
+      host_batches.close()
     job.checkpointer.close()
     job.writer.close()
     if job.lock is not None:
