@@ -79,6 +79,9 @@ def base() -> ml_collections.ConfigDict:
   c.model.dtype = "float32"
   c.model.draw_steps = 12
   c.model.z_channels = 3
+  # convdraw prediction (held-out eval, noise test): latents z = mu_p + T sigma_p eps of the prior;
+  # T = 1 is GQN's sample, T = 0 the prior mean (deterministic; camrep option).
+  c.model.draw_temperature = 1.0
 
   c.rep = ml_collections.ConfigDict()
   # The decoder's pose input: "grid" (the paper's learned system), or for comparisons "lowdim"
@@ -112,6 +115,11 @@ def base() -> ml_collections.ConfigDict:
   c.loss.sigma_initial = 2.0
   c.loss.sigma_final = 0.7
   c.loss.sigma_anneal_steps = 200_000
+  # model.kind "convdraw" only, camrep option (GQN: 1.0, the plain ELBO): the KL term's weight
+  # beta, annealed linearly from kl_weight_initial to 1 over kl_anneal_steps (0: beta = 1 from the
+  # start). beta > 1 early pushes information out of the latents into the pose-conditioned path.
+  c.loss.kl_weight_initial = 1.0
+  c.loss.kl_anneal_steps = 0
 
   c.optax = ml_collections.ConfigDict()
   c.optax.lr_model = 1e-4

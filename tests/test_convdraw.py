@@ -94,6 +94,34 @@ def test_sampling_deterministic_given_the_key(tiny):
   np.testing.assert_array_equal(d[1], c[1])
 
 
+def test_prior_mean_temperature(tiny):
+  model, params = tiny
+  ctx, cvec, qvec, _ = _inputs()
+  sample = jax.jit(
+    lambda k, t: model.apply({"params": params}, ctx, cvec, qvec, k, t, method="sample")[0]
+  )
+  k1 = jax.random.split(jax.random.key(3), S)
+  k2 = jax.random.split(jax.random.key(4), S)
+  # Temperature 1 is the default sample; temperature 0 (the prior mean) ignores the keys.
+  default = model.apply({"params": params}, ctx, cvec, qvec, k1, method="sample")[0]
+  np.testing.assert_allclose(np.asarray(sample(k1, 1.0)), np.asarray(default), atol=1e-6)
+  np.testing.assert_allclose(np.asarray(sample(k1, 0.0)), np.asarray(sample(k2, 0.0)), atol=1e-6)
+  assert np.max(np.abs(np.asarray(sample(k1, 0.0) - sample(k1, 1.0)))) > 1e-6
+
+
+def test_kl_weight_schedule_and_weighted_loss():
+  beta = lambda n: float(convdraw.kl_weight(n, initial=10.0, anneal_steps=1000))
+  assert (beta(0), beta(500), beta(1000), beta(5000)) == pytest.approx((10.0, 5.5, 1.0, 1.0))
+  assert float(convdraw.kl_weight(0, initial=10.0, anneal_steps=0)) == 1.0  # off: the ELBO
+  mean, target = jnp.zeros((1, 2, 4, 4, 3)), jnp.full((1, 2, 4, 4, 3), 0.5)
+  kl = jnp.asarray([[3.0, 5.0]])
+  loss1, t1 = convdraw.negative_elbo(mean, target, kl, 0.7)
+  loss3, t3 = convdraw.negative_elbo(mean, target, kl, 0.7, 3.0)
+  assert float(loss1) == pytest.approx(float(t1["elbo"]))
+  assert float(loss3) == pytest.approx(float(t3["nll"] + 3.0 * t3["kl"]))
+  assert float(t3["elbo"]) == pytest.approx(float(t1["elbo"]))
+
+
 def test_config_variants_build():
   for variant in (None, "quick", "smoke"):
     c = gqn_convdraw.get_config(variant)
@@ -111,7 +139,8 @@ def test_config_variants_build():
 def test_smoke_run_trains_evaluates_restores_and_takes_the_noise_test(tmp_path):
   workdir = str(tmp_path / "run")
   last = train.train_and_evaluate(gqn_convdraw.get_config("smoke"), workdir)
-  for k in ("train/elbo", "train/kl", "train/nll", "train/sigma", "eval/psnr"):
+  keys = ("train/elbo", "train/kl", "train/nll", "train/sigma", "train/kl_weight", "eval/psnr")
+  for k in (*keys, "eval/psnr_sample", "eval/psnr_prior_mean"):
     assert np.isfinite(last[k]), k
   with open(os.path.join(workdir, "metrics.jsonl")) as f:
     rows = [json.loads(line) for line in f]
@@ -130,3 +159,8 @@ def test_smoke_run_trains_evaluates_restores_and_takes_the_noise_test(tmp_path):
   assert np.all(np.isfinite(res["psnr"]))
   assert set(res["beta"]) == {"xy", "yaw"}
   assert res["beta"]["xy"].shape == (3,) and res["beta"]["yaw"].shape == (4,)  # GQN's 7-D vector
+  # The default prediction is the sample; the prior mean (temperature 0) is logged beside it.
+  assert last["eval/psnr_sample"] == pytest.approx(last["eval/psnr"], abs=1e-6)
+  run.config.model.draw_temperature = 0.0
+  res0 = noise.noise_robustness(run, key=key, alphas=[0.0], quantisation="nearest")
+  assert res0["psnr"][0] == pytest.approx(last["eval/psnr_prior_mean"], abs=1e-4)

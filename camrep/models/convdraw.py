@@ -257,13 +257,20 @@ class GQNConvDraw(nn.Module):
     return self._render(u, SQ), aux
 
   def sample(
-    self, context_images: Array, context_vecs: Array, query_vecs: Array, keys: Array
+    self,
+    context_images: Array,
+    context_vecs: Array,
+    query_vecs: Array,
+    keys: Array,
+    temperature: float = 1.0,
   ) -> tuple[Array, dict]:
     """Prior path (prediction): z_l ~ N(mu_p, sigma_p^2) from the generator's own state.
 
     Args:
       context_images, context_vecs, query_vecs: as `__call__`.
       keys: (S,) PRNG keys, one per scene; the same keys give the same images.
+      temperature: z_l = mu_p + temperature sigma_p eps; 1 is GQN's sample, 0 the prior mean
+        (deterministic, the keys unused).
 
     Returns:
       mean images (S, Q, 64, 64, 3) in [-1, 1] units (not clipped), and aux {"r"}.
@@ -275,14 +282,24 @@ class GQNConvDraw(nn.Module):
     h_g, c_g, u = zeros, zeros, zeros
     for step in range(self.steps):
       mu_p, ls_p = jnp.split(self.prior_head(h_g), 2, axis=-1)
-      z = mu_p + jnp.exp(ls_p) * self._draws(keys, step, SQ, n)
+      z = mu_p + temperature * jnp.exp(ls_p) * self._draws(keys, step, SQ, n)
       h_g, c_g = self.generator_core(jnp.concatenate([z, v_q, r_q], -1), h_g, c_g)
       u = u + h_g
     return self._render(u, SQ), {"r": r}
 
 
+def kl_weight(step: Array | int, *, initial: float, anneal_steps: int) -> Array:
+  """The KL term's weight beta: `initial` falling linearly to 1 over `anneal_steps`, then 1.
+
+  camrep option for short runs (GQN's ELBO: beta = 1 throughout, `anneal_steps` 0).
+  """
+  if anneal_steps <= 0:
+    return jnp.asarray(1.0, jnp.float32)
+  return pixel_sigma(step, initial=initial, final=1.0, anneal_steps=anneal_steps)
+
+
 def negative_elbo(
-  mean: Array, target: Array, kl: Array, sigma: Array | float
+  mean: Array, target: Array, kl: Array, sigma: Array | float, beta: Array | float = 1.0
 ) -> tuple[Array, dict[str, Array]]:
   """-ELBO per target image, averaged over images (the training loss), and its terms.
 
@@ -293,15 +310,15 @@ def negative_elbo(
     target: (S, Q, H, W, 3) targets in [-1, 1].
     kl: (S, Q) KL summed over steps (aux["kl"]).
     sigma: the pixel std (scalar).
+    beta: the KL term's weight in the minimised loss (`kl_weight`; 1: the negative ELBO).
 
   Returns:
-    (mean over images of nll + kl, {"elbo": that value, "nll": mean per-image NLL, "kl": mean
-     per-image KL}); all in nats per image.
+    (mean over images of nll + beta kl, {"elbo": mean of nll + kl, "nll": mean per-image NLL,
+     "kl": mean per-image KL}); all in nats per image.
   """
   nll = jnp.sum(gaussian_nll(0.5 * (target + 1.0), 0.5 * (mean + 1.0), sigma), axis=(-3, -2, -1))
   nll, kl = jnp.mean(nll), jnp.mean(kl)
-  loss = nll + kl
-  return loss, {"elbo": loss, "nll": nll, "kl": kl}
+  return nll + beta * kl, {"elbo": nll + kl, "nll": nll, "kl": kl}
 
 
 # Test-only: two steps at 1/32 width (tower 8 channels, hidden 4).

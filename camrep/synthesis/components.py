@@ -160,6 +160,11 @@ def make_model(config, num_scenes: int):
   )
 
 
+def draw_temperature(config) -> float:
+  """GQN's generator at prediction: latent temperature (1: a prior sample, 0: the prior mean)."""
+  return float(config.model.get("draw_temperature", 1.0))
+
+
 def sample_keys(scene_ids: Array) -> Array:
   """(E,) scene ids -> (E,) PRNG keys of GQN's generator at evaluation (`SAMPLE_SEED`)."""
   base = jax.random.key(SAMPLE_SEED)
@@ -174,20 +179,25 @@ def render_gqn(
   context_vecs: Array,
   query_vecs: Array,
   scene_ids: Array,
+  temperature: float | None = None,
 ) -> Array:
   """Predicted query views of the GQN setting: (E, Q, H, W, 3) in [-1, 1].
 
   camrep's decoder: its output. GQN's generator: the mean image of one prior sample with the
-  scenes' `sample_keys` (deterministic), clipped to [-1, 1].
+  scenes' `sample_keys` (deterministic), clipped to [-1, 1]; latents at `temperature` (default
+  config.model.draw_temperature: 1 GQN's sample, 0 the prior mean).
   """
   variables = {"params": params_model}
   if model_kind(config) == "convdraw":
+    if temperature is None:
+      temperature = draw_temperature(config)
     pred, _ = model.apply(
       variables,
       context_images,
       context_vecs,
       query_vecs,
       sample_keys(scene_ids),
+      temperature,
       method="sample",
     )
     return jnp.clip(pred, -1.0, 1.0)

@@ -78,6 +78,13 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     default=None,
     help="held-out scenes to evaluate (default: the config's evals.num_scenes)",
   )
+  p.add_argument(
+    "--draw_temperature",
+    type=float,
+    default=None,
+    help="GQN's generator only: latent temperature of the prediction (default: the config's "
+    "model.draw_temperature; 1 a prior sample, 0 the prior mean)",
+  )
   p.add_argument("--seed", type=int, default=0, help="seed of the noise and quantisation draws")
   p.add_argument(
     "--quantisation",
@@ -118,6 +125,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 2
   if args.num_scenes is not None:
     run.config.evals.num_scenes = args.num_scenes
+  if args.draw_temperature is not None:
+    run.config.model.draw_temperature = args.draw_temperature
   out = args.out or os.path.join(args.workdir, EVAL_SUBDIR)
   os.makedirs(out, exist_ok=True)
   log(f"restored step {run.step} of {args.workdir} ({components.setting(run.config)})")

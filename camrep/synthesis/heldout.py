@@ -4,6 +4,8 @@ held-out views against a trivial baseline, on a fixed evaluation set built once 
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -48,15 +50,21 @@ def eval_batches(config, train_pipe, test_pipe) -> list[dict[str, np.ndarray]]:
 
 
 def make_predict(config, model, spec):
-  """jit(params, batch) -> (prediction, baseline), images (E, 1, H, W, 3) in [-1, 1]."""
+  """jit(params, batch) -> (prediction, baseline, others), images (E, 1, H, W, 3) in [-1, 1].
+
+  others: {} for decoders; for GQN's generator the predictions of both latent choices,
+  {"sample": temperature 1, "prior_mean": temperature 0} (the prediction is the config's).
+  """
 
   def predict(params, b):
     vec = lambda p: P.concat(
       pose_inputs.pose_vectors(config, spec, params["rep"], p, mode="nearest"), spec
     )
     ctx = components.to_float_images(b["context_image"])
+    others = {}
     if config.task == "gqn":
-      pred = components.render_gqn(
+      render = functools.partial(
+        components.render_gqn,
         config,
         model,
         params["model"],
@@ -65,10 +73,13 @@ def make_predict(config, model, spec):
         vec(b["target_pose"]),
         b["scene"],
       )
+      pred = render()
+      if components.model_kind(config) == "convdraw":
+        others = {"sample": render(temperature=1.0), "prior_mean": render(temperature=0.0)}
     else:
       pred, _ = model.apply({"params": params["model"]}, b["scene"], vec(b["target_pose"]))
     baseline = jnp.broadcast_to(jnp.mean(ctx, axis=1, keepdims=True), pred.shape)
-    return pred, baseline
+    return pred, baseline, others
 
   return jax.jit(predict)
 
@@ -81,10 +92,14 @@ def evaluate(predict, params, batches) -> tuple[dict[str, float], dict[str, np.n
      arrays of the first batch for image grids and per-example values).
   """
   psnr, ssim, psnr_b, ssim_b = [], [], [], []
+  extra: dict[str, list] = {}
   first = None
   for b in batches:
-    pred, base = predict(params, {k: jnp.asarray(v) for k, v in b.items()})
+    pred, base, others = predict(params, {k: jnp.asarray(v) for k, v in b.items()})
     tgt = components.to_float_images(jnp.asarray(b["target_image"]))
+    for name, o in others.items():
+      extra.setdefault(f"eval/psnr_{name}", []).append(np.asarray(metrics_lib.psnr(o, tgt)).ravel())
+      extra.setdefault(f"eval/ssim_{name}", []).append(np.asarray(metrics_lib.ssim(o, tgt)).ravel())
     psnr.append(np.asarray(metrics_lib.psnr(pred, tgt)).ravel())
     ssim.append(np.asarray(metrics_lib.ssim(pred, tgt)).ravel())
     psnr_b.append(np.asarray(metrics_lib.psnr(base, tgt)).ravel())
@@ -101,6 +116,7 @@ def evaluate(predict, params, batches) -> tuple[dict[str, float], dict[str, np.n
     "eval/ssim": float(np.mean(ssim)),
     "eval/psnr_baseline": float(np.mean(psnr_b)),
     "eval/ssim_baseline": float(np.mean(ssim_b)),
+    **{k: float(np.mean(np.concatenate(v))) for k, v in extra.items()},
   }
   first.update(psnr=psnr, ssim=ssim, psnr_baseline=psnr_b)
   return scalars, first

@@ -278,6 +278,8 @@ def write_noise(out: str, run: Run, result: Mapping[str, Any]) -> list[str]:
     "psnr_std": [float(v) for v in np.std(result["psnr_per_image"], axis=1)],
     "beta": _beta_stats(result["beta"]),
   }
+  if components.model_kind(run.config) == "convdraw":  # GQN's generator: which latents
+    record["draw_temperature"] = components.draw_temperature(run.config)
   paths = [os.path.join(out, "noise.json"), os.path.join(out, "noise.png")]
   with open(paths[0], "w", encoding="utf-8") as f:
     json.dump(record, f, indent=1)

@@ -131,7 +131,8 @@ def elbo(model, config, spec, params_model, batch, keys, step):
   pixel std annealed by `step` (`convdraw.pixel_sigma`, config.loss.sigma_*).
 
   Returns:
-    (loss, terms {"elbo", "nll", "kl", "rec", "sigma"}): "rec" is L_rec of the posterior mean
+    (loss, terms {"elbo", "nll", "kl", "rec", "sigma", "kl_weight"}): loss = nll + beta kl, beta
+    `convdraw.kl_weight` (config.loss.kl_*; 1: loss = elbo); "rec" is L_rec of the posterior mean
     image (sum of squared errors per image, comparable with the decoder's train/rec).
   """
   L = config.loss
@@ -145,9 +146,14 @@ def elbo(model, config, spec, params_model, batch, keys, step):
   sigma = convdraw.pixel_sigma(
     step, initial=L.sigma_initial, final=L.sigma_final, anneal_steps=L.sigma_anneal_steps
   )
-  loss, terms = convdraw.negative_elbo(mean, target, aux["kl"], sigma)
+  beta = convdraw.kl_weight(
+    step,
+    initial=L.get("kl_weight_initial", 1.0),
+    anneal_steps=L.get("kl_anneal_steps", 0),
+  )
+  loss, terms = convdraw.negative_elbo(mean, target, aux["kl"], sigma, beta)
   rec = jnp.mean(jnp.sum((mean - target) ** 2, axis=(-3, -2, -1)))
-  return loss, {**terms, "rec": rec, "sigma": sigma}
+  return loss, {**terms, "rec": rec, "sigma": sigma, "kl_weight": beta}
 
 
 def rotation_objective(config, spec, params_rep, batch, key_pairs, keys):
@@ -286,8 +292,9 @@ def elbo_train_step(state: TrainState, batch, key: Array, *, model, config, spec
   """`train_step` of GQN's generator (model.kind "convdraw"): one Adam step of the model group
   on the negative ELBO (`elbo`); the pose-input group ("lowdim": no parameters) is left as is.
 
-  Metrics: train/loss = train/elbo (negative ELBO per query image, nats) = train/nll + train/kl,
-  train/rec (L_rec of the posterior mean), train/sigma (pixel std of this step), and the norms.
+  Metrics: train/elbo (negative ELBO per query image, nats) = train/nll + train/kl, train/loss =
+  train/nll + train/kl_weight train/kl (= train/elbo unless a KL weight schedule is set), train/rec
+  (L_rec of the posterior mean), train/sigma (pixel std of this step), and the norms.
   """
   tx_model, _ = make_optimizers(config)
   params = state.params
