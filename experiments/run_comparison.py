@@ -32,8 +32,9 @@ stopped):
   4. figures: `python -m camrep.synthesis.evaluate --workdir DIR/synthesis/<name>` (noise robustness
      and Gram maps into each workdir's eval/), then, if experiments/noise_figure.py exists, one
      noise figure per setting with several pose inputs: DIR/noise_car.{png,md} (learned system
-     vs MLP embedding) and, with --noise_runs (two more GQN synthesis runs, rep.kind lowdim and
-     mlp), DIR/noise_gqn.{png,md}.
+     vs MLP embedding) and, with --noise_runs (more GQN synthesis runs: rep.kind lowdim and mlp,
+     and GQN's own generator, configs/gqn_convdraw.py, except at medium size),
+     DIR/noise_gqn.{png,md}.
 
 Representations: car all seven (ours, mlp, euler, axis_angle, sincos, quat, logq); gqn and
 gibson ours, euler, sincos, quat, logq (axis-angle and MLP are car-only in the paper);
@@ -208,9 +209,12 @@ def synthesis_jobs(
     setting = next(x for x in SETTINGS if name == x or name.startswith(f"{x}_"))
     kind = name[len(setting) + 1 :]
     wd = os.path.join(out, "synthesis", name)
-    argv = [py, "-m", "camrep.main", f"--config={SYNTHESIS_CONFIGS[setting]}{suffix}"]
+    if kind == "convdraw":  # GQN's own generator: its config, fed GQN's 7-D pose vector
+      argv = [py, "-m", "camrep.main", f"--config=configs/gqn_convdraw.py{suffix}"]
+    else:
+      argv = [py, "-m", "camrep.main", f"--config={SYNTHESIS_CONFIGS[setting]}{suffix}"]
     argv.append(f"--workdir={wd}")
-    if kind:
+    if kind and kind != "convdraw":
       argv.append(f"--config.rep.kind={kind}")
     argv += data_flags(setting, data)
     est = plan.synthesis_s[setting]
@@ -389,7 +393,8 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
   p.add_argument(
     "--noise_runs",
     action="store_true",
-    help="also train gqn_lowdim and gqn_mlp synthesis runs for the GQN noise figure (+~20 min)",
+    help="also train gqn_lowdim, gqn_mlp and (not at medium size) gqn_convdraw synthesis runs for "
+    "the GQN noise figure (+~30 min at quick size)",
   )
   p.add_argument(
     "--data",
@@ -449,7 +454,10 @@ def make_launch(args: argparse.Namespace) -> Launch:
   if kinds and "mlp" in reps.get("car", ()):
     names.append("car_mlp")
   if kinds and args.noise_runs and "gqn" in settings:
-    names += [n for n in ("gqn", "gqn_lowdim", "gqn_mlp") if n not in names]
+    extra = ("gqn", "gqn_lowdim", "gqn_mlp")
+    if plan.variant != "medium":  # configs/gqn_convdraw.py has no :medium size yet
+      extra += ("gqn_convdraw",)
+    names += [n for n in extra if n not in names]
   data = {s: d for s, d in getattr(args, "data", {}).items() if s in settings}
   synth = synthesis_jobs(out, plan, names, py, data)
   first, later = plan_regression(out, plan, settings, reps, py, full_grid=args.full_grid, data=data)
