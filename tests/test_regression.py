@@ -157,6 +157,9 @@ def test_config_errors(tmp_path):
     R.resolve_config(_config("shapenet", "quat"))
   with pytest.raises(runconfig.ConfigError, match="no checkpoint|config.json"):
     R.run(_config("car", "ours", synthesis_workdir=str(tmp_path)), str(tmp_path / "x"))
+  # gqn: a context larger than a scene's views, on procedural and real data alike.
+  with pytest.raises(runconfig.ConfigError, match="a scene has 10 views, 41 needed"):
+    R.run(_config("gqn", "quat", **{"data.n_context": 40}), str(tmp_path / "y"))
   c = R.resolve_config(_config("gqn", "quat"))
   assert (c.total_steps, c.data.batch_size, c.evals.test_split) == (3, 2, "test_scenes")
   assert c.optax.lr == 1e-4 and c.model.width == 1 / 32

@@ -218,15 +218,7 @@ def make_data(config) -> Data:
     else:
       evals[name] = EvalSet(views)
   if gqn:
-    for name, e in evals.items():
-      ctx_counts = [len(e.context.scene_rows(s)) for s in e.queries.scene_ids()]
-      need = config.data.n_context + (1 if e.context is e.queries else 0)
-      if min(ctx_counts) < need:
-        raise ConfigError(f"{name}: a scene has {min(ctx_counts)} views, {need} needed")
-    if config.data.n_context + config.data.n_query > min(
-      len(train.scene_rows(s)) for s in train.scene_ids()
-    ):
-      raise ConfigError("a training scene has fewer than n_context + n_query views")
+    _check_gqn_counts(config, train, evals)
   info = {
     "family": family.name,
     "preset": config.data.preset,
