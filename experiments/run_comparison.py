@@ -407,7 +407,20 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
   p.add_argument(
     "--jobs", type=int, default=1, help="subprocesses at once within each step (GPU: 4 for medium)"
   )
+  p.add_argument(
+    "--noise_kinds",
+    default="lowdim,mlp,convdraw",
+    help="with --noise_runs: which other GQN pose inputs / generators to train (subset of "
+    "lowdim, mlp, convdraw)",
+  )
   args = p.parse_args(argv)
+  bad_kinds = {k.strip() for k in args.noise_kinds.split(",") if k.strip()} - {
+    "lowdim",
+    "mlp",
+    "convdraw",
+  }
+  if bad_kinds:
+    p.error(f"--noise_kinds: unknown {sorted(bad_kinds)}; choose from lowdim, mlp, convdraw")
   args.settings = [s.strip() for s in args.settings.split(",") if s.strip()]
   bad = set(args.settings) - set(SETTINGS)
   if bad:
@@ -454,9 +467,10 @@ def make_launch(args: argparse.Namespace) -> Launch:
   if kinds and "mlp" in reps.get("car", ()):
     names.append("car_mlp")
   if kinds and args.noise_runs and "gqn" in settings:
-    extra = ("gqn", "gqn_lowdim", "gqn_mlp")
-    if plan.variant != "medium":  # configs/gqn_convdraw.py has no :medium size yet
-      extra += ("gqn_convdraw",)
+    kinds = [k.strip() for k in args.noise_kinds.split(",") if k.strip()]
+    if plan.variant == "medium":  # configs/gqn_convdraw.py has no :medium size yet
+      kinds = [k for k in kinds if k != "convdraw"]
+    extra = ["gqn", *(f"gqn_{k}" for k in kinds)]
     names += [n for n in extra if n not in names]
   data = {s: d for s, d in getattr(args, "data", {}).items() if s in settings}
   synth = synthesis_jobs(out, plan, names, py, data)

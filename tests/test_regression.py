@@ -318,6 +318,16 @@ def test_run_comparison_dry_run(tmp_path, capsys):
   assert "4 jobs at a time" in text.splitlines()[0] and "derived, not measured" in text
   assert "--config=configs/gqn.py:medium" in text
   assert "--config=configs/regression.py:medium" in text
+  # --noise_runs: the GQN noise figure's other pose inputs and GQN's own generator (not medium).
+  noise = ["--out", str(tmp_path), "--dry_run", "--settings", "gqn", "--noise_runs"]
+  assert rc.main(["--size", "quick", *noise]) == 0
+  text = capsys.readouterr().out
+  for name in ("gqn_lowdim", "gqn_mlp", "gqn_convdraw"):
+    assert f"--workdir={tmp_path}/synthesis/{name}" in text
+  assert "--config=configs/gqn_convdraw.py:quick" in text and "noise_figure.py" in text
+  assert rc.main(["--size", "medium", *noise, "--noise_kinds", "lowdim,convdraw"]) == 0
+  text = capsys.readouterr().out
+  assert "synthesis/gqn_lowdim" in text and "gqn_mlp" not in text and "convdraw" not in text
 
 
 def test_run_comparison_runs_jobs_at_once(tmp_path, monkeypatch):
