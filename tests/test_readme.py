@@ -5,6 +5,11 @@ from __future__ import annotations
 import pathlib
 import re
 
+import pytest
+
+# The example compiles expm, decode and the rotation losses once each: compilation dominates.
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
 
 

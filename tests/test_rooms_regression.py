@@ -11,6 +11,8 @@ world directions (`wall_style='compass'`); the old look stays available as `wall
 
 from __future__ import annotations
 
+import os
+
 import jax
 import numpy as np
 import pytest
@@ -70,7 +72,10 @@ def test_quick_rooms_regression_learns_the_yaw():
   assert got["test"]["yaw_error_deg"] < 45.0, got
 
 
-@pytest.mark.slow
+@pytest.mark.skipif(
+  not os.environ.get("CAMREP_DOC_TESTS"),
+  reason="documents the cause (~1 min of CPU); set CAMREP_DOC_TESTS=1 to run it",
+)
 def test_old_rooms_look_stays_at_chance():
   """The old look (wall_style="tinted", the family's default) at the same size: held-out views
   of the training rooms stay at chance, whatever the training views do (the cause, kept

@@ -32,7 +32,8 @@ def test_parse_variant():
       sw.parse_variant(bad)
 
 
-def test_sweep_runs_variants_and_reports_failures(tmp_path):
+def test_sweep_runs_variants_and_reports_failures(tmp_path, monkeypatch):
+  monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")  # the runs compile in seconds
   sw = _sweep()
   out = tmp_path / "sweep"
   rc = sw.main(
