@@ -12,6 +12,9 @@ import scipy.linalg
 from camrep import lie
 from tests.utils import assert_close, general_lie_test, jac_numerical, sample_generator, x64
 
+# Compilation (expm, eigh, decode) dominates these small shapes; numerics are unchanged.
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 
 def _expm_ref(B, t):
   """scipy oracle: exp(t B) over broadcast batch axes."""

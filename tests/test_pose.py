@@ -15,6 +15,9 @@ from camrep import lie
 from camrep import pose as P
 from tests.utils import assert_close, x64
 
+# Compilation (expm, eigh, decode) dominates these small shapes; numerics are unchanged.
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 TWO_PI = 2 * math.pi
 
 
