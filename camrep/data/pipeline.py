@@ -45,6 +45,11 @@ the GIL, but the rest of a batch does not). Either way element i is `batch(start
 data stays a pure function of (seed, step, process) whatever the number of workers or threads.
 `default_num_workers` picks the number from the usable cores, and `prefetch_to_device` keeps the
 next batches on their way to the accelerators while the step runs.
+
+`RenderPipeline` (procedural families rendered on demand) renders each batch in one jitted call
+(`family.render_batch`, vmapped over the batch's scenes and views); on an accelerator its "image"
+stays there as a `jax.Array` (`prefetch_to_device` then moves it device to device, no host round
+trip), so that field is the one exception to "numpy arrays" above.
 """
 
 from __future__ import annotations
