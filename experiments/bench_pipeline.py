@@ -51,11 +51,14 @@ is `input_bound_ratio=<end-to-end steps/s / step-alone steps/s>
 steps_per_s=<end-to-end steps/s>` for the first path of `--e2e` (default "render": procedural
 batches rendered on demand in one call per batch; "config" is the config's own data path).
 
-  .venv/bin/python experiments/bench_pipeline.py --config=configs/gqn.py:quick    # ~3 min
-  .venv/bin/python experiments/bench_pipeline.py --config=configs/gqn.py --width=paper \
-      --bench_steps 3 --e2e render                                            # paper width
-  python experiments/bench_pipeline.py --config=configs/gqn.py --width=paper --bench_steps 30
-      (on a GPU: the paper-size step, 30 scenes x 9 views)
+  .venv/bin/python experiments/bench_pipeline.py --config=configs/gqn.py:quick \
+      --e2e render,config,prepared                                            # ~4 min
+  .venv/bin/python experiments/bench_pipeline.py --config=configs/gqn.py:quick --width=paper \
+      --bench_steps 3 --e2e render,config --prepared_scenes 0     # paper width, ~6 min
+  python experiments/bench_pipeline.py --config=configs/gqn.py --width=paper --bench_steps 30 \
+      --e2e render,prepared --prepared_scenes 256
+      (on a GPU: the paper-size step, 30 scenes x 9 views; on the 2-core CPU its end-to-end loop
+      needs more memory than the shared machine had)
 """
 
 from __future__ import annotations
