@@ -28,15 +28,47 @@ On a 16-core GPU machine, the paper's batch layout (30 scenes x 9 views) against
 
   python experiments/bench_pipeline.py --scenes 256 --scenes_per_device 30 --views_per_scene 9 \
       --steps 60 --workers 4,8,14
+
+Is training input-bound? (issue 14, part 5) With `--config=FILE[:VARIANT]` the run instead
+measures, for that config's GQN-style train step and batch layout:
+
+  step alone      the pmapped train step on one batch reused (steps/s, images/s)
+  render, per scene / one call
+                  the procedural family rendered on demand (`RenderPipeline.batch(k)` in the
+                  caller): the old path (one `render_views` call per scene) and the one-call
+                  path (`family.render_batch`, issue 14 part 1)
+  memory          the config's in-memory pipeline, when it has one (`data.in_memory`)
+  prepared        a prepared-on-disk copy of `--prepared_scenes` of the family's scenes
+                  (`storage.prepare` + `tfds_pipeline`, `batch(k)` in the caller)
+  end to end      for each data path of `--e2e`: the train loop as `camrep.synthesis.train`
+                  runs it (`pipe.iterator` with the config's reader threads and prefetch, then
+                  `prefetch_to_device`, the step, a read of the step's finite flag), steps/s
+                  and the ratio to the step alone
+
+The step alone is timed again after the end-to-end loops, and the faster of its two runs is the
+reference (the machine's load changes during a run; this gives the lower ratio). The last line
+is `input_bound_ratio=<end-to-end steps/s / step-alone steps/s>
+steps_per_s=<end-to-end steps/s>` for the first path of `--e2e` (default "render": procedural
+batches rendered on demand in one call per batch; "config" is the config's own data path).
+
+  .venv/bin/python experiments/bench_pipeline.py --config=configs/gqn.py:quick \
+      --e2e render,config,prepared                                            # ~4 min
+  .venv/bin/python experiments/bench_pipeline.py --config=configs/gqn.py:quick --width=paper \
+      --bench_steps 3 --e2e render,config --prepared_scenes 0     # paper width, ~6 min
+  python experiments/bench_pipeline.py --config=configs/gqn.py --width=paper --bench_steps 30 \
+      --e2e render,prepared --prepared_scenes 256
+      (on a GPU: the paper-size step, 30 scenes x 9 views; on the 2-core CPU its end-to-end loop
+      needs more memory than the shared machine had)
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.util
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import cv2
 import grain
@@ -44,6 +76,8 @@ import jax
 import numpy as np
 
 from camrep.data import pipeline, procedural, storage
+
+WIDTHS = {"paper": 1.0, "quick": 0.125}
 
 
 class StandInRooms:
@@ -124,6 +158,144 @@ class _Steps:
     return self._pipe.batch(int(step))
 
 
+def load_config(spec: str):
+  """`path/to/config.py[:arg]` -> the config file's `get_config(arg)` (as `--config` does)."""
+  path, _, arg = spec.partition(":")
+  module_spec = importlib.util.spec_from_file_location("bench_config", path)
+  module = importlib.util.module_from_spec(module_spec)
+  module_spec.loader.exec_module(module)
+  return module.get_config(arg or None)
+
+
+def _rate(run: Callable[[int], object], steps: int) -> float:
+  """Calls per second of `run(k)` for k = 1..steps, after run(0) (warm-up, compiles)."""
+  run(0)
+  t0 = time.perf_counter()
+  for k in range(1, steps + 1):
+    run(k)
+  return steps / (time.perf_counter() - t0)
+
+
+def input_bound(
+  config,
+  *,
+  steps: int,
+  e2e: tuple[str, ...] = ("render",),
+  prepared_scenes: int = 64,
+  pipeline_steps: int | None = None,
+) -> dict[str, float]:
+  """Step alone, input pipelines alone and the end-to-end loop for one config (see the module
+  docstring). Prints one line per measurement; returns steps/s (or batches/s) by row name."""
+  import jax
+  import jax.numpy as jnp
+
+  from camrep.synthesis import components, train
+  from camrep.synthesis import step as step_lib
+
+  n_dev = jax.local_device_count()
+  pipeline_steps = pipeline_steps or steps
+  d = config.data
+  family = components.make_source(config)
+  own = components.make_pipeline(config, "train", num_devices=n_dev)
+  pcfg = own.config
+  images = pcfg.scenes_per_step * pcfg.views_per_scene
+  print(
+    f"JAX {jax.__version__} on {jax.devices()[0].platform} ({n_dev} device(s)), "
+    f"{pipeline.usable_cores()} usable cores; family {family.name}, {d.preset} preset, "
+    f"{family.image_size} px; layout {n_dev} x {pcfg.scenes_per_device} scenes x "
+    f"{pcfg.views_per_scene} views ({images} images/step); width {config.model.width}; "
+    f"config data path: {'memory' if d.in_memory else 'render'}",
+    flush=True,
+  )
+  spec = components.pose_spec(config)
+  model = components.make_model(config, components.num_train_scenes(own))
+  init_key, loop_key = jax.random.split(jax.random.key(config.seed))
+  keys3 = ("image", "pose", "scene")
+  b0 = own.batch(0)
+  batch = {k: jnp.asarray(b0[k]) for k in keys3}
+  state = jax.jit(lambda k, b: step_lib.create_train_state(k, config, model, spec, b))(
+    init_key, batch
+  )
+  state = train._replicate(state, n_dev)
+  keys = jax.vmap(jax.random.wrap_key_data)(
+    jnp.asarray(train._replicate(jax.random.key_data(loop_key), n_dev))
+  )
+  p_step = step_lib.make_p_train_step(config, model, spec)
+  out: dict[str, float] = {}
+
+  def one_step(_):
+    nonlocal state
+    state, m = p_step(state, batch, keys)
+    float(np.asarray(m["train/finite"])[0])
+
+  t0 = time.perf_counter()
+  one_step(0)
+  print(f"step compile + first step: {time.perf_counter() - t0:.1f} s", flush=True)
+  out["step"] = _rate(one_step, steps)
+  print(f"{'step alone':>22}: {out['step']:7.3f} steps/s  {out['step'] * images:8.1f} images/s")
+
+  def show(label: str, rate: float) -> None:
+    out[label] = rate
+    print(f"{label:>22}: {rate:7.3f} batches/s  {rate * images:8.1f} images/s", flush=True)
+
+  pipes = {}
+  for label, one_call in (("render, per scene", False), ("render, one call", True)):
+    pipes[label] = pipeline.render_pipeline(family, "train", pcfg, one_call=one_call)
+    show(label, _rate(pipes[label].batch, pipeline_steps))
+  pipes["render"] = pipes["render, one call"]
+  if d.in_memory:
+    pipes["memory"] = own
+    show("memory", _rate(own.batch, pipeline_steps))
+  pipes["config"] = own
+  tmp = None
+  if ("prepared" in e2e or prepared_scenes > 0) and hasattr(family.config, "num_train_scenes"):
+    tmp = tempfile.TemporaryDirectory()
+    n_scenes = max(prepared_scenes, pcfg.scenes_per_step)
+    overrides = dict(d.family.to_dict()) if d.family else {}
+    overrides.update(num_train_scenes=n_scenes, num_test_scenes=1, test_views=1)
+    small = procedural.make_family(family.name, preset=d.preset, **overrides)
+    t0 = time.perf_counter()
+    storage.prepare(small, tmp.name, progress=False)
+    print(f"prepare {n_scenes} scenes of the family: {time.perf_counter() - t0:.1f} s", flush=True)
+    pipes["prepared"] = pipeline.tfds_pipeline(tmp.name, small.name, "train", pcfg)
+    show("prepared", _rate(pipes["prepared"].batch, pipeline_steps))
+
+  def end_to_end(pipe) -> float:
+    nonlocal state
+    host = pipe.iterator(start_step=0, num_steps=steps + 2)
+    it = pipeline.prefetch_to_device(host, int(d.get("device_prefetch", 2)))
+    for k in range(steps + 2):
+      if k == 2:  # after two warm-up steps (grain threads started, prefetch queue full)
+        t0 = time.perf_counter()
+      b = next(it)
+      state, m = p_step(state, {key: b[key] for key in keys3}, keys)
+      float(np.asarray(m["train/finite"])[0])
+    rate = steps / (time.perf_counter() - t0)
+    if hasattr(host, "close"):
+      host.close()
+    return rate
+
+  for name in e2e:
+    out[f"e2e {name}"] = end_to_end(pipes[name])
+  # The step alone once more, after the loops: on a shared machine the load changes during the
+  # run; the faster of the two is the reference (the conservative ratio).
+  again = _rate(one_step, steps)
+  print(f"{'step alone, again':>22}: {again:7.3f} steps/s  {again * images:8.1f} images/s")
+  out["step"] = max(out["step"], again)
+  for name in e2e:
+    rate = out[f"e2e {name}"]
+    print(
+      f"{'end to end, ' + name:>22}: {rate:7.3f} steps/s  {rate * images:8.1f} images/s  "
+      f"ratio to the faster step alone {rate / out['step']:.3f}",
+      flush=True,
+    )
+  if tmp is not None:
+    tmp.cleanup()
+  first = out[f"e2e {e2e[0]}"]
+  print(f"input_bound_ratio={first / out['step']:.4f} steps_per_s={first:.4f}", flush=True)
+  return out
+
+
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--source", default="rooms", choices=("rooms", "stand_in"))
@@ -139,7 +311,27 @@ def main() -> None:
   parser.add_argument(
     "--workers", default="2", help="comma-separated worker-process counts to time (0: skip)"
   )
+  parser.add_argument(
+    "--config", default="", help="config file[:variant]: is its train step input-bound?"
+  )
+  parser.add_argument("--width", default="", help="--config: model width, paper | quick | number")
+  parser.add_argument("--bench_steps", type=int, default=10, help="--config: timed steps")
+  parser.add_argument(
+    "--e2e", default="render", help="--config: end-to-end data paths (render, config, prepared)"
+  )
+  parser.add_argument("--prepared_scenes", type=int, default=64, help="--config: 0 to skip")
   args = parser.parse_args()
+  if args.config:
+    config = load_config(args.config)
+    if args.width:
+      config.model.width = WIDTHS.get(args.width) or float(args.width)
+    input_bound(
+      config,
+      steps=args.bench_steps,
+      e2e=tuple(args.e2e.split(",")),
+      prepared_scenes=args.prepared_scenes,
+    )
+    return
 
   source, kind = make_source(args.source, args.scenes, args.views, args.size)
   cfg = pipeline.PipelineConfig(

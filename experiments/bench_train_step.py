@@ -22,7 +22,11 @@ Measures, in one run (these machines are noisy: compare the ratios printed by on
             backward), with their FLOPs: where the step's time goes.
 
 The last line reads `mfu=<fraction> images_per_s=<number>` (the "step" figures at `--width`, the
-first `--dtype` and the first `--grad_modes`).
+first `--dtype` and the first `--grad_modes`). With `--end_to_end=CONFIG` (e.g.
+`configs/gqn.py:quick`), the run goes on with `bench_pipeline.py --config=CONFIG` at `--width`:
+the step alone, the input pipelines alone (procedural rendered on demand, per scene and in one
+call; in memory; prepared on disk) and the end-to-end loop (issue 14, part 5); the last line is
+then `input_bound_ratio=<end-to-end / step alone> steps_per_s=<end-to-end>`.
 
 Commands (2-core CPU):
 
@@ -31,6 +35,8 @@ Commands (2-core CPU):
   .venv/bin/python experiments/bench_train_step.py --width=paper --steps=2  # ~8 min
   .venv/bin/python experiments/bench_train_step.py --width=quick --grad_modes=matmul \
     --dtype=float32,bfloat16                                                 # ~3 min
+  .venv/bin/python experiments/bench_train_step.py --width=quick --scenes=8 --grad_modes=xla \
+    --end_to_end=configs/gqn.py:quick                                        # ~4 min
 
 On a GPU (mixed precision is meant for it; conv weight gradients from XLA / cuDNN):
 
@@ -69,6 +75,12 @@ def _parse(argv=None):
   p.add_argument("--tables", action="store_true", help="batch / image size / device tables")
   p.add_argument("--breakdown", action="store_true", help="time encoder, decoder, rotation loss")
   p.add_argument("--devices", default="1,2", help="forced host device counts for the table")
+  p.add_argument(
+    "--end_to_end",
+    default="",
+    help="config[:variant]: then time its input pipelines and end-to-end loop (bench_pipeline)",
+  )
+  p.add_argument("--e2e_steps", type=int, default=10, help="--end_to_end: timed steps")
   p.add_argument("--child", default="", help=argparse.SUPPRESS)
   return p.parse_args(argv)
 
@@ -417,6 +429,14 @@ def main(argv=None) -> None:
   main_r = results[dtypes[0], modes[0]]
   print(f"peak RSS {peak_rss_mb():.0f} MiB", flush=True)
   print(f"mfu={main_r['flops_per_s'] / peak:.4f} images_per_s={main_r['images_per_s']:.2f}")
+  if args.end_to_end:
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import bench_pipeline
+
+    print(f"\ninput pipelines and end-to-end loop of {args.end_to_end} at width {width}:")
+    config = bench_pipeline.load_config(args.end_to_end)
+    config.model.width = width
+    bench_pipeline.input_bound(config, steps=args.e2e_steps, e2e=("render",))
 
 
 if __name__ == "__main__":

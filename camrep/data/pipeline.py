@@ -45,6 +45,11 @@ the GIL, but the rest of a batch does not). Either way element i is `batch(start
 data stays a pure function of (seed, step, process) whatever the number of workers or threads.
 `default_num_workers` picks the number from the usable cores, and `prefetch_to_device` keeps the
 next batches on their way to the accelerators while the step runs.
+
+`RenderPipeline` (procedural families rendered on demand) renders each batch in one jitted call
+(`family.render_batch`, vmapped over the batch's scenes and views); on an accelerator its "image"
+stays there as a `jax.Array` (`prefetch_to_device` then moves it device to device, no host round
+trip), so that field is the one exception to "numpy arrays" above.
 """
 
 from __future__ import annotations
@@ -185,7 +190,8 @@ def prefetch_to_device(
 
   def enqueue(n: int) -> None:
     for b in it:
-      queue.append({k: jax.device_put(np.asarray(b[k]), sharding) for k in keys})
+      # A field already on a device (RenderPipeline's images) moves device to device.
+      queue.append({k: jax.device_put(_host_or_device(b[k]), sharding) for k in keys})
       n -= 1
       if n <= 0:
         break
@@ -195,6 +201,10 @@ def prefetch_to_device(
     out = queue.popleft()
     enqueue(1)
     yield out
+
+
+def _host_or_device(x: Any) -> Any:
+  return x if isinstance(x, jax.Array) else np.asarray(x)
 
 
 def wrap_angle(x: np.ndarray) -> np.ndarray:
@@ -574,6 +584,15 @@ class RenderPipeline(BatchPipeline):
   poses are computed when the scene is drawn, then only the selected views are rendered. Batches
   follow the same rules as `BatchPipeline` (epoch permutations of this process's scenes,
   per-step view choice), so a resumed run sees the same data.
+
+  Rendering (issue 14): the batch's D S scenes and their (D S, V) poses go to the renderer as
+  arrays in ONE jitted call (`family.render_batch`: vmapped over scenes and views, uint8
+  conversion on the device; one compile per batch layout). The images are the same as the
+  family's per-scene `render_views` (the old path, `one_call=False`, one call per scene, each
+  padded to the family's `batch_size`) within one grey level, in practice bit-identical. With
+  `images_on_device` (default: when JAX's default backend is not the CPU) "image" is the
+  `jax.Array` left where it was rendered, and `prefetch_to_device` hands it to the step
+  without a round trip through the host; the other fields are NumPy either way.
   """
 
   def __init__(
@@ -584,7 +603,23 @@ class RenderPipeline(BatchPipeline):
     *,
     process_index: int = 0,
     process_count: int = 1,
+    one_call: bool = True,
+    images_on_device: bool | None = None,
+    max_images_per_call: int | None = None,
   ):
+    """Checks the layout against the family's split.
+
+    Args:
+      family: a `camrep.data.procedural` family (or any object with its interface).
+      split: split name.
+      config: batch layout and seed.
+      process_index: this process.
+      process_count: number of processes.
+      one_call: render the batch in one call (`family.render_batch`); False: one
+        `family.render_views` call per scene (the old path, kept for benchmarks).
+      images_on_device: leave "image" as a device `jax.Array` (None: unless the backend is CPU).
+      max_images_per_call: bound on images per renderer call (memory); None: the whole batch.
+    """
     config.validate()
     if not 0 <= process_index < process_count:
       raise ValueError(
@@ -595,6 +630,11 @@ class RenderPipeline(BatchPipeline):
     self.config = config
     self.family = family
     self.split = split
+    self.one_call = bool(one_call)
+    if images_on_device is None:
+      images_on_device = jax.default_backend() != "cpu"
+    self.images_on_device = bool(images_on_device)
+    self.max_images_per_call = max_images_per_call
     self.process_index = process_index
     self.process_count = process_count
     self.all_scene_ids = np.asarray(family.scene_ids(split), np.int64)
@@ -648,17 +688,30 @@ class RenderPipeline(BatchPipeline):
     return views, scenes
 
   def batch(self, step: int) -> Batch:
+    """The batch at `step` (a pure function of (seed, step, process, split)), rendered.
+
+    Returns:
+      {"image": uint8 (D, S, V, H, W, 3) (NumPy, or a jax.Array with `images_on_device`),
+       "pose": float32 (D, S, V, P), "scene": int32 (D, S), "view": int32 (D, S, V)}.
+    """
     views, scenes, scene_poses = self._plan(step)
     flat_v, flat_s = views.reshape(-1, views.shape[-1]), scenes.reshape(-1)
-    images, poses = [], []
-    for s, v, all_poses in zip(flat_s, flat_v, scene_poses, strict=True):
-      p = all_poses[v]
-      images.append(self.family.render_views(int(s), p))
-      poses.append(p)
+    poses = np.stack([all_poses[v] for v, all_poses in zip(flat_v, scene_poses, strict=True)])
+    poses = poses.astype(np.float32)
+    if self.one_call and hasattr(self.family, "render_batch"):
+      images = self.family.render_batch(
+        flat_s,
+        poses,
+        max_images=self.max_images_per_call,
+        on_device=self.images_on_device,
+      )
+    else:
+      per_scene = zip(flat_s, poses, strict=True)
+      images = np.stack([self.family.render_views(int(s), p) for s, p in per_scene])
     lead = views.shape
     return {
-      "image": np.stack(images).reshape(*lead, *images[0].shape[1:]),
-      "pose": np.stack(poses).reshape(*lead, -1).astype(np.float32),
+      "image": images.reshape(*lead, *images.shape[2:]),
+      "pose": poses.reshape(*lead, -1),
       "scene": scenes.astype(np.int32),
       "view": views.astype(np.int32),
     }
@@ -680,8 +733,11 @@ def render_pipeline(
   *,
   process_index: int = 0,
   process_count: int = 1,
+  **kwargs: Any,
 ) -> RenderPipeline:
-  """A pipeline that renders a procedural family's views batch by batch (paper-size runs)."""
+  """A pipeline that renders a procedural family's views batch by batch, one renderer call per
+  batch (paper-size runs); `kwargs` go to `RenderPipeline` (one_call, images_on_device,
+  max_images_per_call)."""
   return RenderPipeline(
-    family, split, config, process_index=process_index, process_count=process_count
+    family, split, config, process_index=process_index, process_count=process_count, **kwargs
   )

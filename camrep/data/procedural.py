@@ -39,6 +39,7 @@ import os
 from collections.abc import Iterator
 from typing import Any
 
+import jax.numpy as jnp
 import numpy as np
 
 from camrep.data import render, seven_scenes
@@ -269,6 +270,8 @@ class ProceduralFamily(abc.ABC):
   budgets: dict[str, int]
   # Whether every scene of a split has the same number of views (`num_views(split)` alone).
   fixed_view_count: bool = True
+  # Whether `_poses_to_c2w` ignores the scene (then a batch's cameras are one computation).
+  scene_independent_cameras: bool = False
 
   def __init__(self, config):
     self.config = config
@@ -390,6 +393,66 @@ class ProceduralFamily(abc.ABC):
     size = self.image_size
     return np.concatenate(out, axis=0) if out else np.zeros((0, size, size, 3), np.uint8)
 
+  def render_batch(
+    self,
+    scene_ids: np.ndarray,
+    poses: np.ndarray,
+    *,
+    max_images: int | None = None,
+    on_device: bool = False,
+  ):
+    """Renders V poses each of S scenes in one jitted renderer call (`render.render_scenes_views`).
+
+    The scenes' parameters and camera matrices go to the device as arrays, the renderer is
+    vmapped over scenes and views, and the uint8 conversion runs there too. One compile serves
+    every batch of the same (S, V). The images equal `render_views` of each scene within one
+    grey level (the same ray caster, batched differently).
+
+    Args:
+      scene_ids: (S,) scene ids (any split; repeats allowed).
+      poses: (S, V, P) poses in the family's convention, row s of scene `scene_ids[s]`.
+      max_images: None (default): one call for the whole batch. Otherwise a bound on S V per
+        call (memory): scenes go in chunks of max(1, max_images // V), the last chunk padded
+        with copies of its last scene so one compile serves every chunk.
+      on_device: return the `jax.Array` left on the default device instead of NumPy.
+
+    Returns:
+      (S, V, H, W, 3) uint8 RGB (NumPy, or a jax.Array with `on_device`).
+    """
+    ids = [int(s) for s in np.asarray(scene_ids).reshape(-1)]
+    poses = np.asarray(poses, np.float32)
+    p = len(self.pose_names)
+    if poses.ndim != 3 or poses.shape[0] != len(ids) or poses.shape[2] != p:
+      raise ValueError(f"poses must be (S={len(ids)}, V, {p}), got {poses.shape}")
+    n_s, n_v = poses.shape[:2]
+    size = self.image_size
+    if n_s == 0 or n_v == 0:
+      return np.zeros((n_s, n_v, size, size, 3), np.uint8)
+    c2w = self._batch_c2w(ids, poses)
+    per_call = n_s if max_images is None else max(1, min(n_s, int(max_images) // n_v))
+    chunks = []
+    for i in range(0, n_s, per_call):
+      chunk_ids, chunk_c2w = ids[i : i + per_call], c2w[i : i + per_call]
+      n, pad = len(chunk_ids), per_call - len(chunk_ids)
+      if pad:
+        chunk_ids = chunk_ids + [chunk_ids[-1]] * pad
+        chunk_c2w = np.concatenate([chunk_c2w, np.repeat(chunk_c2w[-1:], pad, axis=0)])
+      scenes = render.stack_scenes([self.scene(s) for s in chunk_ids])
+      images = render.render_scenes_views(
+        scenes, chunk_c2w, self.camera, shadows=self.config.shadows, uint8=True
+      )
+      chunks.append(images[:n] if pad else images)
+    if on_device:
+      return chunks[0] if len(chunks) == 1 else jnp.concatenate(chunks)
+    return np.concatenate([np.asarray(c) for c in chunks])
+
+  def _batch_c2w(self, scene_ids: list[int], poses: np.ndarray) -> np.ndarray:
+    """(S, V, P) poses of scenes `scene_ids` -> (S, V, 4, 4) float32 camera-to-world."""
+    if self.scene_independent_cameras:  # one call for the whole batch
+      n_s, n_v, p = poses.shape
+      return self.poses_to_c2w(scene_ids[0], poses.reshape(-1, p)).reshape(n_s, n_v, 4, 4)
+    return np.stack([self.poses_to_c2w(s, q) for s, q in zip(scene_ids, poses, strict=True)])
+
   def iter_views(self, split: str) -> Iterator[dict]:
     """View records of a split, scene by scene, views in order.
 
@@ -474,6 +537,7 @@ class RoomsFamily(SampledPoseFamily):
   """
 
   name = "rooms"
+  scene_independent_cameras = True
   splits = ("train", "test", "test_scenes")
   budgets = dict(max_boxes=4, max_spheres=4, max_cylinders=4, max_planes=1)
 
@@ -575,6 +639,7 @@ class ObjectFamily(SampledPoseFamily):
   """
 
   name = "object"
+  scene_independent_cameras = True
   splits = ("train", "test", "test_scenes")
   budgets = dict(max_boxes=6, max_spheres=6, max_cylinders=1, max_planes=1)
 

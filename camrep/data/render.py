@@ -28,9 +28,11 @@ closed room would be dark). Rays that hit nothing get the scene's background col
 Output is float32 RGB in [0, 1], (H, W, 3); `to_uint8` converts for view records.
 
 Everything here is a pure function of its inputs (the renderer has no randomness). The only
-jitted entry points are the module-level `render_views` (many poses of one scene) and
-`render_batch` (one pose each of a batch of scenes): compiling the whole ray caster once per
-(camera, primitive budget, batch size) is the point of this module. `render` is the plain,
+jitted entry points are the module-level `render_views` (many poses of one scene),
+`render_batch` (one pose each of a batch of scenes) and `render_scenes_views` (V poses each of S
+scenes, the procedural training batches, optionally converted to uint8 on the device):
+compiling the whole ray caster once per (camera, primitive budget, batch shape) is the point of
+this module. `render` is the plain,
 un-jitted single-image function they wrap.
 """
 
@@ -385,7 +387,8 @@ class SceneBuilder:
 
 
 def stack_scenes(scenes: Sequence[Scene]) -> Scene:
-  """Stacks scenes with identical budgets along a new leading axis (for `render_batch`)."""
+  """Stacks scenes with identical budgets along a new leading axis (for `render_batch` and
+  `render_scenes_views`)."""
   return jax.tree.map(lambda *xs: np.stack(xs), *scenes)
 
 
@@ -814,6 +817,38 @@ def render_batch(
     (B, H, W, 3) float32 in [0, 1].
   """
   return jax.vmap(lambda sc, T: render(sc, T, camera, shadows=shadows))(scenes, T_world_cam)
+
+
+@functools.partial(jax.jit, static_argnames=("camera", "shadows", "uint8"))
+def render_scenes_views(
+  scenes: Scene,
+  T_world_cam: jax.Array,
+  camera: Camera,
+  *,
+  shadows: bool = True,
+  uint8: bool = True,
+) -> jax.Array:
+  """Jitted: V views each of S scenes in one call (vmapped over scenes, then views).
+
+  Args:
+    scenes: `Scene` whose leaves have a leading scene axis S (see `stack_scenes`).
+    T_world_cam: (S, V, 4, 4) camera-to-world matrices, row s for scene s.
+    camera: intrinsics (static).
+    shadows: static.
+    uint8: static; True: convert on the device as `to_uint8` does (round to nearest), so only
+      uint8 images leave it; False: float32 in [0, 1].
+
+  Returns:
+    (S, V, H, W, 3) uint8, or float32 in [0, 1].
+  """
+
+  def one_scene(scene, T):
+    return jax.vmap(lambda t: render(scene, t, camera, shadows=shadows))(T)
+
+  images = jax.vmap(one_scene)(scenes, T_world_cam)
+  if uint8:
+    images = jnp.round(jnp.clip(images, 0.0, 1.0) * 255.0).astype(jnp.uint8)
+  return images
 
 
 def to_uint8(images: jax.Array) -> np.ndarray:
