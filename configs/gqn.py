@@ -64,6 +64,11 @@ def get_config(arg: str | None = None):
     c.data.family.test_views = 2
     # Nearly flat wall/floor colours, as in most real GQN rooms (see BUILD_NOTES).
     c.data.family.texture_contrast = (0.0, 0.08)
+    # Wall hues fixed to the world directions, as the quick / medium regression's rooms
+    # (configs/regression.py): "ours" must come from a pose system learned on the rooms it
+    # regresses, and in the old look (wall_style="tinted", the family's default and the paper
+    # size's) a view cannot be told from its quarter-turn twins (issues 16 and 18, BUILD_NOTES).
+    c.data.family.wall_style = "compass"
     c.data.scenes_per_device = 8
     # 3 context + 6 queries: half the encoder's work and twice the decoder's signal per step
     # (measured better at this budget than the paper's 6 + 3; BUILD_NOTES).

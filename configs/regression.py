@@ -169,6 +169,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.evals.batch_size = 64  # images (gqn: queries) per evaluation batch
   # More test splits, comma-separated ("test", "test_scenes"), written as results.json "extra".
   c.evals.extra_splits = ""
+  # Every eval_every_steps: False: the validation split only (what choosing the lr needs);
+  # True: every evaluation split (test and extra ones too), for learning curves.
+  c.evals.periodic_all_splits = False
 
   # Paper sizes (digest 4.1-4.4). Procedural data is held in memory, so the rooms family is
   # capped at 20k scenes (the paper's GQN files hold 200k) and test sets at a few thousand views.

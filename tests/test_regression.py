@@ -65,7 +65,17 @@ def _script(name):
 
 def test_baseline_end_to_end(tmp_path, cache):
   wd = str(tmp_path / "run")
-  config = _config("car", "euler", **{"data.cache_dir": cache, "optax.lr": 3e-3, "seed": 1})
+  config = _config(
+    "car",
+    "euler",
+    **{
+      "data.cache_dir": cache,
+      "optax.lr": 3e-3,
+      "seed": 1,
+      "eval_every_steps": 2,
+      "evals.periodic_all_splits": True,  # learning curves: every split at step 2 too
+    },
+  )
   results = R.run(config, wd, log=lambda s: None)
   with open(os.path.join(wd, "results.json")) as f:
     assert json.load(f) == json.loads(json.dumps(results))
@@ -88,7 +98,13 @@ def test_baseline_end_to_end(tmp_path, cache):
   )
   lines = [json.loads(x) for x in open(os.path.join(wd, "metrics.jsonl"))]
   assert [r["step"] for r in lines if "train/loss" in r] == [2, 3]
-  assert any("eval/test/rotation_error_deg_mean" in r for r in lines)
+  evals = {}
+  for r in lines:
+    evals.setdefault(r["step"], set()).update(k for k in r if k.startswith("eval/"))
+  for step in (2, 3):
+    assert {"eval/test/rotation_error_deg_mean", "eval/validation/rotation_error_deg_mean"} <= (
+      evals[step]
+    )
   with open(os.path.join(wd, "config.json")) as f:
     assert json.load(f)["total_steps"] == 3
   # The cache holds the rendered splits; a second data build reads them back identically.

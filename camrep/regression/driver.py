@@ -427,7 +427,8 @@ def load_resnet_weights(config, state: learner.RegressionState) -> learner.Regre
 
 
 def train(setup: Setup, writer, eval_sets, *, predict_fn, log=print):
-  """Trains the regressor for config.total_steps; validation errors every eval_every_steps.
+  """Trains the regressor for config.total_steps; validation errors every eval_every_steps (every
+  split's with `evals.periodic_all_splits`).
 
   Returns:
     (state, the last logged train/* scalars, training seconds).
@@ -456,8 +457,10 @@ def train(setup: Setup, writer, eval_sets, *, predict_fn, log=print):
     if status:
       log(f"{status} loss={float(m['loss']):.4f}")
     if step < total and progress_lib.itstime(step, config.eval_every_steps, total):
-      errs = scoring.evaluate_regression(state, eval_sets["validation"], predict_fn=predict_fn)
-      writer.write_scalars(step, _scalars("eval/validation", scoring.summarise_errors(errs)))
+      periodic = eval_sets if config.evals.get("periodic_all_splits") else ["validation"]
+      for name in periodic:
+        errs = scoring.evaluate_regression(state, eval_sets[name], predict_fn=predict_fn)
+        writer.write_scalars(step, _scalars(f"eval/{name}", scoring.summarise_errors(errs)))
   jax.block_until_ready(state.params)
   return state, last, time.perf_counter() - t_train
 
