@@ -1,0 +1,114 @@
+"""Learning curves from run workdirs: one metric of metrics.jsonl against the step, per run.
+
+Works for any camrep workdir (regression or view synthesis): a regression run logs its
+evaluation errors every `eval_every_steps` (validation only, or every split with
+`--config.evals.periodic_all_splits=True`), a view-synthesis run logs eval/psnr. Each metric
+given becomes one table (a column per run) and one panel of the PNG. Issue 16 part 2: the rooms
+regression's curve for "ours" and the quaternion,
+
+  .venv/bin/python experiments/learning_curve.py --runs /tmp/curve/ours /tmp/curve/quat \\
+      --metrics eval/test_scenes/yaw_error_deg_mean,eval/test_scenes/x_error_mean \\
+      --png /tmp/curve/rooms.png --md /tmp/curve/rooms.md
+
+Reads workdirs only (config.json, metrics.jsonl); seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from camrep.runtime import plots, writers
+
+
+def label_of(workdir: str) -> str:
+  """A run's label: its regression representation and lr, else its directory name."""
+  path = os.path.join(workdir, "config.json")
+  name = os.path.basename(os.path.normpath(workdir))
+  if not os.path.exists(path):
+    return name
+  with open(path, encoding="utf-8") as f:
+    config = json.load(f)
+  rep = config.get("representation")
+  if rep:
+    lr = config.get("optax", {}).get("lr")
+    return f"{rep} (lr {lr:g})" if lr else rep
+  return name
+
+
+def curve(workdir: str, metric: str) -> dict[int, float]:
+  """{step: value} of `metric` in the workdir's metrics.jsonl (the last value of each step)."""
+  out = {}
+  for row in writers.read_metrics(workdir):
+    if metric in row:
+      out[int(row["step"])] = float(row[metric])
+  return out
+
+
+def markdown(labels: Sequence[str], metric: str, curves: Sequence[dict[int, float]]) -> str:
+  steps = sorted(set().union(*curves))
+  lines = [f"`{metric}`", "", "| step | " + " | ".join(labels) + " |"]
+  lines.append("|---" * (len(labels) + 1) + "|")
+  for s in steps:
+    cells = [f"{c[s]:.4g}" if s in c else "" for c in curves]
+    lines.append(f"| {s} | " + " | ".join(cells) + " |")
+  return "\n".join(lines) + "\n"
+
+
+def figure(labels: Sequence[str], metric: str, curves: Sequence[dict[int, float]]) -> np.ndarray:
+  steps = sorted(set().union(*curves))
+  series = {
+    label: [c.get(s, float("nan")) for s in steps] for label, c in zip(labels, curves, strict=True)
+  }
+  return plots.line_plot(steps, series, title=metric, xlabel="step", ylabel=metric.split("/")[-1])
+
+
+def main(argv=None) -> int:
+  p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
+  p.add_argument("--runs", nargs="+", required=True, help="workdirs")
+  p.add_argument("--metrics", required=True, help="comma-separated metrics.jsonl keys")
+  p.add_argument("--labels", default="", help="comma-separated labels (default: from config)")
+  p.add_argument("--png", default="", help="output figure (one panel per metric)")
+  p.add_argument("--md", default="", help="output Markdown tables")
+  args = p.parse_args(argv)
+  metrics = [m.strip() for m in args.metrics.split(",") if m.strip()]
+  labels = [x.strip() for x in args.labels.split(",")] if args.labels else []
+  if labels and len(labels) != len(args.runs):
+    print("error: give one label per run", file=sys.stderr)
+    return 2
+  for w in args.runs:
+    if not os.path.exists(os.path.join(w, "metrics.jsonl")):
+      print(f"error: {w} has no metrics.jsonl", file=sys.stderr)
+      return 2
+  labels = labels or [label_of(w) for w in args.runs]
+  tables, panels = [], []
+  for metric in metrics:
+    curves = [curve(w, metric) for w in args.runs]
+    missing = [w for w, c in zip(args.runs, curves, strict=True) if not c]
+    if missing:
+      print(f"error: {metric} is not logged in {', '.join(missing)}", file=sys.stderr)
+      return 2
+    tables.append(markdown(labels, metric, curves))
+    panels.append(figure(labels, metric, curves))
+  text = "\n".join(tables)
+  text += "\nRuns: " + "; ".join(f"{lab}: `{w}`" for lab, w in zip(labels, args.runs)) + "\n"
+  print(text)
+  if args.md:
+    os.makedirs(os.path.dirname(os.path.abspath(args.md)), exist_ok=True)
+    with open(args.md, "w", encoding="utf-8") as f:
+      f.write(text)
+  if args.png:
+    os.makedirs(os.path.dirname(os.path.abspath(args.png)), exist_ok=True)
+    cv2.imwrite(args.png, cv2.cvtColor(np.concatenate(panels, axis=1), cv2.COLOR_RGB2BGR))
+    print(f"wrote {args.png}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())

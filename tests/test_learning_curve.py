@@ -1,0 +1,64 @@
+"""experiments/learning_curve.py on fabricated workdirs: tables, figure, labels and refusals."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import sys
+
+import cv2
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _script():
+  path = os.path.join(ROOT, "experiments", "learning_curve.py")
+  spec = importlib.util.spec_from_file_location("learning_curve", path)
+  module = importlib.util.module_from_spec(spec)
+  sys.modules["learning_curve"] = module
+  spec.loader.exec_module(module)
+  return module
+
+
+def _workdir(tmp_path, name, representation, rows):
+  wd = tmp_path / name
+  wd.mkdir()
+  config = {"representation": representation, "optax": {"lr": 1e-3}}
+  (wd / "config.json").write_text(json.dumps(config))
+  (wd / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+  return str(wd)
+
+
+def test_tables_and_figure_from_metrics(tmp_path, capsys):
+  lc = _script()
+  key = "eval/test_scenes/yaw_error_deg_mean"
+  a = _workdir(
+    tmp_path,
+    "a",
+    "ours",
+    [{"step": 50, "train/loss": 1.0}, {"step": 100, key: 80.0}, {"step": 200, key: 20.5}],
+  )
+  b = _workdir(tmp_path, "b", "quat", [{"step": 100, key: 85.0}, {"step": 300, key: "NaN"}])
+  png, md = tmp_path / "out" / "c.png", tmp_path / "out" / "c.md"
+  assert lc.main(["--runs", a, b, "--metrics", key, "--png", str(png), "--md", str(md)]) == 0
+  text = md.read_text()
+  assert "| step | ours (lr 0.001) | quat (lr 0.001) |" in text
+  assert "| 100 | 80 | 85 |" in text and "| 200 | 20.5 |  |" in text
+  assert "| 300 |  | nan |" in text  # logged non-finite values stay visible
+  assert "train/loss" not in text
+  img = cv2.imread(str(png))
+  assert img is not None and img.shape[0] > 100
+  capsys.readouterr()
+
+
+def test_refusals(tmp_path, capsys):
+  lc = _script()
+  a = _workdir(tmp_path, "a", "ours", [{"step": 1, "eval/psnr": 20.0}])
+  assert lc.main(["--runs", a, "--metrics", "eval/ssim"]) == 2
+  assert "eval/ssim is not logged" in capsys.readouterr().err
+  assert lc.main(["--runs", str(tmp_path / "nope"), "--metrics", "eval/psnr"]) == 2
+  assert "has no metrics.jsonl" in capsys.readouterr().err
+  assert lc.main(["--runs", a, "--metrics", "eval/psnr", "--labels", "x,y"]) == 2
+  assert lc.main(["--runs", a, "--metrics", "eval/psnr", "--labels", "mine"]) == 0
+  assert "| step | mine |" in capsys.readouterr().out
