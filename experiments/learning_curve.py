@@ -97,7 +97,9 @@ def main(argv=None) -> int:
     tables.append(markdown(labels, metric, curves))
     panels.append(figure(labels, metric, curves))
   text = "\n".join(tables)
-  text += "\nRuns: " + "; ".join(f"{lab}: `{w}`" for lab, w in zip(labels, args.runs)) + "\n"
+  text += (
+    "\nRuns: " + "; ".join(f"{lab}: `{w}`" for lab, w in zip(labels, args.runs, strict=True)) + "\n"
+  )
   print(text)
   if args.md:
     os.makedirs(os.path.dirname(os.path.abspath(args.md)), exist_ok=True)
