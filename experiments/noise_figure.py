@@ -34,7 +34,7 @@ LABELS = {
   "grid": "ours (learned)",
   "lowdim": "GQN low-dim pose",
   "mlp": "MLP embedding",
-  "convdraw": "GQN (ConvDRAW generator)",
+  "convdraw": "GQN (ConvDRAW)",
 }
 
 

@@ -426,7 +426,10 @@ def _fake(setting, rep, seed, data, errs, scenes=("0",)):
 def test_tables_state_the_data_of_each_column():
   srn = {"source": "srn_cars", "dataset": "srn_cars", "dataset_path": "/d/srn_cars/1.0.0",
          "test_split": "test", "num_test_views": 9}  # fmt: skip
-  rooms = {"family": "rooms", "preset": "small", "test_split": "test_scenes"}
+  look = {"num_train_scenes": 400, "train_views": 10, "image_size": 32,
+          "wall_style": "compass", "texture_contrast": [0.0, 0.08]}  # fmt: skip
+  rooms = {"family": "rooms", "preset": "small", "test_split": "test_scenes",
+           "family_overrides": look}  # fmt: skip
   area = {"family": "area", "preset": "small", "test_split": "test"}
   gib = {"source": "gibson", "dataset_path": "/d/gibson/1.0.0", "test_split": "test"}
   gg = ("x_error", "y_error", "yaw_error_deg")
@@ -442,7 +445,14 @@ def test_tables_state_the_data_of_each_column():
     "- car: prepared `srn_cars` (source srn_cars) at /d/srn_cars/1.0.0, test split `test` "
     "(9 test views)" in text
   )
-  assert "- rooms: procedural `rooms` family (preset small), test split `test_scenes`" in text
+  assert (
+    "- rooms: procedural `rooms` family (preset small, texture_contrast=(0.0, 0.08), "
+    "wall_style=compass), test split `test_scenes`" in text
+  )
+  # Two looks of one family are two datasets: pooling them is flagged.
+  tinted = {**rooms, "family_overrides": {**rooms["family_overrides"], "wall_style": "tinted"}}
+  text = _table_script("table1").build(results + [_fake("gqn", "euler", 1, tinted, gg)])
+  assert "- rooms: MIXED DATA" in text and "wall_style=tinted" in text
   assert "- area: MIXED DATA" in text
   seven = {"source": "seven_scenes", "dataset_path": "/d/7s/1.0.0", "test_split": "test",
            "num_test_views": 6, "scene_names": {"0": "stairs"}}  # fmt: skip

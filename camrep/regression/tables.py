@@ -213,7 +213,27 @@ def data_label(run: Mapping[str, Any]) -> str:
       + (f" ({n} test views)" if n is not None else "")
     )
   family, preset = d.get("family", "?"), d.get("preset", "?")
-  return f"procedural `{family}` family (preset {preset}), test split `{split}`"
+  look = look_overrides(d.get("family_overrides", {}))
+  look_text = ", " + ", ".join(f"{k}={v}" for k, v in look.items()) if look else ""
+  return f"procedural `{family}` family (preset {preset}{look_text}), test split `{split}`"
+
+
+# Family fields that size a procedural set (how many scenes and views) rather than what its
+# images look like; a table names every other override, so that two looks are never pooled.
+_SIZE_FIELDS = ("seed", "image_size", "scenes", "batch_size", "supersample")
+
+
+def look_overrides(overrides: Mapping[str, Any]) -> dict[str, Any]:
+  """The family overrides that change what a scene looks like (wall_style, texture_contrast,
+  ...), without those that only size the set (num_*, *_views, *_stride, image_size, ...);
+  lists as tuples, sorted by name."""
+  out = {}
+  for k in sorted(overrides):
+    if k in _SIZE_FIELDS or k.startswith("num_") or k.endswith(("_views", "_stride")):
+      continue
+    v = overrides[k]
+    out[k] = tuple(v) if isinstance(v, list) else v
+  return out
 
 
 def data_notes(
