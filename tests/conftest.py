@@ -26,7 +26,10 @@ def pytest_configure(config):
   if where == "0":
     return
   if not where:
-    base = config._tmp_path_factory.getbasetemp()
+    factory = getattr(config, "_tmp_path_factory", None)  # pytest's tmpdir plugin
+    if factory is None:
+      return
+    base = factory.getbasetemp()
     if os.environ.get("PYTEST_XDIST_WORKER"):
       base = base.parent  # this session's directory, common to its workers
     where = str(base / "jax_compilation_cache")
