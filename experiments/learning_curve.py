@@ -16,7 +16,6 @@ Reads workdirs only (config.json, metrics.jsonl); seconds.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from collections.abc import Sequence
@@ -25,16 +24,15 @@ import cv2
 import numpy as np
 
 from camrep.runtime import plots, writers
+from camrep.runtime import workdir as workdir_lib
 
 
 def label_of(workdir: str) -> str:
   """A run's label: its regression representation and lr, else its directory name."""
-  path = os.path.join(workdir, "config.json")
   name = os.path.basename(os.path.normpath(workdir))
-  if not os.path.exists(path):
+  config = workdir_lib.read_stored_config(workdir)
+  if config is None:
     return name
-  with open(path, encoding="utf-8") as f:
-    config = json.load(f)
   rep = config.get("representation")
   if rep:
     lr = config.get("optax", {}).get("lr")

@@ -22,6 +22,7 @@ from camrep.synthesis import evaluate as ev
 from camrep.synthesis import gram as gram_lib
 from camrep.synthesis import noise as noise_lib
 from configs import gibson, gqn, seven_scenes, shapenet_car
+from tests.utils import load_experiment
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
@@ -205,13 +206,7 @@ def test_other_pose_inputs_train_and_take_noise(kind, tmp_path):
 
 def test_noise_figure_script(tmp_path):
   """experiments/noise_figure.py reads workdirs only and writes the figure and table."""
-  import importlib.util
-
-  spec = importlib.util.spec_from_file_location(
-    "noise_figure", os.path.join(os.path.dirname(__file__), "..", "experiments", "noise_figure.py")
-  )
-  nf = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(nf)
+  nf = load_experiment("noise_figure")
   alphas = [0.0, 0.15, 0.3]
   runs = []
   for kind, psnr in (("grid", [20.0, 19.5, 19.0]), ("lowdim", [20.5, 17.0, 14.0])):

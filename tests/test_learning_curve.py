@@ -2,23 +2,11 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import os
-import sys
 
 import cv2
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def _script():
-  path = os.path.join(ROOT, "experiments", "learning_curve.py")
-  spec = importlib.util.spec_from_file_location("learning_curve", path)
-  module = importlib.util.module_from_spec(spec)
-  sys.modules["learning_curve"] = module
-  spec.loader.exec_module(module)
-  return module
+from tests.utils import load_experiment
 
 
 def _workdir(tmp_path, name, representation, rows):
@@ -31,7 +19,7 @@ def _workdir(tmp_path, name, representation, rows):
 
 
 def test_tables_and_figure_from_metrics(tmp_path, capsys):
-  lc = _script()
+  lc = load_experiment("learning_curve")
   key = "eval/test_scenes/yaw_error_deg_mean"
   a = _workdir(
     tmp_path,
@@ -53,7 +41,7 @@ def test_tables_and_figure_from_metrics(tmp_path, capsys):
 
 
 def test_refusals(tmp_path, capsys):
-  lc = _script()
+  lc = load_experiment("learning_curve")
   a = _workdir(tmp_path, "a", "ours", [{"step": 1, "eval/psnr": 20.0}])
   assert lc.main(["--runs", a, "--metrics", "eval/ssim"]) == 2
   assert "eval/ssim is not logged" in capsys.readouterr().err

@@ -8,7 +8,6 @@ built from fabricated results.json files.
 from __future__ import annotations
 
 import copy
-import importlib.util
 import json
 import os
 import subprocess
@@ -25,7 +24,7 @@ from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import components, train
 from configs import regression as regression_config
 from configs import shapenet_car
-from tests.utils import snapshot
+from tests.utils import load_experiment, snapshot
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -48,16 +47,6 @@ def _config(setting="car", representation="euler", **kw):
       node = node[p]
     node[last] = v
   return c
-
-
-def _script(name):
-  spec = importlib.util.spec_from_file_location(
-    name, os.path.join(ROOT, "experiments", f"{name}.py")
-  )
-  module = importlib.util.module_from_spec(spec)
-  sys.modules[name] = module  # dataclasses look their module up
-  spec.loader.exec_module(module)
-  return module
 
 
 # ------------------------------------------------------------------------------- the driver
@@ -280,7 +269,9 @@ def test_table1_selects_lr_on_validation(tmp_path):
   assert C.seed_stats(sel["car", "ours"].runs, "rotation_error_deg") == (3.0, np.sqrt(2), 2)
 
   out = str(tmp_path / "results" / "table1.md")
-  assert _script("table1").main(["--runs", os.path.join(root, "*", "*", "*"), "--out", out]) == 0
+  assert (
+    load_experiment("table1").main(["--runs", os.path.join(root, "*", "*", "*"), "--out", out]) == 0
+  )
   text = open(out).read()
   assert "| ours | 3.00 ± 1.41 | – | – | – | – | – | – |" in text
   assert "| (x, y, q) | 7.50 ± 0.71 |" in text
@@ -299,7 +290,9 @@ def test_table2_medians_per_scene(tmp_path):
       val = _summary("seven_scenes", scale)
       _write(root, "seven_scenes", rep, 1e-3, seed, val, test, data={"scene_names": names})
   out = str(tmp_path / "table2.md")
-  assert _script("table2").main(["--runs", os.path.join(root, "*", "*", "*"), "--out", out]) == 0
+  assert (
+    load_experiment("table2").main(["--runs", os.path.join(root, "*", "*", "*"), "--out", out]) == 0
+  )
   text = open(out).read()
   # ours, chess: position medians 0.05 / 0.15, rotation medians 0.15 / 0.45 over the seeds.
   assert "| chess | 0.10 ± 0.07 m, 0.3 ± 0.2° | 0.20 ± 0.14 m, 0.6 ± 0.4° | 0.12 m, 4.83° |" in text
@@ -309,7 +302,7 @@ def test_table2_medians_per_scene(tmp_path):
 
 
 def test_run_comparison_dry_run(tmp_path, capsys):
-  rc = _script("run_comparison")
+  rc = load_experiment("run_comparison")
   assert rc.main(["--size", "quick", "--out", str(tmp_path), "--dry_run"]) == 0
   text = capsys.readouterr().out
   first = text.splitlines()[0]
@@ -348,7 +341,7 @@ def test_run_comparison_dry_run(tmp_path, capsys):
 
 def test_run_comparison_runs_jobs_at_once(tmp_path, monkeypatch):
   """--jobs N: N subprocesses at a time, each told its share of GPU memory; failures named."""
-  rc = _script("run_comparison")
+  rc = load_experiment("run_comparison")
   monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)
   assert rc.job_env(1) is None and rc.job_env(3)["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.300"
   marks = tmp_path / "marks"

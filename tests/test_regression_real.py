@@ -35,6 +35,7 @@ from configs import regression as regression_config
 from configs import seven_scenes as seven_scenes_config
 from configs import shapenet_car
 from tests import readers_fixtures as fx
+from tests.utils import load_experiment
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
@@ -406,16 +407,6 @@ def test_resnet_weights_refusals(tmp_path):
 # ------------------------------------------------------------------------------- tables
 
 
-def _table_script(name):
-  import importlib.util
-
-  spec = importlib.util.spec_from_file_location(name, ROOT / "experiments" / f"{name}.py")
-  module = importlib.util.module_from_spec(spec)
-  sys.modules[name] = module
-  spec.loader.exec_module(module)
-  return module
-
-
 def _fake(setting, rep, seed, data, errs, scenes=("0",)):
   one = {e: {"mean": 1.0, "median": 1.0} for e in errs}
   summary = {"all": one, **{s: one for s in scenes}}
@@ -439,7 +430,7 @@ def test_tables_state_the_data_of_each_column():
     _fake("gibson", "euler", 0, area, gg),
     _fake("gibson", "euler", 1, gib, gg),
   ]
-  text = _table_script("table1").build(results)
+  text = load_experiment("table1").build(results)
   assert "# Table 1: pose regression on mixed data" in text
   assert (
     "- car: prepared `srn_cars` (source srn_cars) at /d/srn_cars/1.0.0, test split `test` "
@@ -451,13 +442,13 @@ def test_tables_state_the_data_of_each_column():
   )
   # Two looks of one family are two datasets: pooling them is flagged.
   tinted = {**rooms, "family_overrides": {**rooms["family_overrides"], "wall_style": "tinted"}}
-  text = _table_script("table1").build(results + [_fake("gqn", "euler", 1, tinted, gg)])
+  text = load_experiment("table1").build(results + [_fake("gqn", "euler", 1, tinted, gg)])
   assert "- rooms: MIXED DATA" in text and "wall_style=tinted" in text
   assert "- area: MIXED DATA" in text
   seven = {"source": "seven_scenes", "dataset_path": "/d/7s/1.0.0", "test_split": "test",
            "num_test_views": 6, "scene_names": {"0": "stairs"}}  # fmt: skip
   errs = ("position_error", "rotation_error_deg")
-  text = _table_script("table2").build([_fake("seven_scenes", "quat", 0, seven, errs)])
+  text = load_experiment("table2").build([_fake("seven_scenes", "quat", 0, seven, errs)])
   assert text.startswith("# Table 2: 6-DOF regression on 7-Scenes (prepared real images)")
   assert "- all columns: prepared `seven_scenes` (source seven_scenes) at /d/7s/1.0.0" in text
   assert "- ResNet initialisation: none (from scratch)" in text

@@ -3,25 +3,17 @@
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
-import os
 
 import pytest
+
+from tests.utils import load_experiment
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 
 
-def _sweep():
-  path = os.path.join(os.path.dirname(__file__), "..", "experiments", "sweep.py")
-  spec = importlib.util.spec_from_file_location("sweep", path)
-  mod = importlib.util.module_from_spec(spec)
-  spec.loader.exec_module(mod)
-  return mod
-
-
 def test_parse_variant():
-  sw = _sweep()
+  sw = load_experiment("sweep")
   assert sw.parse_variant("base=") == ("base", [])
   assert sw.parse_variant("lr=--config.optax.lr_model=2e-3 --config.seed=1") == (
     "lr",
@@ -34,7 +26,7 @@ def test_parse_variant():
 
 def test_sweep_runs_variants_and_reports_failures(tmp_path, monkeypatch):
   monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")  # the runs compile in seconds
-  sw = _sweep()
+  sw = load_experiment("sweep")
   out = tmp_path / "sweep"
   rc = sw.main(
     [

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import importlib.util
+import os
+import sys
 
 import jax
 import numpy as np
@@ -83,3 +86,14 @@ def snapshot(workdir) -> dict[str, bytes]:
       with open(p, "rb") as fh:
         out[os.path.relpath(p, workdir)] = fh.read()
   return out
+
+
+def load_experiment(name: str):
+  """The module of experiments/<name>.py (experiments/ is not a package), registered in
+  sys.modules under `name` (its dataclasses look their module up)."""
+  path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments")
+  spec = importlib.util.spec_from_file_location(name, os.path.join(path, f"{name}.py"))
+  module = importlib.util.module_from_spec(spec)
+  sys.modules[name] = module
+  spec.loader.exec_module(module)
+  return module

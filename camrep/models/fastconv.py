@@ -2,7 +2,7 @@
 
 XLA:CPU runs the weight-gradient convolution of a conv layer 5-7x slower than the forward one
 (~20-50 GFLOP/s against a ~110-146 GFLOP/s fp32 matmul peak on the project's 2-core machine;
-../shared/reference/jax_stack_notes.md section 6), and in the GQN-rooms train step it is most of
+BUILD_NOTES "Performance"), and in the GQN-rooms train step it is most of
 the time. `conv_general_dilated` here has `lax.conv_general_dilated`'s signature (Flax's
 `nn.Conv(conv_general_dilated=...)` takes it) and the same forward pass and input gradient, but a
 custom VJP computes the kernel gradient of a k x k conv as k^2 matmuls, one per kernel tap:
