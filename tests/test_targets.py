@@ -1,4 +1,7 @@
-"""Tests of camrep.regression.targets: conversions (vs scipy), round trips, losses, defaults."""
+"""Tests of camrep.regression.targets: setting conventions, round trips, losses, defaults.
+
+The rotation conversions themselves are tested in tests/test_rotations.py.
+"""
 
 from __future__ import annotations
 
@@ -10,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from camrep import lie, pose_inputs
+from camrep import lie, pose_inputs, rotations
 from camrep import pose as P
 from camrep.models import pose_regressor
 from camrep.regression import targets as T
@@ -28,112 +31,12 @@ def _wxyz(rot: Rotation) -> np.ndarray:
   return np.where(q[..., :1] < 0, -q, q)
 
 
-def _rotations(n=200, seed=0) -> Rotation:
-  """Random rotations plus near-identity (1e-9 .. 1e-3 rad) and near-pi (pi - 1e-6 .. - 1e-2)."""
-  rng = np.random.default_rng(seed)
-  axes = rng.normal(size=(20, 3))
-  axes /= np.linalg.norm(axes, axis=-1, keepdims=True)
-  small = np.geomspace(1e-9, 1e-3, 10).repeat(2)[:, None] * axes
-  near_pi = (math.pi - np.geomspace(1e-6, 1e-2, 10).repeat(2))[:, None] * axes
-  rand = Rotation.random(n, random_state=seed).as_rotvec()
-  return Rotation.from_rotvec(np.concatenate([rand, small, near_pi, np.zeros((1, 3))]))
-
-
 def _angle_close(a, b, atol):
   d = np.mod(np.asarray(a) - np.asarray(b) + math.pi, TWO_PI) - math.pi
   assert np.all(np.isfinite(d)) and np.max(np.abs(d)) <= atol, np.max(np.abs(d))
 
 
-# ---------------------------------------------------------------------------- conversions
-
-
-def test_quaternion_matrix_conversions_match_scipy():
-  rot = _rotations()
-  with x64():
-    R = jnp.asarray(rot.as_matrix())
-    q = _wxyz(rot)
-    assert_close(T.matrix_to_quat(R), q, atol=1e-12)
-    assert_close(T.quat_to_matrix(jnp.asarray(q)), rot.as_matrix(), atol=1e-12)
-    # Unnormalised and negated inputs give the same rotation.
-    assert_close(T.quat_to_matrix(-3.0 * jnp.asarray(q)), rot.as_matrix(), atol=1e-12)
-    assert np.all(np.asarray(T.matrix_to_quat(R))[:, 0] >= 0)
-
-
-def test_axis_angle_and_log_quaternion_match_scipy():
-  rot = _rotations()
-  with x64():
-    q = jnp.asarray(_wxyz(rot))
-    rv = rot.as_rotvec()  # scipy: angle in [0, pi], the sign of q with w >= 0
-    assert_close(T.quat_to_axis_angle(q), rv, atol=1e-12)
-    assert_close(T.quat_to_axis_angle(-q), rv, atol=1e-12)
-    assert_close(T.quat_log(q), rv / 2, atol=1e-12)
-    assert_close(T.axis_angle_to_quat(jnp.asarray(rv)), q, atol=1e-12)
-    assert_close(T.quat_exp(jnp.asarray(rv / 2)), q, atol=1e-12)
-    # Angles beyond pi wrap to the same rotation.
-    big = rv / np.maximum(np.linalg.norm(rv, axis=-1, keepdims=True), 1e-30) * 4.0
-    assert_close(
-      T.quat_to_matrix(T.axis_angle_to_quat(jnp.asarray(big))),
-      Rotation.from_rotvec(big).as_matrix(),
-      atol=1e-12,
-    )
-
-
-def test_conversions_float32_accuracy():
-  rot = _rotations(seed=1)
-  q = jnp.asarray(_wxyz(rot), jnp.float32)
-  assert_close(T.matrix_to_quat(jnp.asarray(rot.as_matrix(), jnp.float32)), q, atol=2e-6)
-  assert_close(T.quat_to_axis_angle(q), rot.as_rotvec(), atol=2e-6)
-  assert_close(T.axis_angle_to_quat(jnp.asarray(rot.as_rotvec(), jnp.float32)), q, atol=2e-6)
-
-
-def test_rotation_vector_gradients_finite_at_identity():
-  g1 = jax.jit(jax.jacfwd(T.axis_angle_to_quat))(jnp.zeros(3))
-  assert_close(g1, np.concatenate([np.zeros((1, 3)), 0.5 * np.eye(3)]), atol=1e-7)
-  g2 = jax.jit(jax.jacrev(T.quat_to_axis_angle))(jnp.array([1.0, 0.0, 0.0, 0.0]))
-  assert np.all(np.isfinite(np.asarray(g2)))
-  assert_close(np.asarray(g2)[:, 1:], 2 * np.eye(3), atol=1e-6)
-
-
-def test_rot6d_and_svd9d_round_trip_scipy_rotations():
-  R = _rotations().as_matrix().astype(np.float32)
-  got6 = np.asarray(T.rot6d_to_matrix(T.matrix_to_rot6d(jnp.asarray(R))))
-  assert_close(got6, R, atol=2e-6, rtol=0)
-  got9 = np.asarray(T.svd_orthogonalise(jnp.asarray(R)))
-  assert_close(got9, R, atol=2e-6, rtol=0)
-  # Gram-Schmidt of any 6 numbers is a rotation; so is the SVD projection of any 9.
-  rng = np.random.default_rng(1)
-  for M in (
-    T.rot6d_to_matrix(rng.normal(size=(50, 6))),
-    T.svd_orthogonalise(rng.normal(size=(50, 3, 3))),
-  ):
-    M = np.asarray(M)
-    assert_close(M @ np.swapaxes(M, -1, -2), np.broadcast_to(np.eye(3), M.shape), atol=1e-5, rtol=0)
-    assert_close(np.linalg.det(M), np.ones(50), atol=1e-5, rtol=0)
-
-
-def test_svd_projection_is_the_nearest_rotation_as_scipy_finds_it():
-  # scipy's from_matrix orthogonalises a non-orthogonal matrix to its nearest rotation
-  # (Frobenius norm; Markley 2008), the same as the SVD projection of Levinson et al.
-  rng = np.random.default_rng(2)
-  R = _rotations(60, seed=3).as_matrix()
-  noisy = R + 0.2 * rng.normal(size=R.shape)
-  want = Rotation.from_matrix(noisy).as_matrix()
-  with x64():
-    got = np.asarray(T.svd_orthogonalise(jnp.asarray(noisy)))
-  assert_close(got, want, atol=1e-6, rtol=0)
-
-
-def test_rot6d_and_svd9d_are_continuous_where_quaternions_jump():
-  # Rotations about a fixed axis through angle pi: the w >= 0 quaternion flips sign there, the
-  # Euler angles wrap; the 6-D and 9-D representations move by about the angle step.
-  angles = np.linspace(math.pi - 0.05, math.pi + 0.05, 101)
-  axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
-  R = Rotation.from_rotvec(angles[:, None] * axis).as_matrix().astype(np.float32)
-  step = angles[1] - angles[0]
-  jump = lambda x: float(np.max(np.linalg.norm(np.diff(np.asarray(x), axis=0), axis=-1)))
-  assert jump(T.matrix_to_rot6d(jnp.asarray(R))) < 3 * step
-  assert jump(jnp.asarray(R).reshape(-1, 9)) < 3 * step
-  assert jump(T.matrix_to_quat(jnp.asarray(R))) > 1.0  # q -> -q at the crossing
+# ---------------------------------------------------------------------------- setting conventions
 
 
 def test_matrix_losses_are_the_frobenius_distance_of_rotations():
@@ -142,7 +45,7 @@ def test_matrix_losses_are_the_frobenius_distance_of_rotations():
   R1 = Rotation.from_rotvec([0, 0, 0.2]).as_matrix()
   R2 = Rotation.from_rotvec([0, 0, 0.2 + theta]).as_matrix()
   want = 4 * (1 - math.cos(theta))
-  six = lambda R: T.matrix_to_rot6d(jnp.asarray(R[None], jnp.float32))
+  six = lambda R: rotations.matrix_to_rot6d(jnp.asarray(R[None], jnp.float32))
   got6 = T.head_loss("gram_schmidt_frobenius", 2.5 * six(R2), six(R1))  # scale does not matter
   assert float(got6) == pytest.approx(want, rel=1e-5)
   nine = lambda R: jnp.asarray(R.reshape(1, 9), jnp.float32)
@@ -164,23 +67,6 @@ def test_matrix_losses_are_the_frobenius_distance_of_rotations():
   assert float(g["orientation"]) == pytest.approx(0, abs=1e-10)
 
 
-def test_euler_sxyz_matches_scipy_and_seven_scenes_module():
-  from camrep.data import seven_scenes
-
-  rot = _rotations(seed=2)
-  with x64():
-    e = rot.as_euler("xyz")  # extrinsic x, y, z: R = Rz(psi) Ry(phi) Rx(theta)
-    assert_close(T.euler_sxyz_to_matrix(jnp.asarray(e)), rot.as_matrix(), atol=1e-12)
-    got = T.matrix_to_euler_sxyz(jnp.asarray(rot.as_matrix()))
-    assert_close(got, seven_scenes.matrix_to_euler_sxyz(rot.as_matrix()), atol=1e-12)
-    assert_close(T.euler_sxyz_to_matrix(got), rot.as_matrix(), atol=1e-12)
-    # Gimbal lock: psi = 0 as transforms3d.
-    lock = Rotation.from_euler("xyz", [0.3, math.pi / 2, 0.0]).as_matrix()
-    assert_close(
-      T.matrix_to_euler_sxyz(jnp.asarray(lock)), seven_scenes.matrix_to_euler_sxyz(lock), atol=1e-7
-    )
-
-
 def test_car_rotation_is_intrinsic_zxz_and_inverts():
   rng = np.random.default_rng(3)
   az = rng.uniform(0, TWO_PI, 100)
@@ -195,20 +81,6 @@ def test_car_rotation_is_intrinsic_zxz_and_inverts():
     centre = np.stack([np.sin(pol) * np.cos(az), np.sin(pol) * np.sin(az), np.cos(pol)], -1)
     assert_close(np.asarray(R)[:, :, 2], -centre, atol=1e-12)
     assert_close(T.car_angles(R), np.stack([az, pol], -1), atol=1e-9)
-
-
-def test_yaw_quaternion_matches_scipy():
-  yaw = np.linspace(0, TWO_PI, 37)[:-1]
-  with x64():
-    q = T.yaw_to_quat(jnp.asarray(yaw))
-    assert_close(q, _wxyz(Rotation.from_euler("z", yaw[:, None])), atol=1e-12)
-    _angle_close(T.quat_to_yaw(q), yaw, 1e-12)
-    # A tilted rotation decodes to the closest yaw.
-    tilted = Rotation.from_euler("zx", np.stack([yaw, np.full(36, 0.2)], -1))
-    _angle_close(T.quat_to_yaw(jnp.asarray(_wxyz(tilted))), yaw, 1e-9)
-
-
-# ---------------------------------------------------------------------------- poses and targets
 
 
 def _poses(setting, n=64, seed=0):

@@ -33,6 +33,12 @@ from camrep.data import textio
 from camrep.data.errors import DataError
 from camrep.data.imageio import PathLike, check_image_size, crop_and_resize, read_image
 from camrep.data.records import POSE_NAMES
+from camrep.rotations import (
+  euler_sxyz_to_matrix,
+  matrix_to_euler_sxyz,
+  orthonormalize,
+  quat_to_matrix,
+)
 
 DEFAULT_EXTENT = (4.0, 1.5, 3.0)
 """Grid cuboid (x, y, z) in metres that the re-based translations must fit (paper / digest)."""
@@ -43,95 +49,11 @@ IMAGE_HW = (480, 640)
 SPLITS = ("train", "test")
 _SPLIT_FILES = {"train": "TrainSplit.txt", "test": "TestSplit.txt"}
 _FRAME_RE = re.compile(r"^frame-(\d+)\.color\.png$")
-_EPS4 = np.finfo(np.float64).eps * 4.0
 
 
 def _check_split(split: str) -> None:
   if split not in SPLITS:
     raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
-
-
-# ---------------------------------------------------------------------------------------------
-# Rotation helpers.
-
-
-def quat_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:
-  """Rotation matrices from quaternions, scalar first; the quaternion is normalised first.
-
-  Args:
-    q_wxyz: (..., 4) quaternions (w, x, y, z), any non-zero norm.
-
-  Returns:
-    (..., 3, 3) float64 rotation matrices.
-  """
-  q = np.asarray(q_wxyz, dtype=np.float64)
-  q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-  w, x, y, z = np.moveaxis(q, -1, 0)
-  rows = [
-    [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-  ]
-  return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
-
-
-def orthonormalize(rot: np.ndarray) -> np.ndarray:
-  """Projects matrices onto SO(3): the nearest rotation in Frobenius norm (SVD, det fixed to +1).
-
-  Args:
-    rot: (..., 3, 3) approximately orthonormal matrices.
-
-  Returns:
-    (..., 3, 3) float64 rotation matrices.
-  """
-  u, _, vt = np.linalg.svd(np.asarray(rot, dtype=np.float64))
-  det = np.linalg.det(u @ vt)
-  u = u.copy()
-  u[..., :, 2] *= np.sign(det)[..., None]
-  return u @ vt
-
-
-def matrix_to_euler_sxyz(rot: np.ndarray) -> np.ndarray:
-  """Static-axes xyz Euler angles, exactly as transforms3d `mat2euler(R, 'sxyz')`.
-
-  R = Rz(psi) Ry(phi) Rx(theta). Near gimbal lock (cos phi ~ 0) psi is set to 0, as transforms3d
-  does.
-
-  Args:
-    rot: (..., 3, 3) rotation matrices.
-
-  Returns:
-    (..., 3) float64 (theta, phi, psi) with theta, psi in [-pi, pi], phi in [-pi/2, pi/2].
-  """
-  r = np.asarray(rot, dtype=np.float64)
-  cy = np.hypot(r[..., 0, 0], r[..., 1, 0])
-  regular = cy > _EPS4
-  theta = np.where(
-    regular, np.arctan2(r[..., 2, 1], r[..., 2, 2]), np.arctan2(-r[..., 1, 2], r[..., 1, 1])
-  )
-  phi = np.arctan2(-r[..., 2, 0], cy)
-  psi = np.where(regular, np.arctan2(r[..., 1, 0], r[..., 0, 0]), 0.0)
-  return np.stack([theta, phi, psi], axis=-1)
-
-
-def euler_sxyz_to_matrix(angles: np.ndarray) -> np.ndarray:
-  """Inverse of `matrix_to_euler_sxyz`: R = Rz(psi) Ry(phi) Rx(theta).
-
-  Args:
-    angles: (..., 3) (theta, phi, psi) in radians.
-
-  Returns:
-    (..., 3, 3) float64 rotation matrices.
-  """
-  a = np.asarray(angles, dtype=np.float64)
-  ct, cp, cs = np.cos(a[..., 0]), np.cos(a[..., 1]), np.cos(a[..., 2])
-  st, sp, ss = np.sin(a[..., 0]), np.sin(a[..., 1]), np.sin(a[..., 2])
-  rows = [
-    [cs * cp, cs * sp * st - ss * ct, cs * sp * ct + ss * st],
-    [ss * cp, ss * sp * st + cs * ct, ss * sp * ct - cs * st],
-    [-sp, cp * st, cp * ct],
-  ]
-  return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
 
 
 # ---------------------------------------------------------------------------------------------

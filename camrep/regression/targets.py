@@ -54,7 +54,7 @@ import jax
 import jax.numpy as jnp
 
 from camrep import pose as P
-from camrep import pose_inputs
+from camrep import pose_inputs, rotations
 from camrep.data import records
 from camrep.models import pose_regressor
 
@@ -111,232 +111,7 @@ def _check_poses(setting: str, poses: Array) -> Array:
 
 
 # --------------------------------------------------------------------------------------------
-# Rotations: quaternions (w, x, y, z), matrices, rotation vectors, log quaternions, Euler angles.
-
-
-def _safe_norm(x: Array) -> tuple[Array, Array]:
-  """(|x|, |x| > 0) over the last axis, with a zero (not NaN) gradient at x = 0."""
-  sq = jnp.sum(x * x, axis=-1)
-  pos = sq > 0
-  return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0), pos
-
-
-def standardise_quat(q: Array) -> Array:
-  """Unit quaternion with w >= 0: q / |q|, negated where w < 0 (q and -q are one rotation).
-
-  Args:
-    q: (..., 4) quaternions (w, x, y, z), any nonzero norm.
-
-  Returns:
-    (..., 4).
-  """
-  n, _ = _safe_norm(q)
-  q = q / jnp.maximum(n, jnp.finfo(q.dtype).tiny)[..., None]
-  return jnp.where(q[..., :1] < 0, -q, q)
-
-
-def quat_to_matrix(q: Array) -> Array:
-  """Rotation matrices of quaternions (normalised first).
-
-  Args:
-    q: (..., 4) quaternions (w, x, y, z).
-
-  Returns:
-    (..., 3, 3) R such that R p rotates p (the active convention of scipy's `as_matrix`).
-  """
-  w, x, y, z = jnp.moveaxis(standardise_quat(q), -1, 0)
-  rows = [
-    [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-    [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-    [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-  ]
-  return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
-
-
-def matrix_to_quat(R: Array) -> Array:
-  """Quaternion of a rotation matrix, w >= 0 (Shepperd's method: well conditioned everywhere).
-
-  Of the four expressions 4 q_i q (i = w, x, y, z) built from R, the one with the largest
-  |q_i| is normalised, so there is no cancellation near angle pi.
-
-  Args:
-    R: (..., 3, 3) rotation matrices.
-
-  Returns:
-    (..., 4) unit quaternions (w, x, y, z) with w >= 0.
-  """
-  r = lambda i, j: R[..., i, j]
-  tr = r(0, 0) + r(1, 1) + r(2, 2)
-  cands = jnp.stack(
-    [
-      jnp.stack([1 + tr, r(2, 1) - r(1, 2), r(0, 2) - r(2, 0), r(1, 0) - r(0, 1)], -1),
-      jnp.stack(
-        [r(2, 1) - r(1, 2), 1 + r(0, 0) - r(1, 1) - r(2, 2), r(0, 1) + r(1, 0), r(0, 2) + r(2, 0)],
-        -1,
-      ),
-      jnp.stack(
-        [r(0, 2) - r(2, 0), r(0, 1) + r(1, 0), 1 - r(0, 0) + r(1, 1) - r(2, 2), r(1, 2) + r(2, 1)],
-        -1,
-      ),
-      jnp.stack(
-        [r(1, 0) - r(0, 1), r(0, 2) + r(2, 0), r(1, 2) + r(2, 1), 1 - r(0, 0) - r(1, 1) + r(2, 2)],
-        -1,
-      ),
-    ],
-    axis=-2,
-  )  # (..., 4 candidates, 4)
-  diag = jnp.stack(
-    [
-      1 + tr,
-      1 + r(0, 0) - r(1, 1) - r(2, 2),
-      1 - r(0, 0) + r(1, 1) - r(2, 2),
-      1 - r(0, 0) - r(1, 1) + r(2, 2),
-    ],
-    -1,
-  )
-  best = jnp.argmax(diag, axis=-1)
-  q = jnp.take_along_axis(cands, best[..., None, None], axis=-2)[..., 0, :]
-  return standardise_quat(q)
-
-
-def quat_to_axis_angle(q: Array) -> Array:
-  """Rotation vector angle * axis of a quaternion, angle = 2 atan2(|v|, w) in [0, pi].
-
-  Near the identity the ratio angle / |v| is replaced by its limit 2 / w (relative error
-  |v|^2 / 3, below float32 eps where used), so values and gradients stay finite at q = 1.
-
-  Args:
-    q: (..., 4) quaternions (w, x, y, z), normalised and sign-standardised first.
-
-  Returns:
-    (..., 3).
-  """
-  q = standardise_quat(q)
-  w, v = q[..., 0], q[..., 1:]
-  n, _ = _safe_norm(v)
-  small = n < math.sqrt(jnp.finfo(q.dtype).eps)
-  angle = 2.0 * jnp.arctan2(n, w)
-  ratio = jnp.where(small, 2.0 / jnp.maximum(w, 0.5), angle / jnp.where(small, 1.0, n))
-  return v * ratio[..., None]
-
-
-def axis_angle_to_quat(aa: Array) -> Array:
-  """Quaternion (cos(a/2), sin(a/2) axis) of rotation vectors aa = a * axis, with w >= 0.
-
-  Args:
-    aa: (..., 3) rotation vectors (any angle; angles beyond pi wrap).
-
-  Returns:
-    (..., 4) unit quaternions (w, x, y, z).
-  """
-  a, _ = _safe_norm(aa)
-  # sin(a/2) / a = sinc(a / (2 pi)) / 2 with numpy's normalised sinc: finite at 0, with gradient.
-  q = jnp.concatenate([jnp.cos(a / 2)[..., None], aa * (0.5 * jnp.sinc(a / TWO_PI))[..., None]], -1)
-  return standardise_quat(q)
-
-
-def quat_log(q: Array) -> Array:
-  """Log quaternion arccos(w) v / |v| of a unit quaternion with w >= 0 (MapNet's `qlog`).
-
-  Equals half the rotation vector; 0 at the identity.
-
-  Args:
-    q: (..., 4) quaternions (w, x, y, z).
-
-  Returns:
-    (..., 3).
-  """
-  return 0.5 * quat_to_axis_angle(q)
-
-
-def quat_exp(u: Array) -> Array:
-  """Inverse of `quat_log`: (cos|u|, sin|u| u / |u|), standardised to w >= 0.
-
-  Args:
-    u: (..., 3) log quaternions.
-
-  Returns:
-    (..., 4).
-  """
-  return axis_angle_to_quat(2.0 * u)
-
-
-def matrix_to_rot6d(R: Array) -> Array:
-  """(..., 3, 3) -> (..., 6): the first two columns (Zhou et al. 2019), column after column."""
-  return jnp.concatenate([R[..., :, 0], R[..., :, 1]], axis=-1)
-
-
-def rot6d_to_matrix(x: Array) -> Array:
-  """(..., 6) -> (..., 3, 3) rotations by Gram-Schmidt (Zhou et al. 2019, eq. 16): b1 = a1 / |a1|,
-  b2 = the unit part of a2 orthogonal to b1, b3 = b1 x b2; columns (b1, b2, b3)."""
-  a1, a2 = x[..., :3], x[..., 3:]
-  b1 = a1 / jnp.maximum(jnp.linalg.norm(a1, axis=-1, keepdims=True), 1e-8)
-  a2 = a2 - jnp.sum(b1 * a2, axis=-1, keepdims=True) * b1
-  b2 = a2 / jnp.maximum(jnp.linalg.norm(a2, axis=-1, keepdims=True), 1e-8)
-  return jnp.stack([b1, b2, jnp.cross(b1, b2)], axis=-1)
-
-
-def svd_orthogonalise(M: Array) -> Array:
-  """(..., 3, 3) -> the nearest rotation in Frobenius norm (Levinson et al. 2020, SVDO+):
-  U diag(1, 1, det(U V^T)) V^T of M = U S V^T."""
-  U, _, Vt = jnp.linalg.svd(M, full_matrices=False)
-  det = jnp.linalg.det(U @ Vt)
-  D = jnp.concatenate([jnp.ones_like(U[..., :2, 0]), det[..., None]], axis=-1)
-  return (U * D[..., None, :]) @ Vt
-
-
-def _rz(a: Array) -> Array:
-  c, s, o, i = jnp.cos(a), jnp.sin(a), jnp.zeros_like(a), jnp.ones_like(a)
-  return jnp.stack(
-    [jnp.stack([c, -s, o], -1), jnp.stack([s, c, o], -1), jnp.stack([o, o, i], -1)], -2
-  )
-
-
-def _rx(a: Array) -> Array:
-  c, s, o, i = jnp.cos(a), jnp.sin(a), jnp.zeros_like(a), jnp.ones_like(a)
-  return jnp.stack(
-    [jnp.stack([i, o, o], -1), jnp.stack([o, c, -s], -1), jnp.stack([o, s, c], -1)], -2
-  )
-
-
-def _ry(a: Array) -> Array:
-  c, s, o, i = jnp.cos(a), jnp.sin(a), jnp.zeros_like(a), jnp.ones_like(a)
-  return jnp.stack(
-    [jnp.stack([c, o, s], -1), jnp.stack([o, i, o], -1), jnp.stack([-s, o, c], -1)], -2
-  )
-
-
-def euler_sxyz_to_matrix(angles: Array) -> Array:
-  """R = Rz(psi) Ry(phi) Rx(theta) (static xyz; scipy `from_euler("xyz", angles)`).
-
-  Args:
-    angles: (..., 3) (theta, phi, psi), radians, unshifted.
-
-  Returns:
-    (..., 3, 3).
-  """
-  return _rz(angles[..., 2]) @ _ry(angles[..., 1]) @ _rx(angles[..., 0])
-
-
-def matrix_to_euler_sxyz(R: Array) -> Array:
-  """Static xyz Euler angles as transforms3d `mat2euler(R, 'sxyz')` (and seven_scenes.py).
-
-  Near gimbal lock (cos phi ~ 0) psi is set to 0, as transforms3d does.
-
-  Args:
-    R: (..., 3, 3) rotation matrices.
-
-  Returns:
-    (..., 3) (theta, phi, psi): theta, psi in [-pi, pi], phi in [-pi/2, pi/2].
-  """
-  cy = jnp.hypot(R[..., 0, 0], R[..., 1, 0])
-  regular = cy > 4 * jnp.finfo(R.dtype).eps
-  theta = jnp.where(
-    regular, jnp.arctan2(R[..., 2, 1], R[..., 2, 2]), jnp.arctan2(-R[..., 1, 2], R[..., 1, 1])
-  )
-  phi = jnp.arctan2(-R[..., 2, 0], cy)
-  psi = jnp.where(regular, jnp.arctan2(R[..., 1, 0], R[..., 0, 0]), 0.0)
-  return jnp.stack([theta, phi, psi], axis=-1)
+# The car setting's camera rotation.
 
 
 def car_rotation(azimuth: Array, polar: Array) -> Array:
@@ -352,7 +127,8 @@ def car_rotation(azimuth: Array, polar: Array) -> Array:
   Returns:
     (..., 3, 3).
   """
-  return _rz(azimuth - math.pi / 2) @ _rx(math.pi - polar) @ _rz(jnp.full_like(azimuth, math.pi))
+  rz, rx = rotations.rot_z, rotations.rot_x
+  return rz(azimuth - math.pi / 2) @ rx(math.pi - polar) @ rz(jnp.full_like(azimuth, math.pi))
 
 
 def car_angles(R: Array) -> Array:
@@ -372,21 +148,6 @@ def car_angles(R: Array) -> Array:
   azimuth = jnp.mod(jnp.arctan2(c[..., 1], c[..., 0]), TWO_PI)
   polar = jnp.arctan2(jnp.hypot(c[..., 0], c[..., 1]), c[..., 2])
   return jnp.stack([azimuth, polar], axis=-1)
-
-
-def yaw_to_quat(yaw: Array) -> Array:
-  """Quaternion of a rotation by yaw about +z, w >= 0: (..., ) -> (..., 4)."""
-  h = 0.5 * yaw
-  z = jnp.zeros_like(h)
-  return standardise_quat(jnp.stack([jnp.cos(h), z, z, jnp.sin(h)], axis=-1))
-
-
-def quat_to_yaw(q: Array) -> Array:
-  """Yaw of the rotation about +z closest to q: 2 atan2(q_z, q_w) mod 2 pi, (..., 4) -> (...).
-
-  (The z-rotation (cos a, 0, 0, sin a) maximising |<q, .>| has a = atan2(q_z, q_w).)
-  """
-  return jnp.mod(2.0 * jnp.arctan2(q[..., 3], q[..., 0]), TWO_PI)
 
 
 # --------------------------------------------------------------------------------------------
@@ -409,10 +170,12 @@ def orientation_quat(setting: str, poses: Array) -> Array:
   """
   _, ang = split_pose(setting, poses)
   if setting in ("gqn", "gibson"):
-    return yaw_to_quat(ang[..., 0])
+    return rotations.yaw_to_quat(ang[..., 0])
   if setting == "car":
-    return matrix_to_quat(car_rotation(ang[..., 0], ang[..., 1]))
-  return matrix_to_quat(euler_sxyz_to_matrix(ang - jnp.asarray(_SXYZ_SHIFT, ang.dtype)))
+    return rotations.matrix_to_quat(car_rotation(ang[..., 0], ang[..., 1]))
+  return rotations.matrix_to_quat(
+    rotations.euler_sxyz_to_matrix(ang - jnp.asarray(_SXYZ_SHIFT, ang.dtype))
+  )
 
 
 def angles_from_quat(setting: str, q: Array) -> Array:
@@ -422,13 +185,13 @@ def angles_from_quat(setting: str, q: Array) -> Array:
   (yaw: `quat_to_yaw`; car: `car_angles` by optical axis).
   """
   _check_setting(setting)
-  q = standardise_quat(q)
+  q = rotations.standardise_quat(q)
   if setting in ("gqn", "gibson"):
-    return quat_to_yaw(q)[..., None]
-  R = quat_to_matrix(q)
+    return rotations.quat_to_yaw(q)[..., None]
+  R = rotations.quat_to_matrix(q)
   if setting == "car":
     return car_angles(R)
-  return matrix_to_euler_sxyz(R) + jnp.asarray(_SXYZ_SHIFT, q.dtype)
+  return rotations.matrix_to_euler_sxyz(R) + jnp.asarray(_SXYZ_SHIFT, q.dtype)
 
 
 def wrap_angles(setting: str, angles: Array) -> Array:
@@ -595,10 +358,10 @@ def encode(
     q = orientation_quat(setting, poses)
     ori = {
       "quat": lambda: q,
-      "logq": lambda: quat_log(q),
-      "axis_angle": lambda: quat_to_axis_angle(q),
-      "rot6d": lambda: matrix_to_rot6d(quat_to_matrix(q)),
-      "svd9d": lambda: quat_to_matrix(q).reshape(*q.shape[:-1], 9),
+      "logq": lambda: rotations.quat_log(q),
+      "axis_angle": lambda: rotations.quat_to_axis_angle(q),
+      "rot6d": lambda: rotations.matrix_to_rot6d(rotations.quat_to_matrix(q)),
+      "svd9d": lambda: rotations.quat_to_matrix(q).reshape(*q.shape[:-1], 9),
     }[representation]()
   out = {"position": pos} if POSITION_DIM[setting] else {}
   out["orientation"] = ori
@@ -652,10 +415,12 @@ def decode(
   else:
     to_q = {
       "quat": lambda x: x,
-      "logq": quat_exp,
-      "axis_angle": axis_angle_to_quat,
-      "rot6d": lambda x: matrix_to_quat(rot6d_to_matrix(x)),
-      "svd9d": lambda x: matrix_to_quat(svd_orthogonalise(x.reshape(*x.shape[:-1], 3, 3))),
+      "logq": rotations.quat_exp,
+      "axis_angle": rotations.axis_angle_to_quat,
+      "rot6d": lambda x: rotations.matrix_to_quat(rotations.rot6d_to_matrix(x)),
+      "svd9d": lambda x: rotations.matrix_to_quat(
+        rotations.orthonormalize(x.reshape(*x.shape[:-1], 3, 3))
+      ),
     }
     ang = angles_from_quat(setting, to_q[representation](ori))
   if POSITION_DIM[setting]:
@@ -691,11 +456,11 @@ def head_loss(kind: str, pred: Array, target: Array) -> Array:
   if kind == "l1":
     return jnp.mean(jnp.abs(diff))
   if kind == "gram_schmidt_frobenius":
-    d = rot6d_to_matrix(pred) - rot6d_to_matrix(target)
+    d = rotations.rot6d_to_matrix(pred) - rotations.rot6d_to_matrix(target)
     return jnp.mean(jnp.sum(d * d, axis=(-2, -1)))
   if kind == "svd_frobenius":
     m = lambda x: x.reshape(*x.shape[:-1], 3, 3)
-    d = svd_orthogonalise(m(pred)) - m(target)
+    d = rotations.orthonormalize(m(pred)) - m(target)
     return jnp.mean(jnp.sum(d * d, axis=(-2, -1)))
   raise ValueError(f"unknown loss {kind!r}; choose one of {LOSSES}")
 
