@@ -7,9 +7,12 @@ picks nothing itself, and writes results.json (validation and test errors) for
 `experiments/table1.py` / `table2.py`, which choose the learning rate on the validation errors.
 "ours" (and "mlp" when the run has one) takes its targets from a view-synthesis workdir.
 
-Sizes per setting live in `settings.<setting>`; the top-level `total_steps`, `data.batch_size`,
-`model.width` and `optax.lr` override them when set (None: the setting's value; lr None: the
-paper's, `camrep.regression.targets.DEFAULTS`).
+Sizes per setting live in `settings.<setting>`, the loss, weighting and optimiser per setting in
+`hparams.<setting>` (`ours` for the learned representations, `baselines` what every baseline
+changes from that). The top-level `total_steps`, `data.batch_size`, `model.width`, `loss.*`,
+`optax.*`, `model.extra_fc` and `model.quantisation` override them when set (None: the setting's
+value; `camrep.regression.driver.resolve_config` writes the sizes and the learning rate into the
+run's config.json, `camrep.regression.learner.resolve_hparams` reads the rest).
 
   python -m camrep.regression --config=configs/regression.py --workdir=/tmp/reg_car_ours \
       --config.setting=car --config.representation=ours --config.synthesis_workdir=/tmp/car
@@ -46,6 +49,7 @@ paper's, `camrep.regression.targets.DEFAULTS`).
 
 from __future__ import annotations
 
+import math
 import pathlib
 import sys
 
@@ -72,6 +76,57 @@ def _setting(
   # The split the paper's protocol tests on: gqn held-out scenes, the others held-out views.
   s.test_split = test_split
   return s
+
+
+def _ours(
+  *, loss: dict | None = None, optax: dict | None = None, model: dict | None = None
+) -> ml_collections.ConfigDict:
+  """The loss, weighting and optimiser of the learned representations ("ours", "mlp") in one
+  setting: this base with the fields of `loss`, `optax` and `model` changed."""
+  h = ml_collections.ConfigDict()
+  h.loss = ml_collections.ConfigDict()
+  # Head loss (a key of camrep.regression.targets.LOSSES); "": the representation's own
+  # (`targets.CODECS[representation].loss`: l2 for ours and mlp).
+  h.loss.kind = ""
+  # "homoscedastic": L = sum_g e^{-s_g} L_g + s_factor s_g over the groups (position,
+  # orientation), s_g from init_s and trained when learn_s (Kendall et al. 2017); "fixed":
+  # L = sum_g w_g L_g with `weights`.
+  h.loss.weighting = "homoscedastic"
+  h.loss.init_s = (0.0, 0.0)
+  h.loss.s_factor = 1.0
+  h.loss.learn_s = True
+  h.loss.weights = (1.0, 1.0)
+  h.optax = ml_collections.ConfigDict()
+  h.optax.lr = 1e-4  # Adam
+  # Coupled L2 added to the gradients before Adam (PyTorch's Adam weight_decay; also on s).
+  h.optax.weight_decay = 0.0
+  h.model = ml_collections.ConfigDict()
+  # Units (at width 1) of an extra dense layer before the heads; None: none.
+  h.model.extra_fc = config_dict.placeholder(int)
+  # "ours": quantisation of the targets and of the decoding candidates, "floor" or "nearest".
+  h.model.quantisation = "floor"
+  for name, diff in (("loss", loss), ("optax", optax), ("model", model)):
+    h[name].update(diff or {})
+  return h
+
+
+def _hparams(ours: ml_collections.ConfigDict, *, extra_fc: int | None) -> ml_collections.ConfigDict:
+  """One setting's `ours` and what every baseline changes from it (paper section 4.4): its own
+  loss (MSE for euler / sincos, L1 for quat / logq / axis_angle, the matrix losses of rot6d /
+  svd9d), Kendall's weighting from s = (0, -3), learned, and an extra dense layer of `extra_fc`
+  units that equalises parameter counts at paper width. Baselines keep the setting's learning
+  rate and weight decay (the paper does not give its tuned values)."""
+  baselines = ml_collections.ConfigDict()
+  baselines.loss = ml_collections.ConfigDict(
+    dict(kind="", weighting="homoscedastic", init_s=(0.0, -3.0), s_factor=1.0, learn_s=True)
+  )
+  baselines.model = ml_collections.ConfigDict()
+  baselines.model.extra_fc = config_dict.placeholder(int)
+  baselines.model.extra_fc = extra_fc
+  h = ml_collections.ConfigDict()
+  h.ours = ours
+  h.baselines = baselines
+  return h
 
 
 def _medium(c: ml_collections.ConfigDict) -> None:
@@ -162,8 +217,43 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   # solved so that each baseline has as many parameters as ours at any width (quick runs).
   c.model.equalise_params = False
 
+  # Baselines' extra dense layer (units at width 1; None: hparams.<setting>).
+  c.model.extra_fc = config_dict.placeholder(int)
+  # "ours": quantisation of targets and candidates (None: hparams.<setting>).
+  c.model.quantisation = config_dict.placeholder(str)
+
+  # The loss and optimiser; None: the setting's value for the representation (`hparams` below).
+  c.loss = ml_collections.ConfigDict()
+  c.loss.kind = config_dict.placeholder(str)
+  c.loss.weighting = config_dict.placeholder(str)
+  c.loss.init_s = config_dict.placeholder(tuple)
+  c.loss.s_factor = config_dict.placeholder(float)
+  c.loss.learn_s = config_dict.placeholder(bool)
+  c.loss.weights = config_dict.placeholder(tuple)
   c.optax = ml_collections.ConfigDict()
   c.optax.lr = config_dict.placeholder(float)
+  c.optax.weight_decay = config_dict.placeholder(float)
+
+  # The loss, weighting and optimiser of each setting (paper section 4.4 and its supplement).
+  c.hparams = ml_collections.ConfigDict()
+  # GQN: Kendall's weighting from s = (-log 20, -log 5), learned.
+  gqn = _ours(loss=dict(init_s=(-math.log(20.0), -math.log(5.0))))
+  c.hparams.gqn = _hparams(gqn, extra_fc=196)
+  car = _ours(loss=dict(weighting="fixed"), optax=dict(lr=1e-3))
+  c.hparams.car = _hparams(car, extra_fc=256)
+  gibson = _ours(
+    loss=dict(weighting="fixed", weights=(20.0, 10.0)),
+    optax=dict(lr=1e-3),
+    model=dict(quantisation="nearest"),
+  )
+  c.hparams.gibson = _hparams(gibson, extra_fc=192)
+  # 7-Scenes: an L1 loss per DOF, the three DOF terms of a group sharing one s (factor 3);
+  # baselines have no extra layer (MapNet's heads).
+  seven_scenes = _ours(
+    loss=dict(kind="l1", init_s=(-3.0, -3.0), s_factor=3.0),
+    optax=dict(lr=5e-5, weight_decay=5e-4),
+  )
+  c.hparams.seven_scenes = _hparams(seven_scenes, extra_fc=None)
 
   c.evals = ml_collections.ConfigDict()
   c.evals.batch_size = 64  # images (gqn: queries) per evaluation batch

@@ -78,7 +78,8 @@ def build(results: Sequence[dict]) -> str:
     C.markdown_table(["representation"] + [h for _, h, _, _ in C.TABLE1_COLUMNS], paper_rows),
     "",
     "MLP embedding: the supplement's car result. Baselines in the paper have one extra dense "
-    "layer to equalise parameter counts (here too, `camrep.regression.targets.DEFAULTS`).",
+    "layer to equalise parameter counts (here too: `hparams.<setting>.baselines` in "
+    "configs/regression.py).",
     "",
     "## Learning-rate selection",
     "",

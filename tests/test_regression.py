@@ -137,7 +137,7 @@ def test_ours_from_a_synthesis_workdir(tmp_path, cache, car_synthesis):
   info = results["representation_params"]
   assert info["source"] == "synthesis" and info["step"] == 1
   assert info["workdir"] == os.path.abspath(car_synthesis)
-  assert results["lr"] == 1e-3  # the paper's car lr (targets.DEFAULTS)
+  assert results["lr"] == 1e-3  # the paper's car lr (configs/regression.py hparams.car)
   assert np.isfinite(results["test"]["all"]["rotation_error_deg"]["mean"])
   # The restored pose system was cached: the next run reads it back without load_run.
   assert any(f.startswith("pose_system_") for f in os.listdir(cache))

@@ -5,6 +5,7 @@ Networks run at tiny widths; paper-width networks are only traced with `jax.eval
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import flax.linen as nn
@@ -20,7 +21,7 @@ from camrep.models import pose_regressor as R
 from camrep.regression import learner, scoring
 from camrep.regression import targets as T
 from tests.test_targets import consistent_params
-from tests.utils import assert_close
+from tests.utils import assert_close, regression_hparams
 
 SDS = jax.ShapeDtypeStruct
 TINY = 1 / 16
@@ -75,7 +76,14 @@ def _make(setting, rep, **kw):
   if setting == "seven_scenes":
     kw.setdefault("stage_sizes", (1,))
     kw.setdefault("fc_dim", 16)
-  return learner.make_regressor(setting, rep, **kw)
+  return _regressor(setting, rep, **kw)
+
+
+def _regressor(setting, rep, hparams=None, **kw):
+  """`learner.make_regressor` with configs/regression.py's hyper-parameters, some replaced by
+  `hparams` (a dict)."""
+  hp = dataclasses.replace(regression_hparams(setting, rep), **(hparams or {}))
+  return learner.make_regressor(setting, rep, hparams=hp, **kw)
 
 
 # ---------------------------------------------------------------------------- modules
@@ -166,7 +174,7 @@ def _abstract_init(reg, batch):
 
 
 def _paper_params(setting, rep, *, size, **kw):
-  reg = learner.make_regressor(setting, rep, width=1.0, num_scenes=20, **kw)
+  reg = _regressor(setting, rep, width=1.0, num_scenes=20, **kw)
   rng = np.random.default_rng(0)
   batch = _batch(setting, rng, n=1, size=size, scenes=1, queries=1, views=2)
   return layers.param_count(_abstract_init(reg, batch)["params"])
@@ -180,7 +188,7 @@ def test_paper_width_parameter_counts():
   quat = _paper_params("gqn", "quat", size=64)
   assert abs(quat - ours) / ours < 0.10, (quat, ours)
   # Without the equaliser the GQN quaternion baseline is 15% smaller.
-  bare = _paper_params("gqn", "quat", size=64, extra_fc=None)
+  bare = _paper_params("gqn", "quat", size=64, hparams=dict(extra_fc=None))
   assert (ours - bare) / ours > 0.10
 
 
@@ -191,7 +199,7 @@ def test_equalise_params_matches_ours_at_reduced_width(setting):
   resnet = dict(stage_sizes=(1, 1, 1, 1), fc_dim=256) if setting == "seven_scenes" else {}
 
   def count(rep, **kw):
-    reg = learner.make_regressor(setting, rep, width=0.125, num_scenes=2, **resnet, **kw)
+    reg = _regressor(setting, rep, width=0.125, num_scenes=2, **resnet, **kw)
     batch = _batch(setting, np.random.default_rng(0), n=1, size=64, scenes=1, queries=1, views=2)
     return layers.param_count(_abstract_init(reg, batch)["params"])
 
@@ -342,7 +350,7 @@ def test_training_reduces_the_loss():
   rng = np.random.default_rng(0)
   data = _synthetic_car_batch(_random_poses("car", (64,), rng))
   spec = T.default_spec("car", **SMALL_SPEC)
-  reg = learner.make_regressor("car", "ours", spec=spec, width=1 / 8, refine_steps=0)
+  reg = _regressor("car", "ours", spec=spec, width=1 / 8, refine_steps=0)
   state = learner.init(jax.random.key(0), reg, data, rep_params=consistent_params(spec))
   step = jax.jit(learner.train_step)
   losses = []
@@ -364,7 +372,7 @@ def test_continuous_rotation_targets_train(rep):
   """The 6-D / 9-D targets through the real step: finite matrix losses that fall, rotations out."""
   rng = np.random.default_rng(0)
   data = _synthetic_car_batch(_random_poses("car", (32,), rng))
-  reg = learner.make_regressor("car", rep, width=1 / 8)
+  reg = _regressor("car", rep, width=1 / 8)
   state = learner.init(jax.random.key(0), reg, data)
   step = jax.jit(learner.train_step)
   losses = []
@@ -473,11 +481,11 @@ def test_evaluate_and_summarise_per_scene():
 
 
 def test_make_regressor_overrides_and_modules():
-  reg = learner.make_regressor("car", "quat", width=0.5, lr=3e-4)
-  assert reg.config.lr == 3e-4 and reg.config.extra_fc == 256
+  reg = _regressor("car", "quat", width=0.5, hparams=dict(lr=3e-4))
+  assert reg.hparams.lr == 3e-4 and reg.hparams.extra_fc == 256
   assert isinstance(reg.module, R.CarRegressor) and reg.module.extra_fc == 128
   assert reg.spec is None
-  assert isinstance(learner.make_regressor("seven_scenes", "logq").module, R.ResNetRegressor)
-  assert isinstance(learner.make_regressor("gibson", "ours").module, R.GibsonRegressor)
-  assert isinstance(learner.make_regressor("gqn", "mlp").module, nn.Module)
+  assert isinstance(_regressor("seven_scenes", "logq").module, R.ResNetRegressor)
+  assert isinstance(_regressor("gibson", "ours").module, R.GibsonRegressor)
+  assert isinstance(_regressor("gqn", "mlp").module, nn.Module)
   hash(reg)  # static in the train state's treedef

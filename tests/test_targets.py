@@ -5,6 +5,7 @@ The rotation conversions themselves are tested in tests/test_rotations.py.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -17,7 +18,7 @@ from camrep import lie, pose_inputs, rotations
 from camrep import pose as P
 from camrep.models import pose_regressor
 from camrep.regression import targets as T
-from tests.utils import assert_close, x64
+from tests.utils import assert_close, regression_hparams, x64
 
 TWO_PI = 2 * math.pi
 
@@ -230,14 +231,16 @@ def test_ours_round_trip_refines_below_candidate_spacing(setting):
   spec = T.default_spec(setting, **SMALL)
   params = consistent_params(spec, seed=1)
   poses = _poses(setting, n=32, seed=5)
-  enc = jax.jit(lambda p: T.encode("ours", setting, p, spec=spec, rep_params=params))(poses)
+  mode = regression_hparams(setting, "ours").quantisation  # gibson "nearest", else "floor"
+  kw = dict(spec=spec, rep_params=params, mode=mode)
+  enc = jax.jit(lambda p: T.encode("ours", setting, p, **kw))(poses)
   heads = T.head_specs("ours", setting, spec=spec)
   assert sorted(enc) == sorted(spec.names) and [h.name for h in heads] == list(spec.names)
   for h in heads:
     norm = np.asarray(pose_regressor.normalise_head(enc[h.name], h))
     # Targets satisfy the head's normalisation, up to the Taylor exp's norm drift d^4 B^4 / 4.
     assert_close(norm, enc[h.name], atol=2e-3)
-  dec = jax.jit(lambda e: T.decode("ours", setting, e, spec=spec, rep_params=params))(enc)
+  dec = jax.jit(lambda e: T.decode("ours", setting, e, **kw))(enc)
   # Candidates every 0.25 degrees and 0.25 grid units. Refinement gets far below that for
   # typical values; the worst case stays within one candidate step (the Taylor exp is slightly
   # discontinuous at cell boundaries). Polar positions: the binned direction of B(theta) makes the
@@ -262,10 +265,11 @@ def test_ours_targets_are_frozen_embeddings():
 
   @jax.jit
   def run(p):
-    enc = T.encode("ours", "car", poses, spec=spec, rep_params=p)
+    enc = T.encode("ours", "car", poses, spec=spec, rep_params=p, mode="floor")
     ref = P.embed(p, spec, poses, mode="floor")  # car inference: floor quantisation
     total = lambda q: sum(
-      jnp.sum(v) for v in T.encode("ours", "car", poses, spec=spec, rep_params=q).values()
+      jnp.sum(v)
+      for v in T.encode("ours", "car", poses, spec=spec, rep_params=q, mode="floor").values()
     )
     return enc, ref, jax.grad(total)(p)
 
@@ -273,7 +277,6 @@ def test_ours_targets_are_frozen_embeddings():
   for k in ref:
     assert_close(enc[k], ref[k], atol=0)
   assert all(float(jnp.max(jnp.abs(x))) == 0 for x in jax.tree.leaves(g))  # stop_gradient
-  assert T.defaults("gibson", "ours").quantisation == "nearest"
 
 
 def test_mlp_embedding_round_trip():
@@ -331,6 +334,11 @@ def test_invalid_inputs():
     T.head_specs("quat", "kitti")
   with pytest.raises(ValueError, match="rep_params"):
     T.encode("ours", "gqn", np.zeros((2, 3)))
+  params = P.init(jax.random.key(0), T.default_spec("gqn", **SMALL))
+  with pytest.raises(ValueError, match="quantisation mode"):
+    T.encode(
+      "ours", "gqn", np.zeros((2, 3)), spec=T.default_spec("gqn", **SMALL), rep_params=params
+    )
   with pytest.raises(ValueError, match="do not match"):
     T.head_specs("ours", "gqn", spec=T.default_spec("seven_scenes"))
 
@@ -357,28 +365,40 @@ def test_head_losses_hand_computed():
   assert float(g["orientation"]) == pytest.approx(4 + 5 + 6)
 
 
+def _total(h, groups, log_vars=None):
+  """`T.total_loss` with the weighting of a `learner.HyperParams`."""
+  kw = dict(weighting=h.weighting, init_s=h.init_s, s_factor=h.s_factor, weights=h.weights)
+  return T.total_loss(groups, log_vars=log_vars, **kw)
+
+
+def _log_vars(h):
+  return T.init_log_vars(h.weighting, h.init_s, learn_s=h.learn_s)
+
+
 def test_total_loss_weighting():
   groups = {"position": jnp.asarray(2.0), "orientation": jnp.asarray(0.5)}
-  gqn = T.defaults("gqn", "ours")
-  s = T.init_log_vars(gqn)
+  gqn = regression_hparams("gqn", "ours")
+  s = _log_vars(gqn)
   assert float(s["position"]) == pytest.approx(-math.log(20)) and float(
     s["orientation"]
   ) == pytest.approx(-math.log(5))
   want = 20 * 2.0 - math.log(20) + 5 * 0.5 - math.log(5)
-  assert float(T.total_loss(gqn, groups, log_vars=s)) == pytest.approx(want, rel=1e-6)
-  assert float(T.total_loss(gqn, groups)) == pytest.approx(want, rel=1e-6)  # s held at init_s
-  gib = T.defaults("gibson", "ours")
-  assert T.init_log_vars(gib) == {}
-  assert float(T.total_loss(gib, groups)) == pytest.approx(20 * 2.0 + 10 * 0.5)
-  seven = T.defaults("seven_scenes", "ours")
-  s7 = T.init_log_vars(seven)
+  assert float(_total(gqn, groups, log_vars=s)) == pytest.approx(want, rel=1e-6)
+  assert float(_total(gqn, groups)) == pytest.approx(want, rel=1e-6)  # s held at init_s
+  gib = regression_hparams("gibson", "ours")
+  assert _log_vars(gib) == {}
+  assert float(_total(gib, groups)) == pytest.approx(20 * 2.0 + 10 * 0.5)
+  seven = regression_hparams("seven_scenes", "ours")
+  s7 = _log_vars(seven)
   want7 = math.exp(3) * 2.0 + 3 * -3.0 + math.exp(3) * 0.5 + 3 * -3.0
-  assert float(T.total_loss(seven, groups, log_vars=s7)) == pytest.approx(want7, rel=1e-6)
+  assert float(_total(seven, groups, log_vars=s7)) == pytest.approx(want7, rel=1e-6)
   # Car has no position group; only the orientation term counts.
-  car = T.defaults("car", "quat")
-  assert float(
-    T.total_loss(car, {"orientation": jnp.asarray(0.5)}, log_vars=T.init_log_vars(car))
-  ) == (pytest.approx(math.exp(3) * 0.5 - 3, rel=1e-6))
+  car = regression_hparams("car", "quat")
+  assert float(_total(car, {"orientation": jnp.asarray(0.5)}, log_vars=_log_vars(car))) == (
+    pytest.approx(math.exp(3) * 0.5 - 3, rel=1e-6)
+  )
+  with pytest.raises(ValueError, match="unknown weighting"):
+    T.total_loss(groups, weighting="kendall")
 
 
 def test_homoscedastic_gradient_wrt_s():
@@ -391,33 +411,30 @@ def test_homoscedastic_gradient_wrt_s():
     s_star = jnp.asarray(math.log(0.7 / factor))
     assert float(dl_ds(jnp.asarray(0.7), s_star, factor=factor)) == pytest.approx(0.0, abs=1e-6)
   # Through total_loss: the gradient reaches each group's s.
-  cfg = T.defaults("gqn", "quat")
+  h = regression_hparams("gqn", "quat")
   groups = {"position": jnp.asarray(2.0), "orientation": jnp.asarray(0.5)}
-  g = jax.grad(lambda lv: T.total_loss(cfg, groups, log_vars=lv))(T.init_log_vars(cfg))
+  g = jax.grad(lambda lv: _total(h, groups, log_vars=lv))(_log_vars(h))
   assert float(g["position"]) == pytest.approx(1 - 2.0, rel=1e-6)
   assert float(g["orientation"]) == pytest.approx(1 - math.exp(3) * 0.5, rel=1e-6)
 
 
-def test_defaults_table():
-  assert set(T.DEFAULTS) == {(s, r) for s in T.SETTINGS for r in T.REPRESENTATIONS}
-  assert T.defaults("gqn", "ours").init_s == pytest.approx((-math.log(20), -math.log(5)))
-  assert T.defaults("gibson", "ours").weights == (20.0, 10.0)
-  assert T.defaults("car", "ours").weighting == "fixed" and T.defaults("car", "ours").weights == (
-    1.0,
-    1.0,
-  )
-  s7 = T.defaults("seven_scenes", "ours")
-  assert (s7.loss, s7.init_s, s7.s_factor, s7.lr, s7.weight_decay) == (
-    "l1",
-    (-3.0, -3.0),
-    3.0,
-    5e-5,
-    5e-4,
-  )
-  for s, fc in (("gqn", 196), ("car", 256), ("gibson", 192), ("seven_scenes", None)):
-    assert T.defaults(s, "ours").extra_fc is None
-    for r in T.BASELINES:
-      cfg = T.defaults(s, r)
-      assert cfg.extra_fc == fc and cfg.init_s == (0.0, -3.0) and cfg.weighting == "homoscedastic"
-      want = {"euler": "mse", "sincos": "mse", "rot6d": "gram_schmidt_frobenius"}
-      assert cfg.loss == {**want, "svd9d": "svd_frobenius"}.get(r, "l1")
+# ---------------------------------------------------------------------------- the codec table
+
+
+def test_one_codec_record_per_representation():
+  assert tuple(T.CODECS) == T.REPRESENTATIONS and len(T.REPRESENTATIONS) == 9
+  assert set(T.LEARNED) == {"ours", "mlp"} and set(T.BASELINES) == set(T.REPRESENTATIONS) - {
+    "ours",
+    "mlp",
+  }
+  for name, c in T.CODECS.items():
+    assert c.name == name and c.loss in T.LOSSES
+    assert T.codec(name) is c
+  with pytest.raises(ValueError, match="unknown representation 'rotation6d'"):
+    T.codec("rotation6d")
+  with pytest.raises(dataclasses.FrozenInstanceError):
+    T.CODECS["quat"].loss = "mse"  # type: ignore[misc]
+  # Learned codecs need their parameters, the baselines nothing but the setting.
+  space = T.target_space("euler", "car", spec=T.default_spec("car"))
+  assert space.spec is None and T.codec("euler").size(space) == 2
+  assert T.target_space("ours", "car").spec == T.default_spec("car")

@@ -97,3 +97,13 @@ def load_experiment(name: str):
   sys.modules[name] = module
   spec.loader.exec_module(module)
   return module
+
+
+def regression_hparams(setting: str, representation: str):
+  """The `learner.HyperParams` that configs/regression.py gives (setting, representation)."""
+  from camrep.regression import learner
+  from configs import regression as regression_config
+
+  c = regression_config.get_config("smoke")
+  c.setting, c.representation = setting, representation
+  return learner.resolve_hparams(c)

@@ -87,7 +87,8 @@ def resolve_config(config: ml_collections.ConfigDict) -> ml_collections.ConfigDi
 
   Adds `data.family` (the setting's family overrides) and `evals.test_split`; sets
   `total_steps`, `data.batch_size`, `model.width` from `settings.<setting>` unless given, and
-  `optax.lr` from `targets.DEFAULTS` unless given.
+  `optax.lr` from `hparams.<setting>` unless given; checks the other hyper-parameters, which
+  `learner.resolve_hparams` reads from `hparams.<setting>` where they are not given.
 
   Raises:
     ConfigError: unknown setting / representation / split, a non-positive size, or "ours"
@@ -115,8 +116,13 @@ def resolve_config(config: ml_collections.ConfigDict) -> ml_collections.ConfigDi
       c.data.batch_size = s.batch_size
     if c.model.width is None:
       c.model.width = s.width
-    if c.optax.lr is None:
-      c.optax.lr = T.defaults(c.setting, c.representation).lr
+  try:
+    hparams = learner.resolve_hparams(c)
+  except ValueError as e:
+    raise ConfigError(str(e)) from None
+  if c.optax.lr is None:
+    with c.ignore_type():
+      c.optax.lr = hparams.lr
   c.data.family = ml_collections.ConfigDict(s.family.to_dict())
   c.evals.test_split = s.test_split
   extra = [x.strip() for x in c.evals.extra_splits.split(",") if x.strip()]
@@ -335,7 +341,7 @@ def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
 
 
 def make_regressor(config, spec, num_scenes: int) -> learner.Regressor:
-  """The resolved config's `learner.Regressor` (lr from config.optax.lr)."""
+  """The resolved config's `learner.Regressor`."""
   return learner.make_regressor(
     config.setting,
     config.representation,
@@ -347,7 +353,7 @@ def make_regressor(config, spec, num_scenes: int) -> learner.Regressor:
     refine_steps=config.model.refine_steps,
     equalise_params=config.model.equalise_params,
     image_norm="imagenet" if config.model.get("resnet_weights", "") else "symmetric",
-    lr=config.optax.lr,
+    hparams=learner.resolve_hparams(config),
   )
 
 

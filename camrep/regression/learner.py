@@ -2,6 +2,7 @@
 
 Plain functions, independent of the view-synthesis trainer (`camrep.synthesis.train`):
 
+  resolve_hparams(config)                       a run config's loss and optimiser settings
   make_regressor(setting, representation, ...)  the static description: network, heads, loss
   init(key, regressor, batch, rep_params)       a `RegressionState`
   train_step(state, batch)                      one Adam step; pure, jit it at the call site:
@@ -44,6 +45,93 @@ from camrep.regression import targets as T
 Array = jax.Array
 
 
+# The hyper-parameters of a run config (configs/regression.py), by section.
+HPARAM_FIELDS = {
+  "loss": ("kind", "weighting", "init_s", "s_factor", "learn_s", "weights"),
+  "optax": ("lr", "weight_decay"),
+  "model": ("extra_fc", "quantisation"),
+}
+QUANTISATIONS = ("floor", "nearest")
+
+
+@dataclasses.dataclass(frozen=True)
+class HyperParams:
+  """The loss, weighting and optimiser of one regressor (a run config's: `resolve_hparams`).
+
+  Attributes:
+    loss: head loss, a key of `targets.LOSSES` (config `loss.kind`).
+    weighting: "homoscedastic" (learned or fixed s per group) or "fixed" (constant weights).
+    init_s: initial (s_position, s_orientation) of the homoscedastic weighting.
+    s_factor: factor of s in `targets.homoscedastic`.
+    learn_s: whether s_position, s_orientation are trained.
+    weights: fixed (position, orientation) weights of weighting="fixed".
+    lr: Adam learning rate.
+    weight_decay: coupled L2 added to the gradients before Adam (also on s).
+    extra_fc: units (at width 1) of the baselines' extra dense layer before the heads, or None.
+    quantisation: "ours": quantisation of targets and candidates ("floor" or "nearest").
+  """
+
+  loss: str
+  weighting: str
+  init_s: tuple[float, float]
+  s_factor: float
+  learn_s: bool
+  weights: tuple[float, float]
+  lr: float
+  weight_decay: float
+  extra_fc: int | None
+  quantisation: str
+
+
+def resolve_hparams(config) -> HyperParams:
+  """The hyper-parameters of a run config (configs/regression.py).
+
+  Each field (`HPARAM_FIELDS`) is the config's own when set (not None), else that of
+  `config.hparams[config.setting]`: its `ours` for the learned representations, `ours` updated by
+  its `baselines` for the baselines. An empty `loss.kind` is the representation's own loss
+  (`targets.CODECS[representation].loss`). The config is not changed.
+
+  Raises:
+    ValueError: an unknown representation, loss, weighting or quantisation, or a field unset.
+  """
+  codec = T.codec(config.representation)
+  table = config.hparams[config.setting]
+  chosen = table.ours.to_dict()
+  if not codec.learned:
+    for section, fields in table.baselines.to_dict().items():
+      chosen[section].update(fields)
+  for section, keys in HPARAM_FIELDS.items():
+    for k in keys:
+      given = config[section].get(k)
+      if given is not None:
+        chosen[section][k] = given
+      elif chosen[section].get(k) is None and k != "extra_fc":
+        raise ValueError(f"{section}.{k} is unset, and so is hparams.{config.setting}'s")
+  loss, optax_, model = chosen["loss"], chosen["optax"], chosen["model"]
+  h = HyperParams(
+    loss=loss["kind"] or codec.loss,
+    weighting=loss["weighting"],
+    init_s=tuple(float(x) for x in loss["init_s"]),
+    s_factor=float(loss["s_factor"]),
+    learn_s=bool(loss["learn_s"]),
+    weights=tuple(float(x) for x in loss["weights"]),
+    lr=float(optax_["lr"]),
+    weight_decay=float(optax_["weight_decay"]),
+    extra_fc=None if model["extra_fc"] is None else int(model["extra_fc"]),
+    quantisation=model["quantisation"],
+  )
+  for name, value, allowed in (
+    ("loss.kind", h.loss, tuple(T.LOSSES)),
+    ("loss.weighting", h.weighting, T.WEIGHTINGS),
+    ("model.quantisation", h.quantisation, QUANTISATIONS),
+  ):
+    if value not in allowed:
+      raise ValueError(f"unknown {name} {value!r}; choose one of {allowed}")
+  if len(h.init_s) != 2 or len(h.weights) != 2:
+    raise ValueError("loss.init_s and loss.weights take (position, orientation) pairs")
+  return h
+
+
 @dataclasses.dataclass(frozen=True)
 class Regressor:
   """Everything static about one pose regressor (hashable; lives in the state's treedef).
@@ -53,7 +141,7 @@ class Regressor:
     representation: one of `targets.REPRESENTATIONS`.
     module: the Flax network (`camrep.models.pose_regressor`).
     heads: its output heads (`targets.head_specs`).
-    config: loss, weighting and optimiser settings (`targets.defaults`, maybe overridden).
+    hparams: loss, weighting and optimiser settings.
     spec: the pose system of a learned representation, else None.
     refine_steps: Gauss-Newton refinement steps when decoding "ours" (0: plain arg-min).
     image_norm: how uint8 images become network inputs: "symmetric" [-1, 1] (digest 6.1), or
@@ -64,7 +152,7 @@ class Regressor:
   representation: str
   module: nn.Module
   heads: tuple[pose_regressor.HeadSpec, ...]
-  config: T.RegressionDefaults
+  hparams: HyperParams
   spec: P.PoseSystemSpec | None = None
   refine_steps: int = 4
   image_norm: str = "symmetric"
@@ -79,6 +167,7 @@ def make_regressor(
   setting: str,
   representation: str,
   *,
+  hparams: HyperParams,
   spec: P.PoseSystemSpec | None = None,
   width: float = 1.0,
   num_scenes: int = 1,
@@ -87,16 +176,16 @@ def make_regressor(
   refine_steps: int = 4,
   equalise_params: bool = False,
   image_norm: str = "symmetric",
-  **overrides: Any,
 ) -> Regressor:
   """The regressor of a setting and representation at a given width.
 
   Networks: gqn `GQNRegressor`, car `CarRegressor`, gibson `GibsonRegressor`, seven_scenes
-  `ResNetRegressor`. The baselines' extra dense layer (`config.extra_fc`) is scaled by `width`.
+  `ResNetRegressor`. The baselines' extra dense layer (`hparams.extra_fc`) is scaled by `width`.
 
   Args:
     setting: one of `targets.SETTINGS`.
     representation: one of `targets.REPRESENTATIONS`.
+    hparams: loss, weighting and optimiser (`resolve_hparams` of a run config).
     spec: pose system of a learned representation (default `targets.default_spec(setting)`;
       pass `camrep.synthesis.components.pose_spec(config)` for a stage-1 run's system).
     width: channel multiplier (paper 1.0).
@@ -108,18 +197,16 @@ def make_regressor(
       they leave a baseline with about half the parameters of ours). 7-Scenes baselines, which
       have no extra layer in the paper (MapNet's heads), get one solved the same way.
     image_norm: see `Regressor.image_norm`.
-    **overrides: fields of `targets.RegressionDefaults` to change (lr, extra_fc, loss, ...).
 
   Returns:
     a `Regressor`.
   """
-  cfg = dataclasses.replace(T.defaults(setting, representation), **overrides)
   if representation in T.LEARNED:
     spec = spec or T.default_spec(setting)
   else:
     spec = None
   heads = T.head_specs(representation, setting, spec=spec)
-  extra = layers.scaled(cfg.extra_fc, width) if cfg.extra_fc else None
+  extra = layers.scaled(hparams.extra_fc, width) if hparams.extra_fc else None
   if equalise_params and representation in T.BASELINES and not extra:
     extra = 1  # a placeholder: the units are solved from `match` (PoseHeads)
   match = None
@@ -136,17 +223,19 @@ def make_regressor(
     module = R.ResNetRegressor(heads, stage_sizes=tuple(stage_sizes), fc_dim=fc_dim, **kw)
   if image_norm not in IMAGE_NORMS:
     raise ValueError(f"image_norm must be one of {IMAGE_NORMS}, got {image_norm!r}")
-  return Regressor(setting, representation, module, heads, cfg, spec, refine_steps, image_norm)
+  return Regressor(setting, representation, module, heads, hparams, spec, refine_steps, image_norm)
 
 
-def make_optimizer(cfg: T.RegressionDefaults) -> optax.GradientTransformation:
+def make_optimizer(hparams: HyperParams) -> optax.GradientTransformation:
   """Adam(lr) (eps 1e-8, b1 0.9); with weight_decay, coupled L2 added to the gradient first
   (PyTorch Adam's weight_decay, digest 7.3), which also acts on s_x, s_q."""
-  if cfg.weight_decay:
+  if hparams.weight_decay:
     return optax.chain(
-      optax.add_decayed_weights(cfg.weight_decay), optax.scale_by_adam(), optax.scale(-cfg.lr)
+      optax.add_decayed_weights(hparams.weight_decay),
+      optax.scale_by_adam(),
+      optax.scale(-hparams.lr),
     )
-  return optax.adam(cfg.lr)
+  return optax.adam(hparams.lr)
 
 
 @flax.struct.dataclass
@@ -192,7 +281,7 @@ def encode_poses(reg: Regressor, rep_params: Any, poses: Array) -> dict[str, Arr
     poses,
     spec=reg.spec,
     rep_params=rep_params,
-    mode=reg.config.quantisation,
+    mode=reg.hparams.quantisation,
   )
 
 
@@ -241,8 +330,10 @@ def init(
     return reg.module.init(k, images, **kw, train=False)
 
   variables = init_variables(key, rep_params, {k: jnp.asarray(v) for k, v in batch.items()})
-  params = {"net": variables["params"], "log_var": T.init_log_vars(reg.config)}
-  tx = make_optimizer(reg.config)
+  hp = reg.hparams
+  log_var = T.init_log_vars(hp.weighting, hp.init_s, learn_s=hp.learn_s)
+  params = {"net": variables["params"], "log_var": log_var}
+  tx = make_optimizer(hp)
   return RegressionState(
     step=jnp.zeros((), jnp.int32),
     params=params,
@@ -258,8 +349,17 @@ def loss_terms(
   reg: Regressor, heads: Mapping[str, Array], target: Mapping[str, Array], params: Mapping
 ) -> tuple[Array, dict[str, Array]]:
   """(total loss, {"position": L_pos, "orientation": L_ori}) of predicted vs target heads."""
-  groups = T.group_losses(reg.config.loss, heads, target, reg.heads)
-  return T.total_loss(reg.config, groups, log_vars=params.get("log_var") or None), groups
+  hp = reg.hparams
+  groups = T.group_losses(hp.loss, heads, target, reg.heads)
+  total = T.total_loss(
+    groups,
+    weighting=hp.weighting,
+    init_s=hp.init_s,
+    s_factor=hp.s_factor,
+    weights=hp.weights,
+    log_vars=params.get("log_var") or None,
+  )
+  return total, groups
 
 
 def train_step(
@@ -314,12 +414,13 @@ def predict_poses(state: RegressionState, batch: Mapping[str, Array]) -> Array:
     predict_heads(state, batch),
     spec=reg.spec,
     rep_params=state.rep_params,
-    mode=reg.config.quantisation,
+    mode=reg.hparams.quantisation,
     refine_steps=reg.refine_steps,
   )
 
 
 __all__ = [
+  "HyperParams",
   "Regressor",
   "RegressionState",
   "context_pose_input",
@@ -332,5 +433,6 @@ __all__ = [
   "predict_heads",
   "predict_poses",
   "prepare_images",
+  "resolve_hparams",
   "train_step",
 ]

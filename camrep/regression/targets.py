@@ -1,54 +1,40 @@
-"""Pose representations as regression targets (paper section 4.4, Table 1; digest 4.1-4.5).
+"""Pose representations as regression targets (paper section 4.4, Table 1).
 
 A pose regressor predicts a dict of heads {head name: (..., size)}; this module maps poses in the
 dataset's pose columns (`camrep.data.records.POSE_NAMES`) to those heads and back, and holds the
-losses and the per-setting training defaults. Everything is a pure, batched function; callers jit.
+head losses and their weighting. Each representation is one `Codec` record (head size, loss,
+encoder, decoder) in `CODECS`; `encode`, `decode` and `head_specs` look it up. Training
+hyper-parameters (which loss weighting, learning rates, ...) live in configs/regression.py.
+Everything is a pure, batched function; callers jit.
 
 Settings and pose columns (radians; positions in the dataset's unit):
 
   gqn           (x, y, yaw)                  position (x, y); orientation: yaw about +z
   car           (azimuth, polar)             no position; orientation: the camera rotation
                                              R = Rz(azimuth - pi/2) Rx(pi - polar) Rz(pi)
-                                             (intrinsic Euler "rzxz", digest 4.2)
+                                             (intrinsic Euler "rzxz")
   gibson        (x, y, yaw)                  as gqn
   seven_scenes  (x, y, z, theta, phi, psi)   position (x, y, z); orientation
                                              R = Rz(psi - pi) Ry(phi - pi/2) Rx(theta - pi)
                                              (static Euler "sxyz", shifted; seven_scenes.py)
 
-Representations (`REPRESENTATIONS`):
+Representations (`REPRESENTATIONS`, described where `CODECS` is built): the learned "ours" and
+"mlp" (one head per DOF, named after the DOF), and the baselines euler, axis_angle, sincos, quat,
+logq, rot6d, svd9d (a raw "position" head and an "orientation" head). rot6d and svd9d are
+continuous in the rotation, which quaternions with w >= 0 and Euler angles are not; for the
+yaw-only settings (gqn, gibson) their matrix is a rotation about +z, so 6 and 9 numbers carry one
+angle. Every head belongs to a loss group, "position" or "orientation" (Kendall et al. 2017's
+L = e^{-s_x} L_pos + s_x + e^{-s_q} L_ori + s_q weighs the two groups).
 
-  ours        the frozen learned pose vectors, one unit (or block-normalised) d-vector per DOF,
-              `camrep.pose.embed` under stop_gradient with the setting's quantisation; decoded by
-              arg-min over candidates plus Gauss-Newton refinement (`camrep.pose.decode`).
-  mlp         the supplement's baseline: per DOF a 2-layer MLP (hidden 128, leaky ReLU, output
-              d = 96) of the DOF value, unit-normalised; decoded by arg-min over candidates.
-  euler       the raw angles (1 for yaw, 2 for car, 3 for 7-Scenes).
-  sincos      (sin a, cos a) of each angle, interleaved.
-  quat        unit quaternion (w, x, y, z), sign-normalised to w >= 0.
-  logq        log quaternion, 3 numbers: log q = arccos(w) (x, y, z) / |(x, y, z)| = axis-angle / 2.
-  axis_angle  rotation vector, 3 numbers: angle * axis, angle in [0, pi].
-  rot6d       the first two columns of the rotation matrix, 6 numbers (Zhou et al., CVPR 2019);
-              decoded by Gram-Schmidt; loss: squared Frobenius distance of the Gram-Schmidt
-              matrix to the true one (their L2 on matrices).
-  svd9d       the 9 entries of the rotation matrix (Levinson et al., NeurIPS 2020); decoded by
-              the SVD projection onto SO(3), U diag(1, 1, det(U V^T)) V^T; loss: squared
-              Frobenius distance of that projection to the true matrix (their loss).
-              Both are continuous in the rotation, which quaternions with w >= 0 and Euler angles
-              are not. For the yaw-only settings (gqn, gibson) the matrix is a rotation about +z,
-              so 6 and 9 numbers carry one angle (4 of the 6 and 5 of the 9 are constant).
-
-Baselines put the position, raw, in a "position" head; learned representations have one head per
-DOF, named after the DOF. Every head belongs to a loss group, "position" or "orientation"
-(Kendall et al. 2017's L = e^{-s_x} L_pos + s_x + e^{-s_q} L_ori + s_q weighs the two groups).
-
-Quaternions are scalar first (w, x, y, z) as in `camrep.metrics`; scipy's are (x, y, z, w).
+Rotation conventions are `camrep.rotations`' (quaternions scalar first, (w, x, y, z)).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -61,12 +47,6 @@ from camrep.models import pose_regressor
 Array = jax.Array
 
 SETTINGS = records.SETTINGS
-REPRESENTATIONS = ("ours", "mlp", "euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d")
-LEARNED = ("ours", "mlp")
-BASELINES = ("euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d")
-MATRIX_REPRESENTATIONS = ("rot6d", "svd9d")
-LOSSES = ("l2", "mse", "l1", "gram_schmidt_frobenius", "svd_frobenius")
-_MATRIX_LOSSES = ("gram_schmidt_frobenius", "svd_frobenius")
 
 TWO_PI = 2.0 * math.pi
 
@@ -97,11 +77,6 @@ def _check_setting(setting: str) -> None:
     raise ValueError(f"unknown setting {setting!r}; choose one of {SETTINGS}")
 
 
-def _check_representation(representation: str) -> None:
-  if representation not in REPRESENTATIONS:
-    raise ValueError(f"unknown representation {representation!r}; choose one of {REPRESENTATIONS}")
-
-
 def _check_poses(setting: str, poses: Array) -> Array:
   poses = jnp.asarray(poses)
   n = len(POSE_COLUMNS[setting])
@@ -115,7 +90,7 @@ def _check_poses(setting: str, poses: Array) -> Array:
 
 
 def car_rotation(azimuth: Array, polar: Array) -> Array:
-  """Camera rotation of a car view (digest 4.2): intrinsic "rzxz" (az - pi/2, pi - polar, pi).
+  """Camera rotation of a car view: intrinsic "rzxz" (az - pi/2, pi - polar, pi).
 
   R = Rz(az - pi/2) Rx(pi - polar) Rz(pi); its third column (the optical axis) is
   -(sin p cos a, sin p sin a, cos p): the camera on the z-up sphere looks at the centre.
@@ -163,23 +138,28 @@ def split_pose(setting: str, poses: Array) -> tuple[Array, Array]:
 
 
 def orientation_quat(setting: str, poses: Array) -> Array:
-  """The camera orientation of poses (..., P) as quaternions (..., 4), w >= 0.
+  """The camera orientation of poses (..., P) as quaternions (..., 4), w >= 0 (`angles_to_quat`
+  of their angle columns)."""
+  return angles_to_quat(setting, split_pose(setting, poses)[1])
+
+
+def angles_to_quat(setting: str, angles: Array) -> Array:
+  """Quaternions (..., 4), w >= 0, of the setting's angle columns (..., n_angles).
 
   gqn, gibson: yaw about +z; car: `car_rotation`; seven_scenes: sxyz Euler of the unshifted
   angles.
   """
-  _, ang = split_pose(setting, poses)
+  _check_setting(setting)
   if setting in ("gqn", "gibson"):
-    return rotations.yaw_to_quat(ang[..., 0])
+    return rotations.yaw_to_quat(angles[..., 0])
   if setting == "car":
-    return rotations.matrix_to_quat(car_rotation(ang[..., 0], ang[..., 1]))
-  return rotations.matrix_to_quat(
-    rotations.euler_sxyz_to_matrix(ang - jnp.asarray(_SXYZ_SHIFT, ang.dtype))
-  )
+    return rotations.matrix_to_quat(car_rotation(angles[..., 0], angles[..., 1]))
+  unshifted = angles - jnp.asarray(_SXYZ_SHIFT, angles.dtype)
+  return rotations.matrix_to_quat(rotations.euler_sxyz_to_matrix(unshifted))
 
 
 def angles_from_quat(setting: str, q: Array) -> Array:
-  """Inverse of `orientation_quat`: the setting's angle columns (..., n_angles) of q (..., 4).
+  """Inverse of `angles_to_quat`: the setting's angle columns (..., n_angles) of q (..., 4).
 
   q is normalised first; a rotation outside the setting's family decodes to the closest member
   (yaw: `quat_to_yaw`; car: `car_angles` by optical axis).
@@ -213,7 +193,7 @@ def default_spec(
   exp_method: str = "taylor2",
   polar_variant: str = "binned",
 ) -> P.PoseSystemSpec:
-  """The paper-size pose system of a setting (digest 1.7), as synthesis's `pose_spec` builds it
+  """The paper-size pose system of a setting, as synthesis's `pose_spec` builds it
   from the configs' defaults: gqn polar (x, y) on [-1, 1] at 0.1 + yaw; gibson polar on [0, 2] m
   at 0.05 + yaw; car azimuth + polar angle (0..pi, non-periodic); seven_scenes x, y, z on
   [0, 4] x [0, 1.5] x [0, 3] m at 0.1 + theta, phi (0..pi), psi, with 4 x 8 blocks. Angles at
@@ -259,10 +239,209 @@ def _check_spec(setting: str, spec: P.PoseSystemSpec) -> None:
     )
 
 
-def _orientation_size(setting: str, representation: str) -> int:
-  n_angles = len(_ANGLE_PERIODIC[setting])
-  sizes = {"euler": n_angles, "sincos": 2 * n_angles, "quat": 4, "logq": 3, "axis_angle": 3}
-  return {**sizes, "rot6d": 6, "svd9d": 9}[representation]
+# --------------------------------------------------------------------------------------------
+# Codecs: one record per representation.
+
+
+@dataclasses.dataclass(frozen=True)
+class TargetSpace:
+  """Where a representation's targets live: everything static a codec needs besides the poses.
+
+  Attributes:
+    setting: one of `SETTINGS`.
+    spec: the pose system of a learned representation (None for the baselines).
+    mode: "ours": quantisation of targets and candidates, "floor" or "nearest" (the config's
+      `model.quantisation`).
+    refine_steps: "ours": Gauss-Newton refinement steps when decoding (0: plain arg-min).
+    mlp_hidden: "mlp": hidden units of the MLP embedding.
+  """
+
+  setting: str
+  spec: P.PoseSystemSpec | None = None
+  mode: str | None = None
+  refine_steps: int = 4
+  mlp_hidden: int = 128
+
+
+@dataclasses.dataclass(frozen=True)
+class Codec:
+  """One representation as a regression target: head size, loss, encoder and decoder.
+
+  Learned codecs ("ours", "mlp") have one head per DOF of the pose system, named after the DOF;
+  baselines have a "position" head (the raw position; none for car) and an "orientation" head.
+
+  Attributes:
+    name: the representation's name (`--config.representation`).
+    loss: the head loss it trains with (a key of `LOSSES`) unless the config names another.
+    size: space -> the size of each DOF head (learned) or of the orientation head (baselines).
+    encode: (space, poses (..., P), rep_params) -> targets {head: (..., size)}.
+    decode: (space, heads {head: (..., size)}, rep_params) -> poses (..., P); extra heads are
+      ignored.
+    learned: the targets are learned pose vectors (need `rep_params` and `space.spec`).
+    block_norm: a polar DOF with `block_norm` gets a block-normalised head (as `camrep.pose`
+      normalises its vectors); every other learned head is unit-normalised.
+  """
+
+  name: str
+  loss: str
+  size: Callable[[TargetSpace], int]
+  encode: Callable[[TargetSpace, Array, Any], dict[str, Array]]
+  decode: Callable[[TargetSpace, Mapping[str, Array], Any], Array]
+  learned: bool = False
+  block_norm: bool = False
+
+
+def _n_angles(space: TargetSpace) -> int:
+  return len(_ANGLE_PERIODIC[space.setting])
+
+
+def _baseline(
+  name: str,
+  loss: str,
+  size: Callable[[TargetSpace], int],
+  to_vector: Callable[[str, Array], Array],
+  from_vector: Callable[[str, Array], Array],
+) -> Codec:
+  """A baseline codec from its orientation maps: to_vector(setting, angles (..., n_angles)) ->
+  (..., size) and from_vector(setting, (..., size)) -> angles, wrapped into their ranges."""
+
+  def encode(space: TargetSpace, poses: Array, rep_params: Any) -> dict[str, Array]:
+    pos, ang = split_pose(space.setting, poses)
+    out = {"position": pos} if POSITION_DIM[space.setting] else {}
+    out["orientation"] = to_vector(space.setting, ang)
+    return out
+
+  def decode(space: TargetSpace, heads: Mapping[str, Array], rep_params: Any) -> Array:
+    ang = from_vector(space.setting, heads["orientation"])
+    if POSITION_DIM[space.setting]:
+      return jnp.concatenate([heads["position"], ang], axis=-1)
+    return ang
+
+  return Codec(name, loss, size, encode, decode)
+
+
+def _via_quat(
+  name: str, loss: str, size: int, of_quat: Callable[[Array], Array], to_quat: Callable
+) -> Codec:
+  """A baseline codec that goes through the orientation's quaternion (`angles_to_quat`):
+  of_quat (..., 4) -> (..., size) and to_quat (..., size) -> (..., 4), any norm."""
+  return _baseline(
+    name,
+    loss,
+    lambda space: size,
+    lambda setting, ang: of_quat(angles_to_quat(setting, ang)),
+    lambda setting, x: angles_from_quat(setting, to_quat(x)),
+  )
+
+
+def _sincos(setting: str, ang: Array) -> Array:
+  return jnp.stack([jnp.sin(ang), jnp.cos(ang)], axis=-1).reshape(*ang.shape[:-1], -1)
+
+
+def _from_sincos(setting: str, x: Array) -> Array:
+  sc = x.reshape(*x.shape[:-1], -1, 2)
+  return wrap_angles(setting, jnp.arctan2(sc[..., 0], sc[..., 1]))
+
+
+def _as_matrix(x: Array) -> Array:
+  return x.reshape(*x.shape[:-1], 3, 3)
+
+
+def _encode_ours(space: TargetSpace, poses: Array, rep_params: Any) -> dict[str, Array]:
+  if space.mode is None:
+    raise ValueError('representation "ours" needs the quantisation mode ("floor" or "nearest")')
+  return P.embed(jax.lax.stop_gradient(rep_params), space.spec, poses, mode=space.mode)
+
+
+def _decode_ours(space: TargetSpace, heads: Mapping[str, Array], rep_params: Any) -> Array:
+  if space.mode is None:
+    raise ValueError('representation "ours" needs the quantisation mode ("floor" or "nearest")')
+  vectors = {n: heads[n] for n in space.spec.names}
+  return P.decode(rep_params, space.spec, vectors, refine_steps=space.refine_steps, mode=space.mode)
+
+
+def _encode_mlp(space: TargetSpace, poses: Array, rep_params: Any) -> dict[str, Array]:
+  rp = jax.lax.stop_gradient(rep_params)
+  return pose_inputs.mlp_embed(rp, space.spec, poses, hidden=space.mlp_hidden)
+
+
+def _decode_mlp(space: TargetSpace, heads: Mapping[str, Array], rep_params: Any) -> Array:
+  return pose_inputs.mlp_decode(rep_params, space.spec, heads, space.mlp_hidden)
+
+
+def _spec_dim(space: TargetSpace) -> int:
+  return space.spec.dim
+
+
+_CODECS = (
+  # The frozen learned pose vectors, one unit (or block-normalised) d-vector per DOF
+  # (`camrep.pose.embed`, eq. 3 with the setting's quantisation); decoded by arg-min over the
+  # candidates (eq. 12) plus Gauss-Newton refinement (`camrep.pose.decode`).
+  Codec("ours", "l2", _spec_dim, _encode_ours, _decode_ours, learned=True, block_norm=True),
+  # The supplement's baseline: per DOF a 2-layer MLP of the DOF value (hidden 128, leaky ReLU,
+  # output d), unit-normalised; decoded by arg-min over the same candidates.
+  Codec("mlp", "l2", _spec_dim, _encode_mlp, _decode_mlp, learned=True),
+  # The raw angles, wrapped (periodic) or clipped to [0, pi] when decoded.
+  _baseline("euler", "mse", _n_angles, lambda setting, ang: ang, wrap_angles),
+  # Rotation vector angle * axis, angle in [0, pi].
+  _via_quat("axis_angle", "l1", 3, rotations.quat_to_axis_angle, rotations.axis_angle_to_quat),
+  # (sin a, cos a) of each angle, interleaved; decoded by atan2.
+  _baseline("sincos", "mse", lambda space: 2 * _n_angles(space), _sincos, _from_sincos),
+  # Unit quaternion (w, x, y, z), w >= 0.
+  _via_quat("quat", "l1", 4, lambda q: q, lambda x: x),
+  # Log quaternion arccos(w) v / |v| = axis-angle / 2 (MapNet's).
+  _via_quat("logq", "l1", 3, rotations.quat_log, rotations.quat_exp),
+  # The first two columns of the rotation matrix (Zhou et al., CVPR 2019), decoded by
+  # Gram-Schmidt; loss on the Gram-Schmidt matrices.
+  _via_quat(
+    "rot6d",
+    "gram_schmidt_frobenius",
+    6,
+    lambda q: rotations.matrix_to_rot6d(rotations.quat_to_matrix(q)),
+    lambda x: rotations.matrix_to_quat(rotations.rot6d_to_matrix(x)),
+  ),
+  # The 9 entries of the rotation matrix (Levinson et al., NeurIPS 2020), decoded by the SVD
+  # projection onto SO(3); loss on the projection.
+  _via_quat(
+    "svd9d",
+    "svd_frobenius",
+    9,
+    lambda q: rotations.quat_to_matrix(q).reshape(*q.shape[:-1], 9),
+    lambda x: rotations.matrix_to_quat(rotations.orthonormalize(_as_matrix(x))),
+  ),
+)
+
+CODECS: dict[str, Codec] = {c.name: c for c in _CODECS}
+"""The representations: name -> `Codec`."""
+
+REPRESENTATIONS = tuple(CODECS)
+LEARNED = tuple(c.name for c in _CODECS if c.learned)
+BASELINES = tuple(c.name for c in _CODECS if not c.learned)
+
+
+def codec(representation: str) -> Codec:
+  """The `Codec` of a representation.
+
+  Raises:
+    ValueError: an unknown representation.
+  """
+  if representation not in CODECS:
+    raise ValueError(f"unknown representation {representation!r}; choose one of {REPRESENTATIONS}")
+  return CODECS[representation]
+
+
+def target_space(
+  representation: str, setting: str, *, spec: P.PoseSystemSpec | None = None, **options: Any
+) -> TargetSpace:
+  """The checked `TargetSpace` of (representation, setting): learned representations get `spec`
+  (default `default_spec(setting)`), baselines none; `options` are its other fields."""
+  _check_setting(setting)
+  if codec(representation).learned:
+    spec = spec or default_spec(setting)
+    _check_spec(setting, spec)
+  else:
+    spec = None
+  return TargetSpace(setting, spec, **options)
 
 
 def head_specs(
@@ -281,34 +460,22 @@ def head_specs(
     setting: one of `SETTINGS`.
     spec: the pose system (learned representations; default `default_spec(setting)`).
   """
-  _check_setting(setting)
-  _check_representation(representation)
-  if representation in LEARNED:
-    spec = spec or default_spec(setting)
-    _check_spec(setting, spec)
+  c = codec(representation)
+  space = target_space(representation, setting, spec=spec)
+  size = c.size(space)
+  if c.learned:
     heads = []
-    for d in spec.dofs:
+    for d in space.spec.dofs:
       group = "orientation" if isinstance(d, P.AngularDof) else "position"
-      block = representation == "ours" and isinstance(d, P.PolarDof) and d.block_norm
-      heads.append(
-        pose_regressor.HeadSpec(
-          d.name, spec.dim, group, "block" if block else "unit", spec.n_blocks if block else 1
-        )
-      )
+      block = c.block_norm and isinstance(d, P.PolarDof) and d.block_norm
+      norm, n_blocks = ("block", space.spec.n_blocks) if block else ("unit", 1)
+      heads.append(pose_regressor.HeadSpec(d.name, size, group, norm, n_blocks))
     return tuple(heads)
   heads = []
   if POSITION_DIM[setting]:
     heads.append(pose_regressor.HeadSpec("position", POSITION_DIM[setting], "position"))
-  heads.append(
-    pose_regressor.HeadSpec(
-      "orientation", _orientation_size(setting, representation), "orientation"
-    )
-  )
+  heads.append(pose_regressor.HeadSpec("orientation", size, "orientation"))
   return tuple(heads)
-
-
-# --------------------------------------------------------------------------------------------
-# Encoding poses as targets, decoding predictions.
 
 
 def encode(
@@ -317,7 +484,7 @@ def encode(
   poses: Array,
   *,
   spec: P.PoseSystemSpec | None = None,
-  rep_params: Mapping | None = None,
+  rep_params: Any = None,
   mode: str | None = None,
   mlp_hidden: int = 128,
 ) -> dict[str, Array]:
@@ -330,42 +497,17 @@ def encode(
     spec: pose system of a learned representation (default `default_spec(setting)`).
     rep_params: "ours": the frozen pose-system params; "mlp": `init_mlp`-style params. Taken
       under stop_gradient.
-    mode: quantisation of "ours" ("floor" / "nearest"); default the setting's (`defaults`).
+    mode: quantisation of "ours" ("floor" / "nearest"; required there).
     mlp_hidden: hidden size of the MLP embedding.
 
   Returns:
     dict of (..., size) float arrays.
   """
-  _check_setting(setting)
-  _check_representation(representation)
-  poses = _check_poses(setting, poses)
-  if representation in LEARNED:
-    if rep_params is None:
-      raise ValueError(f"representation {representation!r} needs rep_params")
-    spec = spec or default_spec(setting)
-    _check_spec(setting, spec)
-    rp = jax.lax.stop_gradient(rep_params)
-    if representation == "ours":
-      mode = mode or defaults(setting, "ours").quantisation
-      return P.embed(rp, spec, poses, mode=mode)
-    return pose_inputs.mlp_embed(rp, spec, poses, hidden=mlp_hidden)
-  pos, ang = split_pose(setting, poses)
-  if representation == "euler":
-    ori = ang
-  elif representation == "sincos":
-    ori = jnp.stack([jnp.sin(ang), jnp.cos(ang)], axis=-1).reshape(*ang.shape[:-1], -1)
-  else:
-    q = orientation_quat(setting, poses)
-    ori = {
-      "quat": lambda: q,
-      "logq": lambda: rotations.quat_log(q),
-      "axis_angle": lambda: rotations.quat_to_axis_angle(q),
-      "rot6d": lambda: rotations.matrix_to_rot6d(rotations.quat_to_matrix(q)),
-      "svd9d": lambda: rotations.quat_to_matrix(q).reshape(*q.shape[:-1], 9),
-    }[representation]()
-  out = {"position": pos} if POSITION_DIM[setting] else {}
-  out["orientation"] = ori
-  return out
+  c = codec(representation)
+  space = target_space(representation, setting, spec=spec, mode=mode, mlp_hidden=mlp_hidden)
+  if c.learned and rep_params is None:
+    raise ValueError(f"representation {representation!r} needs rep_params")
+  return c.encode(space, _check_poses(setting, poses), rep_params)
 
 
 def decode(
@@ -374,7 +516,7 @@ def decode(
   heads: Mapping[str, Array],
   *,
   spec: P.PoseSystemSpec | None = None,
-  rep_params: Mapping | None = None,
+  rep_params: Any = None,
   mode: str | None = None,
   refine_steps: int = 4,
   mlp_hidden: int = 128,
@@ -394,75 +536,71 @@ def decode(
   Returns:
     (..., P) poses in the setting's columns.
   """
-  _check_setting(setting)
-  _check_representation(representation)
-  if representation in LEARNED:
-    if rep_params is None:
-      raise ValueError(f"representation {representation!r} needs rep_params")
-    spec = spec or default_spec(setting)
-    _check_spec(setting, spec)
-    if representation == "ours":
-      mode = mode or defaults(setting, "ours").quantisation
-      vectors = {n: heads[n] for n in spec.names}
-      return P.decode(rep_params, spec, vectors, refine_steps=refine_steps, mode=mode)
-    return pose_inputs.mlp_decode(rep_params, spec, heads, mlp_hidden)
-  ori = heads["orientation"]
-  if representation == "euler":
-    ang = wrap_angles(setting, ori)
-  elif representation == "sincos":
-    sc = ori.reshape(*ori.shape[:-1], -1, 2)
-    ang = wrap_angles(setting, jnp.arctan2(sc[..., 0], sc[..., 1]))
-  else:
-    to_q = {
-      "quat": lambda x: x,
-      "logq": rotations.quat_exp,
-      "axis_angle": rotations.axis_angle_to_quat,
-      "rot6d": lambda x: rotations.matrix_to_quat(rotations.rot6d_to_matrix(x)),
-      "svd9d": lambda x: rotations.matrix_to_quat(
-        rotations.orthonormalize(x.reshape(*x.shape[:-1], 3, 3))
-      ),
-    }
-    ang = angles_from_quat(setting, to_q[representation](ori))
-  if POSITION_DIM[setting]:
-    return jnp.concatenate([heads["position"], ang], axis=-1)
-  return ang
+  c = codec(representation)
+  space = target_space(
+    representation,
+    setting,
+    spec=spec,
+    mode=mode,
+    refine_steps=refine_steps,
+    mlp_hidden=mlp_hidden,
+  )
+  if c.learned and rep_params is None:
+    raise ValueError(f"representation {representation!r} needs rep_params")
+  return c.decode(space, heads, rep_params)
 
 
 # --------------------------------------------------------------------------------------------
 # Losses and weighting.
 
 
-def head_loss(kind: str, pred: Array, target: Array) -> Array:
-  """Loss of one head, a scalar (digest 4.1-4.5).
+def _l2(diff: Array) -> Array:
+  return jnp.mean(jnp.sum(diff * diff, axis=-1))
 
-  "l2": mean over examples of the squared L2 distance, mean_b sum_i (pred - target)^2 (ours);
-  "mse": mean over all entries of (pred - target)^2 (Euler, sin/cos; torch MSELoss);
-  "l1": mean over all entries of |pred - target| (q, log q, axis-angle; 7-Scenes ours);
-  "gram_schmidt_frobenius": mean over examples of ||GS(pred) - GS(target)||_F^2, pred and target
-  6-D (rot6d, Zhou et al. 2019);
-  "svd_frobenius": mean over examples of ||SVDO+(pred) - target||_F^2, pred and target 9-D
-  (svd9d, Levinson et al. 2020).
+
+def _gram_schmidt_frobenius(pred: Array, target: Array) -> Array:
+  d = rotations.rot6d_to_matrix(pred) - rotations.rot6d_to_matrix(target)
+  return jnp.mean(jnp.sum(d * d, axis=(-2, -1)))
+
+
+def _svd_frobenius(pred: Array, target: Array) -> Array:
+  d = rotations.orthonormalize(_as_matrix(pred)) - _as_matrix(target)
+  return jnp.mean(jnp.sum(d * d, axis=(-2, -1)))
+
+
+LOSSES: dict[str, Callable[[Array, Array], Array]] = {
+  # Mean over examples of the squared L2 distance, mean_b sum_i (pred - target)^2 (ours).
+  "l2": lambda pred, target: _l2(pred - target),
+  # Mean over all entries of (pred - target)^2 (Euler, sin/cos; torch's MSELoss).
+  "mse": lambda pred, target: jnp.mean((pred - target) * (pred - target)),
+  # Mean over all entries of |pred - target| (q, log q, axis-angle; 7-Scenes ours).
+  "l1": lambda pred, target: jnp.mean(jnp.abs(pred - target)),
+  # Mean over examples of ||GS(pred) - GS(target)||_F^2, 6-D (rot6d, Zhou et al. 2019).
+  "gram_schmidt_frobenius": _gram_schmidt_frobenius,
+  # Mean over examples of ||SVDO+(pred) - target||_F^2, 9-D (svd9d, Levinson et al. 2020).
+  "svd_frobenius": _svd_frobenius,
+}
+"""Head losses: name -> (pred (..., size), target (..., size)) -> scalar."""
+
+# Losses defined on rotations: a position head of the same run takes the "l2" loss instead.
+_ROTATION_LOSSES = ("gram_schmidt_frobenius", "svd_frobenius")
+
+
+def head_loss(kind: str, pred: Array, target: Array) -> Array:
+  """Loss of one head, a scalar: `LOSSES[kind](pred, target)`.
 
   Args:
+    kind: a key of `LOSSES`.
     pred, target: (..., size).
+
+  Raises:
+    ValueError: an unknown kind, or shapes that differ.
   """
+  if kind not in LOSSES:
+    raise ValueError(f"unknown loss {kind!r}; choose one of {tuple(LOSSES)}")
   if pred.shape != target.shape:
     raise ValueError(f"pred {pred.shape} and target {target.shape} differ")
-  diff = pred - target
-  if kind == "l2":
-    return jnp.mean(jnp.sum(diff * diff, axis=-1))
-  if kind == "mse":
-    return jnp.mean(diff * diff)
-  if kind == "l1":
-    return jnp.mean(jnp.abs(diff))
-  if kind == "gram_schmidt_frobenius":
-    d = rotations.rot6d_to_matrix(pred) - rotations.rot6d_to_matrix(target)
-    return jnp.mean(jnp.sum(d * d, axis=(-2, -1)))
-  if kind == "svd_frobenius":
-    m = lambda x: x.reshape(*x.shape[:-1], 3, 3)
-    d = rotations.orthonormalize(m(pred)) - m(target)
-    return jnp.mean(jnp.sum(d * d, axis=(-2, -1)))
-  raise ValueError(f"unknown loss {kind!r}; choose one of {LOSSES}")
+  return LOSSES[kind](pred, target)
 
 
 def group_losses(
@@ -473,12 +611,12 @@ def group_losses(
 ) -> dict[str, Array]:
   """Sum of the head losses of each group present: {"position": L_pos, "orientation": L_ori}.
 
-  For 7-Scenes "ours" L_pos = L1_x + L1_y + L1_z (digest 4.4); for GQN L_pos = L_loc.
+  For 7-Scenes "ours" L_pos = L1_x + L1_y + L1_z; for GQN L_pos = L_loc. The rotation losses of
+  rot6d / svd9d are for the orientation; positions take their L2 analogue.
   """
   out = {}
   for h in heads:
-    # The matrix losses of rot6d / svd9d are for the orientation; positions take their L2 analogue.
-    k = "l2" if kind in _MATRIX_LOSSES and h.group == "position" else kind
+    k = "l2" if kind in _ROTATION_LOSSES and h.group == "position" else kind
     val = head_loss(k, pred[h.name], target[h.name])
     out[h.group] = out[h.group] + val if h.group in out else val
   return out
@@ -488,129 +626,59 @@ def homoscedastic(loss: Array, s: Array, *, factor: float = 1.0) -> Array:
   """Kendall et al. 2017 learned weighting of one term: e^{-s} loss + factor * s.
 
   d/ds = factor - e^{-s} loss, so s tends to log(loss / factor). `factor` is 3 for the 7-Scenes
-  "ours" loss (three DOF terms per group share one s, digest 4.4), else 1.
+  "ours" loss (three DOF terms per group share one s), else 1.
   """
   return jnp.exp(-s) * loss + factor * s
 
 
-@dataclasses.dataclass(frozen=True)
-class RegressionDefaults:
-  """Training defaults of one (setting, representation) pair (digest 4.1-4.5).
-
-  Attributes:
-    loss: head loss kind, see `head_loss`.
-    weighting: "homoscedastic" (learned or fixed s per group) or "fixed" (constant weights).
-    init_s: initial (s_position, s_orientation) of the homoscedastic weighting.
-    s_factor: factor of s in `homoscedastic`.
-    learn_s: whether s_position, s_orientation are trained.
-    weights: fixed (position, orientation) weights of weighting="fixed".
-    lr: Adam learning rate.
-    weight_decay: coupled L2 added to the gradients before Adam (7-Scenes; also on s).
-    extra_fc: units of the extra dense layer before the heads (baselines' parameter-count
-      equaliser), or None.
-    quantisation: "ours": quantisation of targets and candidates ("floor" or "nearest").
-  """
-
-  loss: str
-  weighting: str
-  init_s: tuple[float, float] = (0.0, 0.0)
-  s_factor: float = 1.0
-  learn_s: bool = True
-  weights: tuple[float, float] = (1.0, 1.0)
-  lr: float = 1e-4
-  weight_decay: float = 0.0
-  extra_fc: int | None = None
-  quantisation: str = "floor"
+WEIGHTINGS = ("homoscedastic", "fixed")
 
 
-# "ours" per setting (digest 4.1-4.4). Baselines (digest 4.5): MSE for euler / sincos, L1 for
-# quat / logq / axis_angle, all with Kendall's weighting from s_pos = 0, s_ori = -3 (learned),
-# the setting's learning rate (the paper's tuned values are not given) and the extra FC layer.
-_DEFAULTS_OURS: dict[str, RegressionDefaults] = {
-  "gqn": RegressionDefaults(
-    "l2", "homoscedastic", init_s=(-math.log(20.0), -math.log(5.0)), lr=1e-4, quantisation="floor"
-  ),
-  "car": RegressionDefaults("l2", "fixed", weights=(1.0, 1.0), lr=1e-3, quantisation="floor"),
-  "gibson": RegressionDefaults(
-    "l2", "fixed", weights=(20.0, 10.0), lr=1e-3, quantisation="nearest"
-  ),
-  "seven_scenes": RegressionDefaults(
-    "l1",
-    "homoscedastic",
-    init_s=(-3.0, -3.0),
-    s_factor=3.0,
-    lr=5e-5,
-    weight_decay=5e-4,
-    quantisation="floor",
-  ),
-}
-_EXTRA_FC = {"gqn": 196, "car": 256, "gibson": 192, "seven_scenes": None}
-_BASELINE_LOSS = {
-  "euler": "mse",
-  "sincos": "mse",
-  "quat": "l1",
-  "logq": "l1",
-  "axis_angle": "l1",
-  "rot6d": "gram_schmidt_frobenius",  # Zhou et al. 2019
-  "svd9d": "svd_frobenius",  # Levinson et al. 2020
-}
-
-DEFAULTS: dict[tuple[str, str], RegressionDefaults] = {}
-"""The table: (setting, representation) -> `RegressionDefaults`."""
-for _s in SETTINGS:
-  for _r in REPRESENTATIONS:
-    if _r in LEARNED:
-      DEFAULTS[_s, _r] = _DEFAULTS_OURS[_s]
-    else:
-      DEFAULTS[_s, _r] = dataclasses.replace(
-        _DEFAULTS_OURS[_s],
-        loss=_BASELINE_LOSS[_r],
-        weighting="homoscedastic",
-        init_s=(0.0, -3.0),
-        s_factor=1.0,
-        learn_s=True,
-        extra_fc=_EXTRA_FC[_s],
-      )
-
-
-def defaults(setting: str, representation: str) -> RegressionDefaults:
-  """The `DEFAULTS` entry of (setting, representation)."""
-  _check_setting(setting)
-  _check_representation(representation)
-  return DEFAULTS[setting, representation]
-
-
-def init_log_vars(cfg: RegressionDefaults) -> dict[str, Array]:
-  """Trainable s per group: {"position": (), "orientation": ()} at cfg.init_s when the weighting
-  is homoscedastic with learn_s; {} otherwise (fixed weights, or s held at cfg.init_s)."""
-  if cfg.weighting != "homoscedastic" or not cfg.learn_s:
+def init_log_vars(
+  weighting: str, init_s: tuple[float, float], *, learn_s: bool = True
+) -> dict[str, Array]:
+  """Trainable s per group: {"position": (), "orientation": ()} at `init_s` when the weighting
+  is homoscedastic and `learn_s`; {} otherwise (fixed weights, or s held at init_s)."""
+  if weighting != "homoscedastic" or not learn_s:
     return {}
   return {
-    g: jnp.asarray(s, jnp.float32) for g, s in zip(pose_regressor.GROUPS, cfg.init_s, strict=True)
+    g: jnp.asarray(s, jnp.float32) for g, s in zip(pose_regressor.GROUPS, init_s, strict=True)
   }
 
 
 def total_loss(
-  cfg: RegressionDefaults,
   groups: Mapping[str, Array],
   *,
+  weighting: str,
+  init_s: tuple[float, float] = (0.0, 0.0),
+  s_factor: float = 1.0,
+  weights: tuple[float, float] = (1.0, 1.0),
   log_vars: Mapping[str, Array] | None = None,
 ) -> Array:
   """The regression objective from the group losses.
 
   homoscedastic: sum over groups of e^{-s_g} L_g + s_factor s_g, with s_g from `log_vars` (the
-  trained values) or, when None, the constants cfg.init_s; fixed: sum over groups of w_g L_g.
-  Groups absent from `groups` (car has no position) contribute nothing.
+  trained values) or, when None or empty, the constants `init_s`; fixed: sum over groups of
+  w_g L_g with `weights`. Groups absent from `groups` (car has no position) contribute nothing.
+
+  Args:
+    groups: {"position": (), "orientation": ()} group losses (either may be absent).
+    weighting: one of `WEIGHTINGS`.
+    init_s, s_factor, weights: per group, in the order of `pose_regressor.GROUPS`.
+    log_vars: the trained s per group (`init_log_vars`).
+
+  Raises:
+    ValueError: an unknown weighting.
   """
+  if weighting not in WEIGHTINGS:
+    raise ValueError(f"unknown weighting {weighting!r}; choose one of {WEIGHTINGS}")
   total = jnp.zeros((), jnp.float32)
   for i, g in enumerate(pose_regressor.GROUPS):
     if g not in groups:
       continue
-    if cfg.weighting == "homoscedastic":
-      s = log_vars[g] if log_vars else jnp.asarray(cfg.init_s[i], jnp.float32)
-      total = total + homoscedastic(groups[g], s, factor=cfg.s_factor)
-    elif cfg.weighting == "fixed":
-      total = total + cfg.weights[i] * groups[g]
+    if weighting == "homoscedastic":
+      s = log_vars[g] if log_vars else jnp.asarray(init_s[i], jnp.float32)
+      total = total + homoscedastic(groups[g], s, factor=s_factor)
     else:
-      raise ValueError(f"unknown weighting {cfg.weighting!r}")
+      total = total + weights[i] * groups[g]
   return total

@@ -1,0 +1,130 @@
+"""configs/regression.py resolves to the regression runs recorded before the hyper-parameters
+moved into it (they were a table in camrep/regression/targets.py until then).
+
+tests/data/regression_configs.json was generated once, at commit c3c8414 (before the move), by a
+throwaway script that did what `effective` below does with that commit's code: for every variant
+(smoke, quick, medium, paper) x setting x representation it took `get_config(variant)`, set
+`setting` and `representation` (and `synthesis_workdir="/synthesis"` for "ours"), resolved it with
+`driver.resolve_config`, flattened the result to dotted keys without the `settings.*` tables,
+and added the fields of the regressor's hyper-parameter record (then a dataclass in targets.py,
+as `driver.make_regressor(resolved, spec, 1).config` held it, spec `targets.default_spec` for the
+learned representations) as `hparams.<field>`. It then checked that the config part does not
+depend on the representation and the hyper-parameters not on the variant, and stored them
+factored: "configs" per variant (a "common" dict and one dict per setting) and "hparams" per
+setting (a "common" dict and one dict per representation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import pathlib
+
+import pytest
+
+from camrep.regression import driver, learner
+from camrep.regression import targets as T
+from camrep.runtime.runconfig import ConfigError
+from configs import regression as regression_config
+
+REFERENCE = pathlib.Path(__file__).parent / "data" / "regression_configs.json"
+VARIANTS = ("smoke", "quick", "medium", "paper")
+# Fields the old configs did not have: command-line overrides of the hyper-parameters, unset
+# (None) unless given, so that config.json compares across reruns as before.
+NEW_FIELDS = (
+  "loss.kind",
+  "loss.weighting",
+  "loss.init_s",
+  "loss.s_factor",
+  "loss.learn_s",
+  "loss.weights",
+  "optax.weight_decay",
+  "model.extra_fc",
+  "model.quantisation",
+)
+
+
+def _flat(d, prefix=""):
+  out = {}
+  for k, v in d.items():
+    if isinstance(v, dict):
+      out.update(_flat(v, f"{prefix}{k}."))
+    else:
+      out[f"{prefix}{k}"] = list(v) if isinstance(v, tuple) else v
+  return out
+
+
+def _config(variant, setting, rep):
+  c = regression_config.get_config(None if variant == "paper" else variant)
+  c.setting, c.representation = setting, rep
+  if rep == "ours":
+    c.synthesis_workdir = "/synthesis"
+  return c
+
+
+def effective(variant, setting, rep):
+  """(resolved config without its tables, flattened; the regressor's hyper-parameters)."""
+  resolved = driver.resolve_config(_config(variant, setting, rep))
+  flat = {
+    k: v
+    for k, v in _flat(resolved.to_dict()).items()
+    if not k.startswith(("settings.", "hparams."))
+  }
+  spec = T.default_spec(setting) if rep in T.LEARNED else None
+  hp = dataclasses.asdict(driver.make_regressor(resolved, spec, 1).hparams)
+  return flat, {k: list(v) if isinstance(v, tuple) else v for k, v in hp.items()}
+
+
+@pytest.fixture(scope="module")
+def reference():
+  return json.loads(REFERENCE.read_text())
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("setting", regression_config.SETTINGS)
+def test_configs_resolve_to_the_recorded_runs(reference, variant, setting):
+  cfg_ref = {**reference["configs"][variant]["common"], **reference["configs"][variant][setting]}
+  hp_common = reference["hparams"][setting]["common"]
+  assert sorted(T.REPRESENTATIONS) == sorted(
+    k for k in reference["hparams"][setting] if k != "common"
+  )
+  for rep in T.REPRESENTATIONS:
+    flat, hp = effective(variant, setting, rep)
+    assert hp == {**hp_common, **reference["hparams"][setting][rep]}, rep
+    assert flat.pop("representation") == rep
+    assert flat.pop("synthesis_workdir") == ("/synthesis" if rep == "ours" else "")
+    for key in NEW_FIELDS:
+      assert flat.pop(key) is None, (rep, key)
+    assert flat == cfg_ref, rep
+
+
+def test_the_paper_values_are_where_a_reader_looks():
+  """Spot checks against the paper and its supplement, readable without the reference file."""
+  c = regression_config.get_config()
+  assert c.hparams.gqn.ours.loss.init_s == pytest.approx((-math.log(20), -math.log(5)))
+  assert c.hparams.gibson.ours.loss.weights == (20.0, 10.0)
+  assert c.hparams.gibson.ours.model.quantisation == "nearest"
+  s7 = c.hparams.seven_scenes.ours
+  assert (s7.loss.kind, s7.loss.init_s, s7.loss.s_factor) == ("l1", (-3.0, -3.0), 3.0)
+  assert (s7.optax.lr, s7.optax.weight_decay) == (5e-5, 5e-4)
+  for setting, fc in (("gqn", 196), ("car", 256), ("gibson", 192), ("seven_scenes", None)):
+    assert c.hparams[setting].baselines.model.extra_fc == fc
+  want = {"euler": "mse", "sincos": "mse", "rot6d": "gram_schmidt_frobenius"}
+  for rep in T.BASELINES:
+    assert T.codec(rep).loss == {**want, "svd9d": "svd_frobenius"}.get(rep, "l1")
+
+
+def test_command_line_values_win_and_bad_ones_are_named():
+  c = _config("smoke", "seven_scenes", "quat")
+  c.optax.lr, c.loss.kind, c.model.extra_fc = 3e-3, "mse", 7
+  hp = learner.resolve_hparams(driver.resolve_config(c))
+  assert (hp.lr, hp.loss, hp.extra_fc, hp.weight_decay) == (3e-3, "mse", 7, 5e-4)
+  for field, value, match in (
+    ("weighting", "kendall", "unknown loss.weighting"),
+    ("kind", "huber", "unknown loss.kind"),
+  ):
+    c = _config("smoke", "car", "quat")
+    c.loss[field] = value
+    with pytest.raises(ConfigError, match=match):
+      driver.resolve_config(c)
