@@ -25,10 +25,10 @@ from __future__ import annotations
 import errno
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, NoReturn
 
-from absl import app, flags
+from absl import app, flags, logging
 
 EXIT_OK = 0
 EXIT_BUG = 1
@@ -48,7 +48,8 @@ class UsageError(ValueError):
 def _user_error_types() -> tuple[type[BaseException], ...]:
   """The exception types that are a user's mistake. Only modules already imported can have
   raised one, so the tools that never load Orbax do not import it here."""
-  types: list[type[BaseException]] = [UsageError, app.UsageError]
+  # FileNotFoundError: a path the user named (workdir, config.json, checkpoint) is missing.
+  types: list[type[BaseException]] = [UsageError, app.UsageError, FileNotFoundError]
   for module, names in (
     ("camrep.runtime.runconfig", ("ConfigError",)),
     ("camrep.runtime.workdir", ("WorkdirError",)),
@@ -165,30 +166,86 @@ def parse_flags(argv: list[str]) -> list[str]:
         # ml_collections keeps a config file's failure in a placeholder that raises on use.
         getattr(flags.FLAGS[name].value, "keys", None)
     return rest
-  except Exception as e:  # noqa: BLE001: every parsing failure is the command line's
+  except Exception as e:  # every parsing failure is the command line's
     fail(describe_flag_error(e, argv))
 
 
 def _main_with_exit_codes(main: Callable[[list[str]], Any]) -> Callable[[list[str]], Any]:
-  def wrapped(argv: list[str]) -> Any:
-    try:
-      return main(argv)
-    except FloatingPointError as e:
-      fail(str(e), EXIT_NON_FINITE)
-    except _user_error_types() as e:
-      fail(str(e))
-    except OSError as e:
-      res = resource_error(e)
-      if res is None:
-        raise
-      fail(describe_resource_error(res))
-    except Exception as e:
-      res = resource_error(e)
-      if res is None:
-        raise
-      fail(describe_resource_error(res))
+  def wrapped(argv: list[str]) -> int:
+    return _handled(lambda: main(argv))
 
   return wrapped
+
+
+# A tool's flags: `define(flag_values, argv)` defines them (argv lets a tool define flags that
+# depend on others, e.g. prepare's `--config.` fields of the chosen `--source`), and
+# `body(flag_values)` runs the tool and returns its exit status (None: 0).
+Define = Callable[[flags.FlagValues, Sequence[str]], None]
+Body = Callable[[flags.FlagValues], "int | None"]
+
+
+def _handled(body: Callable[[], Any]) -> int:
+  """Runs `body`, mapping user errors to `error:` + 2 and non-finite stops to 3."""
+  try:
+    code = body()
+  except SystemExit as e:
+    if e.code is None or isinstance(e.code, int):
+      return int(e.code or 0)
+    print(e.code, file=sys.stderr, flush=True)
+    return EXIT_USER
+  except FloatingPointError as e:
+    print(f"error: {e}", file=sys.stderr, flush=True)
+    return EXIT_NON_FINITE
+  except _user_error_types() as e:
+    print(f"error: {e}", file=sys.stderr, flush=True)
+    return EXIT_USER
+  except Exception as e:
+    res = resource_error(e)
+    if res is None:
+      raise
+    print(f"error: {describe_resource_error(res)}", file=sys.stderr, flush=True)
+    return EXIT_USER
+  return int(code or 0)
+
+
+def call(define: Define, body: Body, argv: Sequence[str], *, prog: str = "camrep") -> int:
+  """Runs a tool in this process on `argv` (flags only, no program name) with its own
+  `FlagValues`, as `python -m` would: returns the exit status and prints the `error:` line
+  (for tests and notebooks; `--help` is for the command line)."""
+  argv = [prog, *argv]
+  fv = flags.FlagValues()
+
+  def parse_and_run():
+    try:
+      define(fv, argv)  # a config dict's `--config.` overrides are parsed here already
+      rest = fv(argv)
+    except Exception as e:  # every parsing failure is the command line's
+      raise UsageError(describe_flag_error(e, argv)) from None
+    if len(rest) > 1:
+      raise UsageError(f"unexpected arguments: {rest[1:]}")
+    return body(fv)
+
+  return _handled(parse_and_run)
+
+
+def main(define: Define, body: Body) -> None:
+  """A tool's `if __name__ == "__main__":` entry: its flags on absl's global FLAGS, absl's
+  `--help`, and this module's exit codes."""
+  try:
+    define(flags.FLAGS, sys.argv)  # a config dict's `--config.` overrides are parsed here already
+  except Exception as e:  # every parsing failure is the command line's
+    if any(a in _HELP for a in sys.argv[1:]):
+      raise
+    fail(describe_flag_error(e, sys.argv))
+
+  def main_(argv: list[str]) -> int | None:
+    if len(argv) > 1:
+      raise UsageError(f"unexpected arguments: {argv[1:]}")
+    if not flags.FLAGS["verbosity"].present:  # jax and orbax log at INFO; -v 0 brings it back
+      logging.set_verbosity(logging.WARNING)
+    return body(flags.FLAGS)
+
+  run(main_)
 
 
 def run(main: Callable[[list[str]], Any], argv: list[str] | None = None) -> None:
@@ -201,3 +258,42 @@ def overridden(flag_values: flags.FlagValues | None = None, name: str = "config"
   fv = flags.FLAGS if flag_values is None else flag_values
   prefix = f"{name}."
   return {k[len(prefix) :] for k in fv if k.startswith(prefix) and fv[k].present}
+
+
+def peek_flag(argv: Sequence[str], name: str, default: str | None = None) -> str | None:
+  """The value of `--name=V` / `--name V` in argv before parsing (for flags that decide which
+  other flags exist), else `default`."""
+  value = _flag_value(argv, name)
+  return default if value is None else value
+
+
+def _override_default(value: Any) -> Any:
+  """A `--config.` field's default: scalars keep their type (parsed as such); tuples, mappings
+  and None become untyped placeholders that take a Python literal."""
+  from ml_collections import config_dict
+
+  if isinstance(value, (bool, int, float, str)):
+    return value
+  return config_dict.placeholder(object)
+
+
+def define_overrides(
+  fv: flags.FlagValues, argv: Sequence[str], defaults: Mapping[str, Any], help_string: str
+) -> None:
+  """Defines `--config.FIELD=VALUE` flags over `defaults` (a constructor's keyword arguments):
+  an unknown field is an error, scalar values are parsed as their default's type, others
+  (tuples, mappings, None defaults) as Python literals (`--config.scenes="('chess',)"`)."""
+  from ml_collections import config_dict, config_flags
+
+  config = config_dict.ConfigDict({k: _override_default(v) for k, v in defaults.items()})
+  config_flags.DEFINE_config_dict(
+    "config", config, help_string, flag_values=fv, lock_config=True, sys_argv=list(argv)
+  )
+
+
+def overrides(fv: flags.FlagValues) -> dict[str, Any]:
+  """{field: value} of the `--config.` fields set on the command line (`define_overrides`)."""
+  if "config" not in fv:
+    return {}
+  config = fv["config"].value
+  return {k: config[k] for k in sorted(overridden(fv)) if "." not in k}
