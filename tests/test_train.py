@@ -127,7 +127,7 @@ def test_prepared_data_with_worker_processes_trains_on_the_same_batches(tmp_path
   from camrep.data import prepare
 
   data_dir = tmp_path / "tfds"
-  prepare.main(["--source", "rooms", "--data_dir", str(data_dir), "--preset", "small"])
+  assert prepare.main(["--source", "rooms", "--data_dir", str(data_dir), "--preset", "small"]) == 0
   config = gqn.get_config("smoke")
   config.data.dir = str(data_dir)
   config.data.num_workers, config.data.num_threads = 2, 1

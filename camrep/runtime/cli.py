@@ -145,10 +145,8 @@ def describe_flag_error(exc: BaseException, argv: Sequence[str]) -> str:
     flag = named[0] if named else f"--config...{key}"
     field = flag.split("=", 1)[0][len("--config.") :]
     hint = _root_message(exc).split(";", 1)[1].strip() if ";" in _root_message(exc) else ""
-    return (
-      f"{flag}: the config has no field {field!r} ({key!r} is unknown)"
-      + (f"; {hint}" if hint else "")
-      + "; see the config file for its fields"
+    return f"{flag}: the config has no field {field!r} ({key!r} is unknown)" + (
+      f"; {hint}" if hint else ""
     )
   return _root_message(exc)
 
