@@ -88,7 +88,7 @@ class Rule:
     return {
       "positive": [0, -1],
       "nonneg": [-1],
-      "at_least": [self.low - 1],
+      "at_least": [int(self.low) - 1 if float(self.low).is_integer() else self.low - 1],
       "fraction": [0, 1.5],
       "enum": ["no-such-choice"],
       "dir": ["/nonexistent/camrep-validate"],
@@ -126,7 +126,7 @@ class Field:
 Schema = Mapping[str, Field]
 
 
-def _lookup(schema: Schema, path: str) -> Field | None:
+def field_of(schema: Schema, path: str) -> Field | None:
   """The field's entry; a name ending in "." covers every field under it."""
   if path in schema:
     return schema[path]
@@ -143,7 +143,7 @@ def leaves(config: Any) -> dict[str, Any]:
 
 def unchecked(config: Any, schema: Schema) -> list[str]:
   """The config's fields that the schema has no rule for."""
-  return [p for p in leaves(config) if _lookup(schema, p) is None]
+  return [p for p in leaves(config) if field_of(schema, p) is None]
 
 
 def _flag(path: str, value: Any) -> str:
@@ -165,7 +165,7 @@ def check(config: Any, schema: Schema, *, overridden: Iterable[str] = ()) -> Non
   """
   values = leaves(config)
   for path in sorted(set(overridden)):
-    f = _lookup(schema, path)
+    f = field_of(schema, path)
     if f is None or f.ignored is None:
       continue
     why = f.ignored(config)
@@ -175,7 +175,7 @@ def check(config: Any, schema: Schema, *, overridden: Iterable[str] = ()) -> Non
         f"{_flag(path, value)}: this run does not use config.{path} ({why}); drop the flag"
       )
   for path, value in values.items():
-    f = _lookup(schema, path)
+    f = field_of(schema, path)
     if f is None:
       continue
     problem = f.rule.problem(value)

@@ -125,12 +125,19 @@ def run_cli(fv: flags.FlagValues) -> int:
   existed = os.path.isdir(out)
   workdir_lib.check_workdir(out)
   try:
-    # A checkpoint whose arrays do not fit the workdir's config.json is refused here (exit 2).
-    run_ = restore.load_run(fv.workdir, step=fv.step)
+    return _evaluate(fv, out, alphas, what, log)
   except BaseException:
-    if not existed:  # leave the workdir as it was
-      shutil.rmtree(out, ignore_errors=True)
+    if not existed:  # leave the workdir as it was (the staged files are gone already)
+      try:
+        os.rmdir(out)
+      except OSError:
+        pass
     raise
+
+
+def _evaluate(fv: flags.FlagValues, out: str, alphas, what, log) -> int:
+  # A checkpoint whose arrays do not fit the workdir's config.json is refused here (exit 2).
+  run_ = restore.load_run(fv.workdir, step=fv.step)
   if fv.num_scenes is not None:
     run_.config.evals.num_scenes = fv.num_scenes
   if fv.draw_temperature is not None:
