@@ -172,11 +172,14 @@ def test_fields_the_run_does_not_use_are_refused_when_set(capsys):
   _assert_one_error(capsys.readouterr().err, "setting is not 'gqn'")
 
 
-def _fake_prepared(root: pathlib.Path, name: str, config: str, shape) -> None:
+def _fake_prepared(root: pathlib.Path, name: str, config: str, shape, poses=None) -> None:
+  from camrep.data import records
+
   d = root / name / config / "1.0.0"
   d.mkdir(parents=True)
   (d / "dataset_info.json").write_text("{}")
-  (d / "camrep_source.json").write_text(json.dumps({"image_shape": list(shape)}))
+  meta = {"image_shape": list(shape), "pose_names": list(poses or records.POSE_NAMES[name])}
+  (d / "camrep_source.json").write_text(json.dumps(meta))
 
 
 def test_model_image_size_is_checked_against_the_data_before_anything_runs(tmp_path):
@@ -195,6 +198,12 @@ def test_model_image_size_is_checked_against_the_data_before_anything_runs(tmp_p
   config = shapenet_car.get_config("smoke")
   config.data.dir = str(tmp_path)
   with pytest.raises(runconfig.ConfigError, match=r"set --config.model.image_size=128"):
+    synthesis_schema.validate(config)
+  # Pose dimensions: a dataset of another source's poses under this source's name.
+  _fake_prepared(tmp_path, "area", "small", (64, 64), poses=("x", "y", "z"))
+  config = gqn.get_config("smoke")
+  config.data.source, config.data.dir, config.task = "area", str(tmp_path), "table"
+  with pytest.raises(runconfig.ConfigError, match=r"holds poses \['x', 'y', 'z'\]"):
     synthesis_schema.validate(config)
 
 

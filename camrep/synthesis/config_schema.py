@@ -169,9 +169,17 @@ def data_image_shape(config) -> tuple[tuple[int, int], str]:
   if d.dir:
     dataset_config = d.preset if d.preset != "default" else None
     path = storage.dataset_dir(d.dir, d.source, config=dataset_config)
-    shape = storage.load_metadata(path).get("image_shape")
+    meta = storage.load_metadata(path)
+    shape = meta.get("image_shape")
     if not shape:
       raise DataError(path, "its camrep_source.json has no image_shape; prepare it again")
+    want = records.POSE_NAMES.get(d.source)
+    got = meta.get("pose_names")
+    if want is not None and got is not None and tuple(got) != tuple(want):
+      raise ConfigError(
+        f"--config.data.source={d.source!r} takes poses {list(want)}, but the prepared dataset "
+        f"{path} holds poses {list(got)} (another source's data?)"
+      )
     return (int(shape[0]), int(shape[1])), f"the prepared dataset {path}"
   family = dict(d.family.to_dict()) if d.family else {}
   try:
