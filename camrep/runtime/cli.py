@@ -13,11 +13,23 @@ Exit status, the same for every tool:
      disk or a read-only file system
   3  a training run stopped on non-finite values (the last good checkpoint is kept)
 
-Usage in a tool's module:
+Usage in a tool's module, either with flags defined at import (camrep.main, camrep.regression):
 
   def main(argv): ...            # raises ConfigError, WorkdirError, DataError, ... on bad input
   if __name__ == "__main__":
     cli.run(main)
+
+or with flags defined by a function, so that the tool also runs in-process on its own
+`FlagValues` (`main(argv) -> exit status`, for tests and notebooks; evaluate, prepare, show,
+oracle):
+
+  def define_flags(fv, argv): flags.DEFINE_string("out", None, "...", flag_values=fv) ...
+  def run_cli(fv): ...           # reads fv.out; returns the exit status (None: 0)
+  def main(argv=None): return cli.call(define_flags, run_cli, argv)
+  if __name__ == "__main__":
+    cli.main(define_flags, run_cli)
+
+A user error's message is printed as `error: MESSAGE` on stderr, nothing else: no traceback.
 """
 
 from __future__ import annotations
