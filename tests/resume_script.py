@@ -29,8 +29,7 @@ if kill_step:
 
   atomicity.AtomicRenameTemporaryPath.finalize = finalize
 
-from absl import app  # noqa: E402
-
 from camrep import main  # noqa: E402
+from camrep.runtime import cli  # noqa: E402
 
-app.run(main.main)
+cli.run(main.main)

@@ -157,15 +157,16 @@ def test_cli_writes_all_files(workdir, tmp_path, capsys):
     assert im is not None and im.shape[0] >= 300 and im.shape[1] >= 300, f
   with np.load(os.path.join(out, "gram.npz")) as z:
     assert z["yaw"].shape == (360, 360) and z["xy_values"].shape == (441, 2)
-  with pytest.raises(SystemExit):
-    ev.main(["--workdir", workdir, "--what", "loss"])
+  capsys.readouterr()
+  assert ev.main(["--workdir", workdir, "--what", "loss"]) == 2  # one error: line, no traceback
+  assert "error: --what takes a comma-separated subset of noise,gram" in capsys.readouterr().err
   # Explicit noise levels (how much a model uses its pose: large alphas wipe the pose out).
   out2 = str(tmp_path / "alphas")
   assert ev.main(["--workdir", workdir, "--what", "noise", "--alphas", "0,3", "--out", out2]) == 0
   assert json.load(open(os.path.join(out2, "noise.json")))["alphas"] == [0.0, 3.0]
   for bad in ("0,x", "-1", ","):
-    with pytest.raises(SystemExit):
-      ev.main(["--workdir", workdir, "--alphas", bad])
+    assert ev.main(["--workdir", workdir, "--alphas", bad]) == 2
+    assert "error: --alphas takes" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("kind", ["lowdim", "mlp"])

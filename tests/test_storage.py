@@ -144,29 +144,35 @@ def test_overwrite_regenerates(tmp_path):
 
 
 def test_prepare_cli_errors(tmp_path, capsys):
-  with pytest.raises(SystemExit):
-    prepare.main(["--source", "nope", "--data_dir", str(tmp_path)])
-  assert "invalid choice: 'nope'" in capsys.readouterr().err
-  with pytest.raises(SystemExit):
-    prepare.main(["--source", "gqn", "--data_dir", str(tmp_path)])
-  assert "give its root with --input PATH" in capsys.readouterr().err
-  with pytest.raises(SystemExit):
-    prepare.main(["--source", "rooms", "--data_dir", str(tmp_path), "--input", str(tmp_path)])
-  assert "takes no --input" in capsys.readouterr().err
-  with pytest.raises(SystemExit):
-    prepare.main(["--source", "rooms", "--data_dir", str(tmp_path), "--set", "seed"])
-  assert "--set expects key=value" in capsys.readouterr().err
-  with pytest.raises(DataError, match="input path does not exist"):
-    prepare.main(["--source", "gqn", "--data_dir", str(tmp_path), "--input", str(tmp_path / "x")])
+  """Each mistake: exit 2 and one `error:` line (camrep.runtime.cli), nothing written."""
+  cases = [
+    (["--source", "nope"], "error: --source=nope: value should be one of"),
+    (["--source", "gqn"], "error: --source=gqn reads a dataset: give its root with --input PATH"),
+    (["--source", "rooms", "--input", str(tmp_path)], "error: --source=rooms is procedural"),
+    (["--source", "rooms", "--config.no_such_field=1"], "error: --config.no_such_field=1: the"),
+    (["--source", "rooms", "--config.num_train_scenes=x"], "error: --config.num_train_scenes=x"),
+    (["--source", "gqn", "--input", str(tmp_path / "x")], "input path does not exist"),
+    (["--source", "rooms", "--config.seed"], "error: --config.seed"),
+  ]
+  for args, message in cases:
+    assert prepare.main([*args, "--data_dir", str(tmp_path / "tfds")]) == 2, args
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err, (args, err)
+  assert not (tmp_path / "tfds").exists()
   with pytest.raises(DataError, match="unknown source 'nope'"):
     prepare.make_source("nope")
   with pytest.raises(DataError, match="no preset 'huge'"):
     prepare.make_source("gqn", input_path=tmp_path, preset="huge")
 
 
-def test_parse_set():
-  parsed = prepare.parse_set(["a=3", "b=0.5", "c=(1, 2)", "d=chess", "e=['x']"])
-  assert parsed == {"a": 3, "b": 0.5, "c": (1, 2), "d": "chess", "e": ["x"]}
+def test_source_fields_are_the_constructors_keywords():
+  """`--config.` of prepare: every keyword of each source's constructor (captures' new readers
+  get theirs from the same table)."""
+  assert prepare.source_fields("gqn")["max_files"] is None
+  assert prepare.source_fields("seven_scenes")["extent"] == (4.0, 1.5, 3.0)
+  assert prepare.source_fields("rooms")["num_train_scenes"] == 200_000
+  for name in prepare.SOURCES:
+    assert "root" not in prepare.source_fields(name)
 
 
 def test_registry_lists_every_family_and_reader():
@@ -181,7 +187,8 @@ def test_prepare_cli_real_reader_end_to_end(tmp_path, capsys):
   rng = np.random.default_rng(0)
   fx.write_gqn_tfrecord(shard / "1-of-1.tfrecord", [fx.gqn_scene(rng, size=16) for _ in range(3)])
   args = ["--source", "gqn", "--input", str(root), "--data_dir", str(tmp_path / "tfds")]
-  path = prepare.main([*args, "--set", "image_size=16", "--no_progress"])
+  assert prepare.main([*args, "--config.image_size=16", "--no_progress"]) == 0
+  path = tmp_path / "tfds" / "gqn" / storage.DEFAULT_VERSION
   assert f"wrote {path}" in capsys.readouterr().out
   reader = gqn.GQN(root, image_size=16)
   for split in ("train", "test"):
@@ -197,7 +204,7 @@ def test_prepare_cli_real_reader_end_to_end(tmp_path, capsys):
   assert batch["image"].shape == (1, 3, 9, 16, 16, 3)
   assert sorted(batch["view"][0, 0].tolist()) == list(range(9))
   # Same settings again: reused. Other settings into the same directory: refused.
-  prepare.main([*args, "--set", "image_size=16", "--no_progress"])
+  assert prepare.main([*args, "--config.image_size=16", "--no_progress"]) == 0
   assert "reused" in capsys.readouterr().out
-  with pytest.raises(DataError, match="already prepared with"):
-    prepare.main([*args, "--set", "image_size=16", "--set", "max_scenes=2", "--no_progress"])
+  assert prepare.main([*args, "--config.image_size=16", "--config.max_scenes=2"]) == 2
+  assert "already prepared with" in capsys.readouterr().err

@@ -127,7 +127,7 @@ def test_prepared_data_with_worker_processes_trains_on_the_same_batches(tmp_path
   from camrep.data import prepare
 
   data_dir = tmp_path / "tfds"
-  prepare.main(["--source", "rooms", "--data_dir", str(data_dir), "--preset", "small"])
+  assert prepare.main(["--source", "rooms", "--data_dir", str(data_dir), "--preset", "small"]) == 0
   config = gqn.get_config("smoke")
   config.data.dir = str(data_dir)
   config.data.num_workers, config.data.num_threads = 2, 1
@@ -239,8 +239,9 @@ def test_cli_rejects_unknown_config_key(tmp_path):
     cwd=ROOT,
     timeout=300,
   )
-  assert r.returncode != 0
-  assert "no_such_key" in r.stderr
+  assert r.returncode == 2
+  assert "error: --config.no_such_key=1: the config has no field 'no_such_key'" in r.stderr
+  assert "Traceback" not in r.stderr
 
 
 def _main(*args, timeout=300):
@@ -255,8 +256,9 @@ def _main(*args, timeout=300):
 
 def test_cli_rejects_wrong_override_type(tmp_path):
   r = _main(f"--workdir={tmp_path}", "--config.total_steps=abc")
-  assert r.returncode == 1
-  assert "--config.total_steps=abc" in r.stderr and "invalid literal for int()" in r.stderr
+  assert r.returncode == 2  # a user's mistake (camrep.runtime.cli), not absl's exit 1
+  assert "error: --config.total_steps=abc: invalid literal for int()" in r.stderr
+  assert "Traceback" not in r.stderr
   assert not os.listdir(tmp_path)  # refused before anything was written
 
 

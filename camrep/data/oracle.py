@@ -1,4 +1,5 @@
-"""How observable a family's poses are: a nearest-neighbour oracle (issues 16 and 18).
+"""How observable a family's poses are: a nearest-neighbour oracle (issues 16 and 18):
+`python -m camrep.data.oracle --family=rooms --scenes=30 --train_views=10 [--config.FIELD=VALUE]`.
 
 For each query view, the reference view (of the same scene) with the smallest pixel distance
 lends its pose. If images and pose labels agree, the oracle's errors fall far below chance once
@@ -7,18 +8,23 @@ it stays at chance whatever the density. The same numbers say how much a single 
 tells about its pose at the density a run trains on: the floor a regressor has to beat without
 geometry.
 
-  python -m camrep.data.oracle --family rooms --scenes 30 --train_views 10 [--override k=v ...]
+`--config.FIELD=VALUE` overrides a field of the family's config (`camrep.data.procedural`), typed
+as the field's default (e.g. `--config.wall_style=compass`, `--config.texture_contrast=0,0.08`).
+Prints the result as JSON. Exit status as every camrep tool (`camrep.runtime.cli`).
 """
 
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import json
+import sys
 from collections.abc import Sequence
 
 import numpy as np
+from absl import flags
 
 from camrep.data import procedural
+from camrep.runtime import cli
 
 
 def _wrap(d: np.ndarray) -> np.ndarray:
@@ -93,26 +99,44 @@ def run(
   }
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  p.add_argument("--family", default="rooms", choices=sorted(procedural.FAMILIES))
-  p.add_argument("--preset", default="small")
-  p.add_argument("--scenes", type=int, default=30)
-  p.add_argument("--train_views", type=int, default=10)
-  p.add_argument("--test_views", type=int, default=2)
-  p.add_argument("--override", action="append", default=[], help="family field=python literal")
-  args = p.parse_args(argv)
-  import ast
+def define_flags(fv: flags.FlagValues, argv: Sequence[str] = ()) -> None:
+  """The tool's flags (`camrep.runtime.cli.Define`); `--config.` are the chosen family's fields."""
+  flags.DEFINE_enum("family", "rooms", procedural.FAMILIES, "Procedural family.", flag_values=fv)
+  flags.DEFINE_enum("preset", "small", procedural.PRESETS, "Family preset.", flag_values=fv)
+  flags.DEFINE_integer("scenes", 30, "Training scenes queried.", lower_bound=1, flag_values=fv)
+  flags.DEFINE_integer(
+    "train_views", 10, "Reference views per scene.", lower_bound=1, flag_values=fv
+  )
+  flags.DEFINE_integer("test_views", 2, "Query views per scene.", lower_bound=1, flag_values=fv)
+  family = cli.peek_flag(argv, "family", "rooms")
+  if family in procedural.FAMILIES:
+    cli.define_overrides(
+      fv,
+      argv,
+      dataclasses.asdict(procedural.make_config(family)),
+      f"A field of the {family!r} family's config.",
+    )
 
-  fields = {k: ast.literal_eval(v) for k, v in (o.split("=", 1) for o in args.override)}
-  if args.family != "scene6dof":  # the 7-Scenes trajectories fix their own views
-    fields.update(train_views=args.train_views, test_views=args.test_views)
-    fields.setdefault("num_train_scenes", args.scenes)
-  fam = procedural.make_family(args.family, preset=args.preset, **fields)
-  out = run(fam, num_scenes=args.scenes)
+
+def run_cli(fv: flags.FlagValues) -> int:
+  """The tool (`camrep.runtime.cli.Body`)."""
+  fields = cli.overrides(fv)
+  if fv.family != "scene6dof":  # the 7-Scenes trajectories fix their own views
+    fields.update(train_views=fv.train_views, test_views=fv.test_views)
+    fields.setdefault("num_train_scenes", fv.scenes)
+  try:
+    fam = procedural.make_family(fv.family, preset=fv.preset, **fields)
+  except (TypeError, ValueError) as e:
+    raise cli.UsageError(f"--family={fv.family} with {fields}: {e}") from None
+  out = run(fam, num_scenes=fv.scenes)
   print(json.dumps(out, indent=1))
   return 0
 
 
+def main(argv: Sequence[str] | None = None) -> int:
+  """In-process entry (tests): `argv` are the flags; returns the exit status."""
+  return cli.call(define_flags, run_cli, sys.argv[1:] if argv is None else argv, prog=__name__)
+
+
 if __name__ == "__main__":
-  raise SystemExit(main())
+  cli.main(define_flags, run_cli)

@@ -1,30 +1,34 @@
-"""Prepare any registered source as a tfds ArrayRecord dataset (+ sidecar index) for training.
+"""Prepare any registered source as a tfds ArrayRecord dataset (+ sidecar index) for training:
+`python -m camrep.data.prepare --source=NAME --data_dir=DIR [--input=PATH] [--preset=NAME]
+[--config.FIELD=VALUE ...]`.
 
 Commands (run from the repository root):
 
-  python -m camrep.data.prepare --source rooms --data_dir /tmp/tfds --preset small
-  python -m camrep.data.prepare --source object --data_dir /tmp/tfds --set num_scenes=20
-  python -m camrep.data.prepare --source gqn --input /data/gqn-datasets --data_dir /tmp/tfds \
-      --set max_files=2
+  python -m camrep.data.prepare --source=rooms --data_dir=/tmp/tfds --preset=small
+  python -m camrep.data.prepare --source=object --data_dir=/tmp/tfds --config.num_train_scenes=20
+  python -m camrep.data.prepare --source=gqn --input=/data/gqn-datasets --data_dir=/tmp/tfds \
+      --config.max_files=2
   python -m camrep.data.prepare --list
 
-Sources: the procedural families "rooms", "object", "area", "scene6dof"
+Sources (`SOURCES`): the procedural families "rooms", "object", "area", "scene6dof"
 (`camrep.data.procedural.make_family(name, **overrides)`) and the real-format readers
 "gqn", "srn_cars", "gibson", "seven_scenes", which need `--input PATH` (the dataset root; see
-each reader's docstring for the layout). `--set key=value` passes a keyword override to the
-family / reader constructor (values parsed as Python literals, else kept as strings);
-`--preset NAME` applies a named set of overrides first (see `PRESETS`).
+each reader's docstring for the layout). `--config.FIELD=VALUE` passes a keyword override to
+the chosen source's family / reader constructor (`source_fields`; `--list` names them): values
+are parsed as the default's type for numbers, strings and booleans, as Python literals otherwise
+(`--config.scenes="('chess',)"`); an unknown field is an error. `--preset NAME` applies a named
+set of overrides first (see `PRESETS`).
 
 Output: `DATA_DIR/NAME/CONFIG/VERSION/`, CONFIG being `--config_name` or else the preset name
 (no CONFIG level without either); see `camrep.data.storage` for the files. Preparing
 again into the same directory reuses the dataset if its recorded source settings are the same
-and refuses otherwise (pass `--overwrite`, or another `--config_name`).
+and refuses otherwise (pass `--overwrite`, or another `--config_name`). Exit status as every
+camrep tool (`camrep.runtime.cli`): a full disk ends with one `error:` line and no half-written
+dataset version (storage writes into a temporary directory and renames it when complete).
 """
 
 from __future__ import annotations
 
-import argparse
-import ast
 import dataclasses
 import importlib
 import importlib.util
@@ -37,9 +41,12 @@ import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from absl import flags
+
 from camrep.data import storage
 from camrep.data.errors import DataError
 from camrep.data.storage import ViewSource
+from camrep.runtime import cli
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,23 +103,28 @@ def is_available(name: str) -> bool:
   return importlib.util.find_spec(SOURCES[name].module) is not None
 
 
-def parse_set(items: Sequence[str]) -> dict[str, Any]:
-  """Parses `key=value` strings; values are Python literals where they parse, else strings.
+def source_fields(name: str) -> dict[str, Any]:
+  """The keyword overrides source `name` takes, with their defaults: the procedural family's
+  config fields, or the reader's keyword parameters after the dataset root.
 
   Raises:
-    ValueError: an item without "=" or with an empty key.
+    DataError: unknown or absent source.
   """
-  out = {}
-  for item in items:
-    key, sep, value = item.partition("=")
-    key = key.strip()
-    if not sep or not key:
-      raise ValueError(f"--set expects key=value, got {item!r}")
-    try:
-      out[key] = ast.literal_eval(value)
-    except (ValueError, SyntaxError):
-      out[key] = value
-  return out
+  if name not in SOURCES:
+    raise DataError(None, f"unknown source {name!r}; registered: {sorted(SOURCES)}")
+  entry = SOURCES[name]
+  if not is_available(name):
+    raise DataError(None, f"source {name!r} needs {entry.module}, which is not in this tree")
+  module = importlib.import_module(entry.module)
+  if entry.attr == "make_family":
+    return dataclasses.asdict(module.make_config(name))
+  params = list(inspect.signature(getattr(module, entry.attr)).parameters.values())
+  return {
+    p.name: p.default
+    for p in params[1:]  # the first is the dataset root
+    if p.default is not inspect.Parameter.empty
+    and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
+  }
 
 
 def _procedural_presets(module: Any, name: str, preset: str) -> dict[str, Any] | None:
@@ -258,65 +270,65 @@ def prepare_source(
   )
 
 
-def _parser() -> argparse.ArgumentParser:
-  parser = argparse.ArgumentParser(
-    prog="python -m camrep.data.prepare",
-    description="Store a camrep source as a tfds ArrayRecord dataset.",
+def define_flags(fv: flags.FlagValues, argv: Sequence[str] = ()) -> None:
+  """The tool's flags (`camrep.runtime.cli.Define`); `--config.` are the chosen source's
+  constructor keywords (`source_fields`)."""
+  flags.DEFINE_enum("source", None, sorted(SOURCES), "Source to prepare.", flag_values=fv)
+  flags.DEFINE_string("data_dir", None, "tfds data directory to write into.", flag_values=fv)
+  flags.DEFINE_string("input", None, "Dataset root (real formats only).", flag_values=fv)
+  flags.DEFINE_string("preset", None, "Named override set, e.g. 'small'.", flag_values=fv)
+  flags.DEFINE_string(
+    "config_name", None, "Sub-directory for this variant (default: the preset).", flag_values=fv
   )
-  parser.add_argument("--source", choices=sorted(SOURCES), help="source to prepare")
-  parser.add_argument("--data_dir", help="tfds data directory to write into")
-  parser.add_argument("--input", help="dataset root (real formats only)")
-  parser.add_argument("--preset", help="named override set, e.g. 'small'")
-  parser.add_argument(
-    "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-    help="keyword override for the family/reader (repeatable)",
-  )  # fmt: skip
-  parser.add_argument("--config_name", help="sub-directory for this variant (default: preset)")
-  parser.add_argument("--name", help="dataset name (default: the source name)")
-  parser.add_argument("--version", default=storage.DEFAULT_VERSION)
-  parser.add_argument("--overwrite", action="store_true", help="regenerate if present")
-  parser.add_argument("--no_progress", action="store_true", help="no progress bars")
-  parser.add_argument("--list", action="store_true", help="list the sources and exit")
-  return parser
+  flags.DEFINE_string("name", None, "Dataset name (default: the source name).", flag_values=fv)
+  flags.DEFINE_string("version", storage.DEFAULT_VERSION, "tfds version string.", flag_values=fv)
+  flags.DEFINE_bool("overwrite", False, "Regenerate if present.", flag_values=fv)
+  flags.DEFINE_bool("no_progress", False, "No progress bars.", flag_values=fv)
+  flags.DEFINE_bool("list", False, "List the sources and their fields, and exit.", flag_values=fv)
+  source = cli.peek_flag(argv, "source")
+  if source in SOURCES and is_available(source):
+    cli.define_overrides(
+      fv, argv, source_fields(source), f"A keyword of the {source!r} source's constructor."
+    )
+  elif any(a.startswith("--config.") for a in argv):
+    raise cli.UsageError("--config.FIELD=VALUE overrides need --source=NAME (see --list)")
 
 
-def main(argv: Sequence[str] | None = None) -> pathlib.Path | None:
-  """Command-line entry point; returns the dataset directory (None for --list)."""
-  parser = _parser()
-  args = parser.parse_args(argv)
-  if args.list:
-    for name, entry in SOURCES.items():
-      state = "" if is_available(name) else f"  [missing: {entry.module}]"
-      kind = "--input PATH" if entry.needs_input else "procedural"
-      print(f"{name:13s} {kind:13s} {entry.description}{state}")
-    return None
-  if args.source is None or args.data_dir is None:
-    parser.error("--source and --data_dir are required")
-  entry = SOURCES[args.source]
-  if entry.needs_input and args.input is None:
-    parser.error(f"--source {args.source} reads a dataset: give its root with --input PATH")
-  if not entry.needs_input and args.input is not None:
-    parser.error(f"--source {args.source} is procedural and takes no --input")
-  try:
-    overrides = parse_set(args.overrides)
-  except ValueError as e:
-    parser.error(str(e))
-  target = target_dir(
-    args.data_dir, args.name or args.source, args.config_name or args.preset, args.version
-  )
-  existed = (target / storage.METADATA_FILE).exists() and not args.overwrite
+def _list() -> None:
+  for name, entry in SOURCES.items():
+    state = "" if is_available(name) else f"  [missing: {entry.module}]"
+    kind = "--input PATH" if entry.needs_input else "procedural"
+    print(f"{name:13s} {kind:13s} {entry.description}{state}")
+    if not state:
+      print(f"{'':13s} --config.: {', '.join(source_fields(name))}")
+
+
+def run_cli(fv: flags.FlagValues) -> int:
+  """The tool (`camrep.runtime.cli.Body`)."""
+  if fv.list:
+    _list()
+    return 0
+  if fv.source is None or fv.data_dir is None:
+    raise cli.UsageError("--source and --data_dir are required (--list shows the sources)")
+  entry = SOURCES[fv.source]
+  if entry.needs_input and fv.input is None:
+    raise cli.UsageError(f"--source={fv.source} reads a dataset: give its root with --input PATH")
+  if not entry.needs_input and fv.input is not None:
+    raise cli.UsageError(f"--source={fv.source} is procedural and takes no --input")
+  target = target_dir(fv.data_dir, fv.name or fv.source, fv.config_name or fv.preset, fv.version)
+  existed = (target / storage.METADATA_FILE).exists() and not fv.overwrite
   t0 = time.perf_counter()
   path = prepare_source(
-    args.source,
-    args.data_dir,
-    input_path=args.input,
-    preset=args.preset,
-    overrides=overrides,
-    config_name=args.config_name,
-    dataset_name=args.name,
-    version=args.version,
-    overwrite=args.overwrite,
-    progress=not args.no_progress,
+    fv.source,
+    fv.data_dir,
+    input_path=fv.input,
+    preset=fv.preset,
+    overrides=cli.overrides(fv),
+    config_name=fv.config_name,
+    dataset_name=fv.name,
+    version=fv.version,
+    overwrite=fv.overwrite,
+    progress=not fv.no_progress,
   )
   meta = storage.load_metadata(path)
   counts = ", ".join(
@@ -325,11 +337,13 @@ def main(argv: Sequence[str] | None = None) -> pathlib.Path | None:
   )
   verb = "reused" if existed else "wrote"
   print(f"{verb} {path} ({counts}) in {time.perf_counter() - t0:.1f} s")
-  return path
+  return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+  """In-process entry (tests, notebooks): `argv` are the flags; returns the exit status."""
+  return cli.call(define_flags, run_cli, sys.argv[1:] if argv is None else argv, prog=__name__)
 
 
 if __name__ == "__main__":
-  try:
-    main()
-  except DataError as e:
-    sys.exit(f"error: {e}")
+  cli.main(define_flags, run_cli)

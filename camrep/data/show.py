@@ -1,13 +1,14 @@
-"""Writes a PNG grid of procedural views (scenes as rows, views as columns) with their poses.
+"""Writes a PNG grid of procedural views (scenes as rows, views as columns) with their poses:
+`python -m camrep.data.show --family=rooms --out=/tmp/rooms.png [--scenes=4 --views=6]`.
 
 Lets a person look at the data. Each cell shows one view, upscaled to at least 128 px, with the
 pose printed underneath (angles in degrees, marked "d"; positions in the family's units).
 
 Usage:
-  python -m camrep.data.show --family rooms --out /tmp/rooms.png
-  python -m camrep.data.show --family object --out /tmp/object.png --scenes 4 --views 6 \
-      --size 64 --split test_scenes
-  python -m camrep.data.show --family scene6dof --out /tmp/6dof.png --preset small
+  python -m camrep.data.show --family=rooms --out=/tmp/rooms.png
+  python -m camrep.data.show --family=object --out=/tmp/object.png --scenes=4 --views=6 \
+      --size=64 --split=test_scenes
+  python -m camrep.data.show --family=scene6dof --out=/tmp/6dof.png --preset=small
 
 Families: rooms, object, area, scene6dof (see `camrep.data.procedural`). For scene6dof the
 views are spread evenly along the scene's trajectory; for the others they are the first ones.
@@ -15,13 +16,16 @@ views are spread evenly along the scene's trajectory; for the others they are th
 
 from __future__ import annotations
 
-import argparse
+import os
+import sys
 from collections.abc import Sequence
 
 import cv2
 import numpy as np
+from absl import flags
 
 from camrep.data import procedural
+from camrep.runtime import cli
 
 _ANGLES = {"yaw", "azimuth", "polar", "theta", "phi", "psi"}
 _SHORT = {"azimuth": "az", "polar": "pol", "theta": "th", "phi": "ph", "psi": "ps"}
@@ -82,28 +86,57 @@ def make_grid(
   return np.concatenate(rows, axis=0)
 
 
-def main(argv: Sequence[str] | None = None) -> None:
-  """Command-line entry point (see the module docstring)."""
-  parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-  parser.add_argument("--family", required=True, choices=procedural.FAMILIES)
-  parser.add_argument("--out", required=True, help="output PNG path")
-  parser.add_argument("--scenes", type=int, default=4, help="rows")
-  parser.add_argument("--views", type=int, default=6, help="columns")
-  parser.add_argument("--size", type=int, default=None, help="image size (default: the family's)")
-  parser.add_argument("--split", default="train")
-  parser.add_argument("--preset", default="default", choices=procedural.PRESETS)
-  parser.add_argument("--seed", type=int, default=0)
-  args = parser.parse_args(argv)
-  overrides = dict(seed=args.seed, batch_size=args.views)
-  if args.size:
-    overrides["image_size"] = args.size
-  family = procedural.make_family(args.family, args.preset, **overrides)
-  grid = make_grid(family, split=args.split, num_scenes=args.scenes, num_views=args.views)
-  if not cv2.imwrite(args.out, cv2.cvtColor(grid, cv2.COLOR_RGB2BGR)):
-    raise OSError(f"{args.out}: could not write the PNG")
+def define_flags(fv: flags.FlagValues, argv: Sequence[str] = ()) -> None:
+  """The tool's flags (`camrep.runtime.cli.Define`)."""
+  del argv
+  flags.DEFINE_enum("family", None, procedural.FAMILIES, "Procedural family.", flag_values=fv)
+  flags.DEFINE_string("out", None, "Output PNG path.", flag_values=fv)
+  flags.DEFINE_integer(
+    "scenes", 4, "Rows (the split's first scenes).", lower_bound=1, flag_values=fv
+  )
+  flags.DEFINE_integer("views", 6, "Columns.", lower_bound=1, flag_values=fv)
+  flags.DEFINE_integer(
+    "size", None, "Image size (default: the family's).", lower_bound=1, flag_values=fv
+  )
+  flags.DEFINE_enum("split", "train", ("train", "test", "test_scenes"), "Split.", flag_values=fv)
+  flags.DEFINE_enum("preset", "default", procedural.PRESETS, "Family preset.", flag_values=fv)
+  flags.DEFINE_integer("seed", 0, "Family seed.", lower_bound=0, flag_values=fv)
+  flags.mark_flags_as_required(["family", "out"], flag_values=fv)
+
+
+def run_cli(fv: flags.FlagValues) -> int:
+  """The tool (`camrep.runtime.cli.Body`)."""
+  overrides = dict(seed=fv.seed, batch_size=fv.views)
+  if fv.size:
+    overrides["image_size"] = fv.size
+  try:
+    family = procedural.make_family(fv.family, fv.preset, **overrides)
+  except (TypeError, ValueError) as e:
+    raise cli.UsageError(f"--family={fv.family}: {e}") from None
+  if fv.split not in family.splits:
+    raise cli.UsageError(f"--split={fv.split}: family {fv.family!r} has {list(family.splits)}")
+  grid = make_grid(family, split=fv.split, num_scenes=fv.scenes, num_views=fv.views)
+  ok, png = cv2.imencode(".png", cv2.cvtColor(grid, cv2.COLOR_RGB2BGR))
+  if not ok:
+    raise RuntimeError("cv2 could not encode the PNG")
+  tmp = f"{fv.out}.tmp"
+  try:  # written whole or not at all (a full disk leaves no cut PNG)
+    with open(tmp, "wb") as f:
+      f.write(png.tobytes())
+    os.replace(tmp, fv.out)
+  except OSError:
+    if os.path.exists(tmp):
+      os.remove(tmp)
+    raise
   height, width = grid.shape[:2]
-  print(f"wrote {args.out}: {width}x{height} px, family {family.name}, split {args.split}")
+  print(f"wrote {fv.out}: {width}x{height} px, family {family.name}, split {fv.split}")
+  return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+  """In-process entry (tests): `argv` are the flags; returns the exit status."""
+  return cli.call(define_flags, run_cli, sys.argv[1:] if argv is None else argv, prog=__name__)
 
 
 if __name__ == "__main__":
-  main()
+  cli.main(define_flags, run_cli)

@@ -417,8 +417,23 @@ def prepare(
     "prepare_seconds": round(time.perf_counter() - t0, 3),
     "metadata": dict(metadata or {}),
   }
-  (path / METADATA_FILE).write_text(json.dumps(meta, indent=2, sort_keys=True, default=str))
+  _write_text_atomic(path / METADATA_FILE, json.dumps(meta, indent=2, sort_keys=True, default=str))
   return path
+
+
+def _write_text_atomic(path: pathlib.Path, text: str) -> None:
+  """Writes `path` whole or not at all (a full disk leaves the old file or none, never a cut
+  one: the metadata marks a finished dataset)."""
+  tmp = path.with_name(path.name + ".tmp")
+  try:
+    with open(tmp, "w", encoding="utf-8") as f:
+      f.write(text)
+      f.flush()
+      os.fsync(f.fileno())
+    os.replace(tmp, path)
+  except BaseException:
+    tmp.unlink(missing_ok=True)
+    raise
 
 
 def _version_dirs(base: pathlib.Path) -> list[pathlib.Path]:

@@ -1,18 +1,21 @@
-"""`python -m camrep.regression --config=configs/regression.py[:quick|:smoke] --workdir=DIR`: one
-pose-regression run (`camrep.regression.driver.run`). Exit status: 0 done, 1 bad flags, 2 bad config
-or workdir, 3 non-finite training values."""
+"""Trains one pose regressor: `python -m camrep.regression
+--config=configs/regression.py[:quick|:smoke] --workdir=DIR [--config.FIELD=VALUE ...]`
+(`camrep.regression.driver.run`).
+
+The config is checked first (`camrep.regression.config_schema`: every field, and the fields the
+chosen setting, representation and data use). Exit status (`camrep.runtime.cli`): 0 done, 2 a
+user's mistake (bad flag, config or workdir; one `error:` line), 3 non-finite training values,
+1 a bug.
+"""
 
 from __future__ import annotations
 
-import sys
-
 import jax
-from absl import app, flags, logging
+from absl import flags, logging
 from ml_collections import config_flags
 
-from camrep.regression import driver
-from camrep.runtime import runconfig
-from camrep.runtime import workdir as workdir_lib
+from camrep.regression import config_schema, driver
+from camrep.runtime import cli
 
 _CONFIG = config_flags.DEFINE_config_file(
   "config", None, "Path to configs/regression.py[:quick|:smoke].", lock_config=True
@@ -23,19 +26,13 @@ flags.mark_flags_as_required(["config", "workdir"])
 
 def main(argv) -> None:
   if len(argv) > 1:
-    raise app.UsageError(f"unexpected arguments: {argv[1:]}")
+    raise cli.UsageError(f"unexpected arguments: {argv[1:]}")
   if not flags.FLAGS["verbosity"].present:
     logging.set_verbosity(logging.ERROR)  # orbax warns that a read-only manager saves nothing
+  config_schema.validate(_CONFIG.value, overridden=cli.overridden())
   print(f"JAX {jax.__version__}, devices {jax.local_devices()}", flush=True)
-  try:
-    driver.run(_CONFIG.value, _WORKDIR.value, log=lambda s: print(s, flush=True))
-  except (runconfig.ConfigError, workdir_lib.WorkdirError) as e:
-    print(f"error: {e}", file=sys.stderr, flush=True)
-    sys.exit(2)
-  except FloatingPointError as e:
-    print(f"error: {e}", file=sys.stderr, flush=True)
-    sys.exit(3)
+  driver.run(_CONFIG.value, _WORKDIR.value, log=lambda s: print(s, flush=True))
 
 
 if __name__ == "__main__":
-  app.run(main)
+  cli.run(main)

@@ -472,7 +472,7 @@ def make_real_data(config) -> Data:
 
 def seven_scenes_names(meta: dict[str, Any]) -> list[str]:
   """Scene names of a prepared 7-Scenes dataset in scene-id order (the reader's `scenes`: the
-  `--set scenes=...` override, else the preset's, else every scene folder of the input), or []
+  `--config.scenes=...` override, else the preset's, else every scene folder of the input), or []
   when they cannot be told."""
   from camrep.data import prepare
 

@@ -57,6 +57,7 @@ import logging
 import os
 import shutil
 import signal
+import sys
 import tempfile
 import threading
 import time
@@ -120,6 +121,59 @@ def _is_io_error(exc: BaseException) -> bool:
   if _os_error_in_chain(exc) is not None or _is_disk_full(exc):
     return True
   return any(code in str(exc) for code in _TENSORSTORE_IO_ERRORS)
+
+
+class _HeldStderr:
+  """Holds what is written to file descriptor 2 (Python's stderr, absl logging, C++ code) while
+  a save runs, through a pipe drained by a thread (no disk needed: the disk may be full).
+  `release()` writes it out; `drop()` discards it. A failed Orbax save is followed by dozens of
+  "Event loop is closed" tracebacks from its writer threads that would bury the one error that
+  matters; a save that succeeds shows whatever it wrote, unchanged."""
+
+  def __init__(self) -> None:
+    self._chunks: list[bytes] = []
+    self._saved_fd: int | None = None
+    self._thread: threading.Thread | None = None
+    try:
+      sys.stderr.flush()
+      read_fd, write_fd = os.pipe()
+      self._saved_fd = os.dup(2)
+      os.dup2(write_fd, 2)
+      os.close(write_fd)
+    except (OSError, ValueError, AttributeError):  # no fd 2 (embedded interpreter): hold nothing
+      self._saved_fd = None
+      return
+    self._read_fd = read_fd
+    self._thread = threading.Thread(target=self._drain, name="held_stderr", daemon=True)
+    self._thread.start()
+
+  def _drain(self) -> None:
+    while chunk := os.read(self._read_fd, 65536):
+      self._chunks.append(chunk)
+    os.close(self._read_fd)
+
+  def _restore(self) -> bytes:
+    if self._saved_fd is None:
+      return b""
+    try:
+      sys.stderr.flush()
+    except (OSError, ValueError):
+      pass
+    os.dup2(self._saved_fd, 2)  # closes the pipe's last write end: the drain thread ends
+    os.close(self._saved_fd)
+    self._saved_fd = None
+    if self._thread is not None:
+      self._thread.join(timeout=5.0)
+    return b"".join(self._chunks)
+
+  def release(self) -> None:
+    held = self._restore()
+    if held:
+      os.write(2, held)
+
+  def drop(self) -> int:
+    """Discards what was held; returns its number of lines."""
+    return self._restore().count(b"\n")
 
 
 def _short(exc: BaseException, limit: int = 300) -> str:
@@ -193,6 +247,9 @@ class Checkpointer:
     Raises:
       CheckpointError: if the directory cannot be created or written to.
     """
+    if max_to_keep is not None and max_to_keep < 1:
+      # Orbax would keep no checkpoint at all: a finished run could not be resumed or evaluated.
+      raise CheckpointError(f"max_to_keep={max_to_keep} would keep no checkpoint; use >= 1")
     self.directory = os.path.abspath(os.path.join(os.fspath(workdir), CHECKPOINT_SUBDIR))
     self._max_to_keep = max_to_keep
     self._async_save = async_save
@@ -293,6 +350,7 @@ class Checkpointer:
     extra = dict(extra or {})
     json.dumps(extra)  # Fail before touching the disk.
     step = int(step)
+    held = _HeldStderr()
     try:
       # Surface errors of a previous async save before deleting anything.
       self._manager.wait_until_finished()
@@ -314,7 +372,18 @@ class Checkpointer:
       if not self._async_save:
         self._manager.wait_until_finished()
     except Exception as e:
-      self._raise_save_error(e, step)
+      try:
+        self._raise_save_error(e, step)
+      except CheckpointError:
+        # The failed save's writer threads end meanwhile (printing their tracebacks, and
+        # sometimes recreating the tmp directory): remove it again once they are done.
+        time.sleep(0.2)
+        self._remove_tmp_dirs()
+        held.drop()
+        raise
+      finally:
+        held.release()  # an unexpected error: its context stays visible
+    held.release()
     return bool(saved)
 
   def _delete_bad_steps(self) -> None:

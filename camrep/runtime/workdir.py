@@ -18,6 +18,7 @@ import os
 import socket
 import sys
 import tempfile
+import time
 import warnings
 from collections.abc import Mapping
 from typing import Any
@@ -27,6 +28,8 @@ import ml_collections
 from camrep.runtime import writers
 
 LOCK_FILE = ".camrep.lock"
+# An unreadable lock older than this is taken over (a run that died while writing it).
+UNREADABLE_LOCK_GRACE_S = 10.0
 HISTORY_FILE = "config_history.jsonl"
 
 
@@ -128,14 +131,41 @@ class WorkdirLock:
       return {}
 
   def _create(self) -> bool:
+    """Creates the lock with this process's record; False when a lock exists.
+
+    Raises:
+      WorkdirError: the lock cannot be written (a full disk, a read-only file system); no empty
+        or partial lock is left behind (it would refuse every later start).
+    """
+    me = {"pid": os.getpid(), "host": socket.gethostname(), "started": _now(), "argv": sys.argv}
     try:
       fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
     except FileExistsError:
       return False
-    me = {"pid": os.getpid(), "host": socket.gethostname(), "started": _now(), "argv": sys.argv}
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-      json.dump(me, f)
+    except OSError as e:
+      raise WorkdirError(f"cannot create the lock {self.path}: {e.strerror or e}") from e
+    try:
+      with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write(json.dumps(me))
+        f.flush()
+        os.fsync(f.fileno())
+    except OSError as e:
+      try:
+        os.remove(self.path)
+      except OSError:
+        pass
+      raise WorkdirError(
+        f"cannot write the lock {self.path}: {e.strerror or e} (nothing was left behind)"
+      ) from e
     return True
+
+  def _abandoned(self) -> bool:
+    """Whether an unreadable (empty or cut) lock is old enough to be a dead process's: a live
+    one writes its record within microseconds of creating the file."""
+    try:
+      return time.time() - os.path.getmtime(self.path) > UNREADABLE_LOCK_GRACE_S
+    except OSError:
+      return False
 
   def acquire(self) -> None:
     """Takes the lock, taking over a stale one (with a `StaleLockWarning`).
@@ -151,10 +181,13 @@ class WorkdirLock:
       if h is None:  # released between our two looks
         continue
       host, pid = h.get("host"), h.get("pid")
-      if host == socket.gethostname() and isinstance(pid, int) and not _pid_running(pid):
+      dead = host == socket.gethostname() and isinstance(pid, int) and not _pid_running(pid)
+      if dead or (not h and self._abandoned()):
         msg = (
           f"taking over the stale lock of {self.workdir}: PID {pid} on {host} "
           f"(started {h.get('started', '?')}) no longer runs"
+          if h
+          else f"taking over the unreadable (empty or cut) lock {self.path} left by a dead run"
         )
         warnings.warn(msg, StaleLockWarning, stacklevel=2)
         print(f"warning: {msg}", file=sys.stderr, flush=True)
@@ -178,9 +211,15 @@ class WorkdirLock:
 
 
 def append_history(
-  workdir: str, step: int, changes: Mapping[str, tuple[Any, Any]], *, what: str = "start"
+  workdir: str,
+  step: int,
+  changes: Mapping[str, tuple[Any, Any]],
+  *,
+  what: str = "start",
+  topology: Mapping[str, int] | None = None,
 ) -> None:
-  """Appends one line to config_history.jsonl: the step at which `changes` took effect."""
+  """Appends one line to config_history.jsonl: the step at which `changes` took effect, and the
+  `topology` (processes, devices, global batch) the run goes on with."""
   row = {
     "step": int(step),
     "event": what,
@@ -189,6 +228,8 @@ def append_history(
     "pid": os.getpid(),
     "changes": {k: list(v) for k, v in changes.items()},
   }
+  if topology is not None:
+    row["topology"] = {k: int(v) for k, v in topology.items()}
   with open(os.path.join(workdir, HISTORY_FILE), "a", encoding="utf-8") as f:
     f.write(json.dumps(row, default=str) + "\n")
 
@@ -200,3 +241,53 @@ def read_history(workdir: str) -> list[dict[str, Any]]:
     return []
   with open(path, encoding="utf-8") as f:
     return [json.loads(line) for line in f if line.strip()]
+
+
+# `allow_changes` name that lets a resume change the global batch (another device count).
+GLOBAL_BATCH = "global_batch"
+
+
+def topology(*, processes: int, devices: int, scenes_per_device: int) -> dict[str, int]:
+  """What a run's steps depend on besides its config: {"processes", "devices", "global_batch"}
+  (scenes per step over all devices of all processes)."""
+  return {
+    "processes": int(processes),
+    "devices": int(devices),
+    "global_batch": int(devices) * int(scenes_per_device),
+  }
+
+
+def recorded_topology(workdir: str) -> dict[str, int] | None:
+  """The topology of the workdir's latest start (config_history.jsonl), or None when no start
+  recorded one (a workdir written before camrep recorded it)."""
+  for row in reversed(read_history(workdir)):
+    if "topology" in row:
+      return row["topology"]
+  return None
+
+
+def check_topology(workdir: str, now: Mapping[str, int], *, allowed: bool) -> dict[str, Any]:
+  """Refuses a resume whose global batch differs from the workdir's last start (another number
+  of devices or scenes per device) unless `allowed`.
+
+  Returns:
+    {"topology": [old, new]} when the topology changed (a change to record), else {}.
+
+  Raises:
+    ConfigError: the global batch changed and `allowed` is False; the message says how to
+      allow it.
+  """
+  from camrep.runtime.runconfig import ConfigError
+
+  old = recorded_topology(workdir)
+  if old is None or dict(old) == dict(now):
+    return {}
+  if old.get("global_batch") != now["global_batch"] and not allowed:
+    raise ConfigError(
+      f"cannot resume in {workdir}: its run took {old.get('global_batch')} scenes per step on "
+      f"{old.get('devices')} device(s) in {old.get('processes')} process(es); this start would "
+      f"take {now['global_batch']} on {now['devices']} device(s) in {now['processes']} "
+      "process(es), which changes every later step. Use the same devices, a new --workdir, or "
+      f"--config.allow_changes={GLOBAL_BATCH} to record the change in config_history.jsonl"
+    )
+  return {"topology": [dict(old), dict(now)]}

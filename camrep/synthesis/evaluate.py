@@ -1,30 +1,31 @@
-"""`python -m camrep.synthesis.evaluate`: noise robustness and Gram maps of a trained run (paper
-section 4.3, digest 5).
+"""Noise robustness and Gram maps of a trained run (paper section 4.3, digest 5):
+`python -m camrep.synthesis.evaluate --workdir=DIR [--what=noise,gram] [--levels=13] [--out=DIR]`.
 
 Reads a training workdir (config.json and checkpoints/ written by `camrep.synthesis.train`) back
-with `restore.load_run`, then runs `noise.noise_robustness` and `gram.gram_maps`:
-
-  python -m camrep.synthesis.evaluate --workdir DIR [--what noise,gram] [--levels 13]
-    [--out DIR/eval]
-
-writes DIR/eval/noise.json, noise.png (PSNR and SSIM vs alpha), gram_<dof>.png and gram.npz.
+with `restore.load_run`, then runs `noise.noise_robustness` and `gram.gram_maps`, and writes
+DIR/eval/noise.json, noise.png (PSNR and SSIM vs alpha), gram_<dof>.png and gram.npz. The output
+directory is checked for writing before anything is restored, and the files are written into a
+staging directory there and moved in only once all are written: a full disk or a read-only
+workdir ends with one `error:` line (exit 2) and leaves no half-written file. Exit status as
+every camrep tool (`camrep.runtime.cli`).
 """
 
 from __future__ import annotations
 
-import argparse
 import os
+import shutil
 import sys
+import tempfile
 from collections.abc import Sequence
 
 import jax
 import numpy as np
+from absl import flags
 from absl import logging as absl_logging
 
 from camrep import pose as P
-from camrep.data.errors import DataError
-from camrep.runtime.checkpoint import CheckpointError
-from camrep.runtime.runconfig import ConfigError
+from camrep.runtime import cli
+from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import components, restore
 from camrep.synthesis import gram as gram_lib
 from camrep.synthesis import noise as noise_lib
@@ -35,121 +36,162 @@ EVAL_SUBDIR = "eval"
 
 
 # --------------------------------------------------------------------------------------------
-# Loading a run.
-
-
-# --------------------------------------------------------------------------------------------
-# Noise robustness.
-
-
-# --------------------------------------------------------------------------------------------
-# Gram maps.
-
-
-# --------------------------------------------------------------------------------------------
-# Figures (cv2; images are RGB uint8).
-
-
-# --------------------------------------------------------------------------------------------
 # Command line.
 
-
-def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
-  p = argparse.ArgumentParser(
-    prog="python -m camrep.synthesis.evaluate",
-    description="Noise robustness and Gram maps of a trained camrep run (digest section 5).",
-  )
-  p.add_argument("--workdir", required=True, help="training workdir (config.json, checkpoints/)")
-  p.add_argument("--what", default="noise,gram", help="comma-separated: noise, gram")
-  p.add_argument(
-    "--levels", type=int, default=noise_lib.DEFAULT_LEVELS, help="alpha = 0.025 j, j < levels"
-  )
-  p.add_argument(
-    "--alphas",
-    default=None,
-    help="comma-separated noise levels instead of --levels (e.g. 0,0.3,1,3,10: how much the "
-    "model uses its pose input)",
-  )
-  p.add_argument("--out", default=None, help="output directory (default WORKDIR/eval)")
-  p.add_argument("--step", type=int, default=None, help="checkpoint step (default: latest)")
-  p.add_argument(
-    "--num_scenes",
-    type=int,
-    default=None,
-    help="held-out scenes to evaluate (default: the config's evals.num_scenes)",
-  )
-  p.add_argument(
-    "--draw_temperature",
-    type=float,
-    default=None,
-    help="GQN's generator only: latent temperature of the prediction (default: the config's "
-    "model.draw_temperature; 1 a prior sample, 0 the prior mean)",
-  )
-  p.add_argument("--seed", type=int, default=0, help="seed of the noise and quantisation draws")
-  p.add_argument(
-    "--quantisation",
-    choices=P.QUANTISATION_MODES,
-    default=None,
-    help="quantisation of the exact poses (default: random for gqn/car, nearest otherwise)",
-  )
-  args = p.parse_args(argv)
-  what = {w.strip() for w in args.what.split(",") if w.strip()}
-  if not what or what - {"noise", "gram"}:
-    p.error(f"--what takes a comma-separated subset of noise,gram; got {args.what!r}")
-  if args.levels < 1:
-    p.error("--levels must be at least 1")
-  if args.alphas is not None:
-    try:
-      args.alphas = np.array([float(a) for a in args.alphas.split(",") if a.strip()])
-    except ValueError:
-      p.error(f"--alphas takes comma-separated numbers; got {args.alphas!r}")
-    if not len(args.alphas) or (args.alphas < 0).any():
-      p.error(f"--alphas takes non-negative noise levels; got {args.alphas!r}")
-  else:
-    args.alphas = noise_lib.default_alphas(args.levels)
-  args.what = what
-  return args
+WHAT = ("noise", "gram")
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-  """The command line; returns the exit status."""
-  args = _parse_args(argv)
+def define_flags(fv: flags.FlagValues, argv: Sequence[str] = ()) -> None:
+  """The tool's flags (`cli.Define`)."""
+  del argv
+  flags.DEFINE_string(
+    "workdir", None, "Training workdir (config.json, checkpoints/).", flag_values=fv, required=True
+  )
+  flags.DEFINE_list(
+    "what", list(WHAT), f"What to compute: a subset of {','.join(WHAT)}.", flag_values=fv
+  )
+  flags.DEFINE_integer(
+    "levels",
+    noise_lib.DEFAULT_LEVELS,
+    "Noise levels alpha = 0.025 j, j < levels.",
+    lower_bound=1,
+    flag_values=fv,
+  )
+  flags.DEFINE_list(
+    "alphas",
+    None,
+    "Noise levels instead of --levels (e.g. 0,0.3,1,3,10: how much the model uses its pose input).",
+    flag_values=fv,
+  )
+  flags.DEFINE_string("out", None, "Output directory (default WORKDIR/eval).", flag_values=fv)
+  flags.DEFINE_integer(
+    "step", None, "Checkpoint step (default: the latest).", lower_bound=0, flag_values=fv
+  )
+  flags.DEFINE_integer(
+    "num_scenes",
+    None,
+    "Held-out scenes to evaluate (default: the config's evals.num_scenes).",
+    lower_bound=1,
+    flag_values=fv,
+  )
+  flags.DEFINE_float(
+    "draw_temperature",
+    None,
+    "GQN's generator only: latent temperature of the prediction (default: the config's "
+    "model.draw_temperature; 1 a prior sample, 0 the prior mean).",
+    lower_bound=0.0,
+    flag_values=fv,
+  )
+  flags.DEFINE_integer(
+    "seed", 0, "Seed of the noise and quantisation draws.", lower_bound=0, flag_values=fv
+  )
+  flags.DEFINE_enum(
+    "quantisation",
+    None,
+    P.QUANTISATION_MODES,
+    "Quantisation of the exact poses (default: random for gqn/car, nearest otherwise).",
+    flag_values=fv,
+  )
+
+
+def _alphas(fv: flags.FlagValues) -> np.ndarray:
+  if fv.alphas is None:
+    return noise_lib.default_alphas(fv.levels)
+  try:
+    alphas = np.array([float(a) for a in fv.alphas if a.strip()])
+  except ValueError:
+    raise cli.UsageError(f"--alphas takes comma-separated numbers; got {fv.alphas!r}") from None
+  if not len(alphas) or (alphas < 0).any() or not np.isfinite(alphas).all():
+    raise cli.UsageError(f"--alphas takes finite non-negative noise levels; got {fv.alphas!r}")
+  return alphas
+
+
+def run_cli(fv: flags.FlagValues) -> int:
+  """The tool (`cli.Body`): checks the output directory, restores the run, writes the files."""
+  alphas = _alphas(fv)
+  what = {w.strip() for w in fv.what if w.strip()}
+  if not what or what - set(WHAT):
+    raise cli.UsageError(
+      f"--what takes a comma-separated subset of {','.join(WHAT)}; got {fv.what}"
+    )
   # Orbax logs at WARNING that a read-only manager ignores its save options.
   absl_logging.set_verbosity(absl_logging.ERROR)
   log = lambda s: print(s, flush=True)
+  if not os.path.isdir(fv.workdir):
+    raise FileNotFoundError(f"workdir {fv.workdir!r} does not exist")
+  out = fv.out or os.path.join(fv.workdir, EVAL_SUBDIR)
+  # As training does for its workdir: a read-only or full output directory fails now, not
+  # after minutes of restoring and evaluating.
+  existed = os.path.isdir(out)
+  workdir_lib.check_workdir(out)
   try:
-    run = restore.load_run(args.workdir, step=args.step)
-  except (FileNotFoundError, CheckpointError, ConfigError, DataError) as e:
-    # A checkpoint whose arrays do not fit the workdir's config.json is refused here (exit 2).
-    print(f"error: {e}", file=sys.stderr, flush=True)
-    return 2
-  if args.num_scenes is not None:
-    run.config.evals.num_scenes = args.num_scenes
-  if args.draw_temperature is not None:
-    run.config.model.draw_temperature = args.draw_temperature
-  out = args.out or os.path.join(args.workdir, EVAL_SUBDIR)
-  os.makedirs(out, exist_ok=True)
-  log(f"restored step {run.step} of {args.workdir} ({components.setting(run.config)})")
-  written = []
-  if "noise" in args.what:
+    return _evaluate(fv, out, alphas, what, log)
+  except BaseException:
+    if not existed:  # leave the workdir as it was (the staged files are gone already)
+      try:
+        os.rmdir(out)
+      except OSError:
+        pass
+    raise
+
+
+def _evaluate(fv: flags.FlagValues, out: str, alphas, what, log) -> int:
+  # A checkpoint whose arrays do not fit the workdir's config.json is refused here (exit 2).
+  run_ = restore.load_run(fv.workdir, step=fv.step)
+  if fv.num_scenes is not None:
+    run_.config.evals.num_scenes = fv.num_scenes
+  if fv.draw_temperature is not None:
+    run_.config.model.draw_temperature = fv.draw_temperature
+  log(f"restored step {run_.step} of {fv.workdir} ({components.setting(run_.config)})")
+  result = None
+  if "noise" in what:
     result = noise_lib.noise_robustness(
-      run,
-      key=jax.random.key(args.seed),
-      alphas=args.alphas,
-      quantisation=args.quantisation,
+      run_,
+      key=jax.random.key(fv.seed),
+      alphas=alphas,
+      quantisation=fv.quantisation,
       progress=log,
     )
     log(f"\nquantisation {result['quantisation']}, {result['num_images']} images")
     log(f"{'alpha':>7} {'PSNR':>8} {'SSIM':>7}")
     for a, p, s in zip(result["alphas"], result["psnr"], result["ssim"], strict=True):
       log(f"{a:7.3f} {p:8.3f} {s:7.4f}")
-    written += noise_lib.write_noise(out, run, result)
-  if "gram" in args.what:
-    log("gram maps: " + ", ".join(run.spec.names))
-    written += gram_lib.write_grams(out, run, gram_lib.gram_maps(run))
+  grams = gram_lib.gram_maps(run_) if "gram" in what else None
+  if grams is not None:
+    log("gram maps: " + ", ".join(run_.spec.names))
+  written = write_outputs(out, run_, noise=result, grams=grams)
   log("wrote:\n  " + "\n  ".join(written))
   return 0
 
 
+def write_outputs(out: str, run_, *, noise=None, grams=None) -> list[str]:
+  """Writes the noise and Gram files into a staging directory in `out`, then moves them in:
+  a failed write (disk full) leaves `out` as it was.
+
+  Returns:
+    The written paths (in `out`).
+  """
+  stage = tempfile.mkdtemp(prefix=".staging-", dir=out)
+  try:
+    staged = []
+    if noise is not None:
+      staged += noise_lib.write_noise(stage, run_, noise)
+    if grams is not None:
+      staged += gram_lib.write_grams(stage, run_, grams)
+    written = []
+    for path in staged:
+      final = os.path.join(out, os.path.relpath(path, stage))
+      os.replace(path, final)
+      written.append(final)
+    return written
+  finally:
+    shutil.rmtree(stage, ignore_errors=True)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+  """In-process entry (tests, notebooks): `argv` are the flags; returns the exit status."""
+  return cli.call(define_flags, run_cli, sys.argv[1:] if argv is None else argv, prog=__name__)
+
+
 if __name__ == "__main__":
-  sys.exit(main())
+  cli.main(define_flags, run_cli)

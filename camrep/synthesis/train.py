@@ -117,6 +117,14 @@ def _has_checkpoints(workdir: str) -> bool:
   return os.path.isdir(d) and any(name.isdigit() for name in os.listdir(d))
 
 
+def _topology(config) -> dict[str, int]:
+  return workdir_lib.topology(
+    processes=jax.process_count(),
+    devices=jax.device_count(),
+    scenes_per_device=config.data.scenes_per_device,
+  )
+
+
 def build_job(config: ml_collections.ConfigDict, workdir: str) -> Job:
   """Checks the config, the workdir (its stored config, its lock), then builds the data, pose
   system and model. Writes nothing into the workdir but the lock (released on failure).
@@ -138,6 +146,9 @@ def build_job(config: ml_collections.ConfigDict, workdir: str) -> Job:
     changes = runconfig.check_changes(
       stored, config, resumable=runconfig.SYNTHESIS_RESUMABLE, workdir=workdir
     )
+  if _has_checkpoints(workdir):  # another device count changes the global batch: refused
+    allowed = workdir_lib.GLOBAL_BATCH in runconfig.parse_allow_changes(config.allow_changes)
+    changes.update(workdir_lib.check_topology(workdir, _topology(config), allowed=allowed))
   lock = workdir_lib.WorkdirLock(workdir) if lead else None
   if lock is not None:
     lock.acquire()
@@ -215,7 +226,9 @@ def commit_start(job: Job, start: int) -> None:
   job.writer.truncate_after(start)
   job.writer.write_config(job.config)
   event = "resume" if start > 0 else "start"
-  workdir_lib.append_history(job.workdir, start, job.changes, what=event)
+  workdir_lib.append_history(
+    job.workdir, start, job.changes, what=event, topology=_topology(job.config)
+  )
   if start > 0 and job.changes:
     job.writer.write_scalars(start, {"resume/config_changes": len(job.changes)})
     changed = ", ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in job.changes.items())

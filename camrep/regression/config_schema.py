@@ -1,0 +1,109 @@
+"""The pose-regression config's validation pass (`camrep.runtime.validate`): a rule per field of
+`configs/regression.py`, and which fields the chosen setting, representation and data use.
+
+`validate(config, overridden=...)` is what `python -m camrep.regression` runs first, before
+`driver.resolve_config`'s cross-field checks; it raises `ConfigError`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+from camrep.data import records
+from camrep.regression import driver
+from camrep.regression import targets as T
+from camrep.runtime import validate as V
+
+VARIANTS = ("paper", "quick", "medium", "smoke")
+
+_F, _U = V.Field, V.unless
+
+
+def _real(c) -> bool:
+  return bool(c.data.get("dir", ""))
+
+
+def _gqn(c) -> bool:
+  return c.setting == "gqn"
+
+
+_NOT_REAL = "used with real data (data.source and data.dir) only"
+_NOT_GQN = "used by setting='gqn' (context and query views per scene) only"
+_NOT_7S = "used by setting='seven_scenes' (its ResNet) only"
+
+
+def _other_setting(name: str) -> V.Ignored:
+  return _U(lambda c: c.setting == name, f"setting is not {name!r}: its sizes are not used")
+
+
+SCHEMA: dict[str, V.Field] = {
+  "setting": _F(V.one_of(T.SETTINGS)),
+  "representation": _F(V.one_of(T.REPRESENTATIONS)),
+  "seed": _F(V.NONNEG),
+  "synthesis_workdir": _F(
+    V.optional(V.Rule("dir")),
+    _U(
+      lambda c: c.representation in ("ours", "mlp"),
+      "only representations 'ours' and 'mlp' read a view-synthesis workdir",
+    ),
+  ),
+  "variant": _F(V.one_of(VARIANTS)),
+  "allow_changes": _F(V.ANY),
+  "total_steps": _F(V.optional(V.POSITIVE)),
+  "log_every_steps": _F(V.NONNEG),
+  "eval_every_steps": _F(V.NONNEG),  # 0: at the end only
+  "data.preset": _F(V.ANY),
+  "data.batch_size": _F(V.optional(V.POSITIVE)),
+  "data.n_context": _F(V.POSITIVE, _U(_gqn, _NOT_GQN)),
+  "data.n_query": _F(V.POSITIVE, _U(_gqn, _NOT_GQN)),
+  "data.validation_fraction": _F(V.Rule("fraction")),
+  "data.cache_dir": _F(V.ANY),
+  "data.source": _F(V.optional(V.one_of(records.SETTING_OF_SOURCE))),
+  "data.dir": _F(V.optional(V.Rule("dir"))),
+  "data.dataset_config": _F(V.ANY, _U(_real, _NOT_REAL)),
+  "data.image_size": _F(V.optional(V.POSITIVE), _U(_real, _NOT_REAL)),
+  "data.test_scenes_fraction": _F(
+    V.Rule("fraction"), _U(lambda c: _real(c) and _gqn(c), "used with real GQN data only")
+  ),
+  "data.max_memory_gb": _F(V.POSITIVE, _U(_real, _NOT_REAL)),
+  "data.stream": _F(V.ANY, _U(_real, _NOT_REAL)),
+  "data.num_threads": _F(V.NONNEG),
+  "data.prefetch": _F(V.NONNEG),
+  "model.width": _F(V.optional(V.POSITIVE)),
+  "model.refine_steps": _F(
+    V.NONNEG, _U(lambda c: c.representation == "ours", "used by representation='ours' only")
+  ),
+  "model.resnet_stages": _F(
+    V.Rule("positive_tuple"), _U(lambda c: c.setting == "seven_scenes", _NOT_7S)
+  ),
+  "model.fc_dim": _F(V.POSITIVE, _U(lambda c: c.setting == "seven_scenes", _NOT_7S)),
+  "model.resnet_weights": _F(V.optional(V.Rule("file"))),
+  "model.equalise_params": _F(
+    V.ANY, _U(lambda c: c.representation != "ours", "used by the baselines only, not 'ours'")
+  ),
+  "optax.lr": _F(V.optional(V.POSITIVE)),
+  "evals.batch_size": _F(V.POSITIVE),
+  "evals.extra_splits": _F(V.ANY),
+  "evals.periodic_all_splits": _F(V.ANY),
+}
+for _name in T.SETTINGS:
+  SCHEMA.update(
+    {
+      f"settings.{_name}.family.": _F(V.SECTION, _other_setting(_name)),
+      f"settings.{_name}.total_steps": _F(V.POSITIVE, _other_setting(_name)),
+      f"settings.{_name}.batch_size": _F(V.POSITIVE, _other_setting(_name)),
+      f"settings.{_name}.width": _F(V.POSITIVE, _other_setting(_name)),
+      f"settings.{_name}.test_split": _F(V.one_of(driver.SPLITS), _other_setting(_name)),
+    }
+  )
+
+
+def validate(config, *, overridden: Iterable[str] = ()) -> None:
+  """Every field's rule and the overridden fields the run ignores, then the driver's cross-field
+  checks (`driver.resolve_config`: setting and data source, "ours" without a workdir, splits).
+
+  Raises:
+    ConfigError: the first problem, naming the field, its value and what is allowed.
+  """
+  V.check(config, SCHEMA, overridden=overridden)
+  driver.resolve_config(config)
