@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from camrep.data import gqn, pipeline, prepare, records, storage
+from camrep.data import gqn, pipeline, prepare, sources, storage
 from camrep.data.errors import DataError
 from camrep.data.storage import ViewSource
 from tests import readers_fixtures as fx
@@ -158,10 +158,10 @@ def test_prepare_cli_errors(tmp_path, capsys):
   assert "--set expects key=value" in capsys.readouterr().err
   with pytest.raises(DataError, match="input path does not exist"):
     prepare.main(["--source", "gqn", "--data_dir", str(tmp_path), "--input", str(tmp_path / "x")])
-  with pytest.raises(DataError, match="unknown source 'nope'"):
-    prepare.make_source("nope")
+  with pytest.raises(DataError, match="unknown data source 'nope'"):
+    sources.build("nope")
   with pytest.raises(DataError, match="no preset 'huge'"):
-    prepare.make_source("gqn", input_path=tmp_path, preset="huge")
+    sources.build("gqn", input_path=tmp_path, preset="huge")
 
 
 def test_parse_set():
@@ -169,8 +169,10 @@ def test_parse_set():
   assert parsed == {"a": 3, "b": 0.5, "c": (1, 2), "d": "chess", "e": ["x"]}
 
 
-def test_registry_lists_every_family_and_reader():
-  assert set(prepare.SOURCES) == set(records.POSE_NAMES)
+def test_prepare_lists_every_registered_source(capsys):
+  prepare.main(["--list"])
+  listed = [line.split()[0] for line in capsys.readouterr().out.splitlines()]
+  assert listed == list(sources.SOURCES)
 
 
 def test_prepare_cli_real_reader_end_to_end(tmp_path, capsys):

@@ -8,12 +8,13 @@ Commands (run from the repository root):
       --set max_files=2
   python -m camrep.data.prepare --list
 
-Sources: the procedural families "rooms", "object", "area", "scene6dof"
-(`camrep.data.procedural.make_family(name, **overrides)`) and the real-format readers
-"gqn", "srn_cars", "gibson", "seven_scenes", which need `--input PATH` (the dataset root; see
-each reader's docstring for the layout). `--set key=value` passes a keyword override to the
+Sources: every source of the registry `camrep.data.sources` (`--list` prints them): the
+procedural families "rooms", "object", "area", "scene6dof" and the real-format readers "gqn",
+"srn_cars", "gibson", "seven_scenes", which need `--input PATH` (the dataset root; see each
+reader's docstring for the layout). `--set key=value` passes a keyword override to the
 family / reader constructor (values parsed as Python literals, else kept as strings);
-`--preset NAME` applies a named set of overrides first (see `PRESETS`).
+`--preset NAME` applies a named set of overrides first (a reader's `Source.presets`; the
+families' "default" / "small").
 
 Output: `DATA_DIR/NAME/CONFIG/VERSION/`, CONFIG being `--config_name` or else the preset name
 (no CONFIG level without either); see `camrep.data.storage` for the files. Preparing
@@ -25,10 +26,6 @@ from __future__ import annotations
 
 import argparse
 import ast
-import dataclasses
-import importlib
-import importlib.util
-import inspect
 import json
 import os
 import pathlib
@@ -37,63 +34,8 @@ import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from camrep.data import storage
+from camrep.data import sources, storage
 from camrep.data.errors import DataError
-from camrep.data.storage import ViewSource
-
-
-@dataclasses.dataclass(frozen=True)
-class SourceEntry:
-  """How to construct one registered source.
-
-  Attributes:
-    module: module that defines it.
-    attr: the reader class (called as `attr(input_path, **overrides)`) or, for procedural
-      families, "make_family" (called as `make_family(name, **overrides)`).
-    needs_input: whether `--input PATH` is required (real formats) or refused (procedural).
-    description: one line for `--list`.
-  """
-
-  module: str
-  attr: str
-  needs_input: bool
-  description: str
-
-
-SOURCES: dict[str, SourceEntry] = {
-  "rooms": SourceEntry(
-    "camrep.data.procedural", "make_family", False, "procedural GQN-rooms-like scenes"
-  ),
-  "object": SourceEntry(
-    "camrep.data.procedural", "make_family", False, "procedural object on a view sphere (car)"
-  ),
-  "area": SourceEntry(
-    "camrep.data.procedural", "make_family", False, "procedural Gibson-like areas"
-  ),
-  "scene6dof": SourceEntry(
-    "camrep.data.procedural", "make_family", False, "procedural 6-DOF scenes (7-Scenes)"
-  ),
-  "gqn": SourceEntry("camrep.data.gqn", "GQN", True, "DeepMind GQN TFRecords (rooms)"),
-  "srn_cars": SourceEntry("camrep.data.srn", "SRNCars", True, "SRN ShapeNet cars renders"),
-  "gibson": SourceEntry("camrep.data.gibson", "GibsonRooms", True, "authors' Gibson renders"),
-  "seven_scenes": SourceEntry(
-    "camrep.data.seven_scenes", "SevenScenes", True, "Microsoft 7-Scenes RGB-D"
-  ),
-}
-
-PRESETS: dict[str, dict[str, dict[str, Any]]] = {
-  "gqn": {"small": {"max_files": 1, "max_scenes": 200}},
-  "srn_cars": {"small": {"image_size": 64}},
-  "gibson": {"small": {"image_size": 64}},
-  "seven_scenes": {"small": {"image_size": 64, "scenes": ["chess"]}},
-}
-"""Named override sets for the real readers. The procedural families take their presets from
-`camrep.data.procedural` itself (`make_family(..., preset=NAME)` or its `PRESETS` table)."""
-
-
-def is_available(name: str) -> bool:
-  """Whether the module implementing source `name` is present in this tree."""
-  return importlib.util.find_spec(SOURCES[name].module) is not None
 
 
 def parse_set(items: Sequence[str]) -> dict[str, Any]:
@@ -113,74 +55,6 @@ def parse_set(items: Sequence[str]) -> dict[str, Any]:
     except (ValueError, SyntaxError):
       out[key] = value
   return out
-
-
-def _procedural_presets(module: Any, name: str, preset: str) -> dict[str, Any] | None:
-  """The procedural module's own overrides for `preset`, or None if it routes presets itself."""
-  if "preset" in inspect.signature(module.make_family).parameters:
-    return None
-  table = getattr(module, "PRESETS", {})
-  per_family = table.get(name, table)
-  if preset not in per_family:
-    raise DataError(None, f"source {name!r} has no preset {preset!r} (has: {sorted(per_family)})")
-  return dict(per_family[preset])
-
-
-def make_source(
-  name: str,
-  *,
-  input_path: str | os.PathLike | None = None,
-  preset: str | None = None,
-  overrides: Mapping[str, Any] | None = None,
-) -> ViewSource:
-  """Constructs a registered source.
-
-  Args:
-    name: a key of `SOURCES`.
-    input_path: dataset root, for the real-format readers only.
-    preset: named override set applied before `overrides`.
-    overrides: keyword overrides for the family / reader.
-
-  Returns:
-    The source.
-
-  Raises:
-    DataError: unknown or absent source, unknown preset, missing/extra input path,
-      or overrides the constructor does not accept.
-  """
-  if name not in SOURCES:
-    raise DataError(None, f"unknown source {name!r}; registered: {sorted(SOURCES)}")
-  entry = SOURCES[name]
-  if not is_available(name):
-    raise DataError(None, f"source {name!r} needs {entry.module}, which is not in this tree")
-  module = importlib.import_module(entry.module)
-  kwargs: dict[str, Any] = {}
-  if entry.needs_input:
-    if input_path is None:
-      raise DataError(None, f"source {name!r} reads a dataset: give its root with --input PATH")
-    if not pathlib.Path(input_path).exists():
-      raise DataError(input_path, "input path does not exist")
-    if preset is not None:
-      presets = PRESETS.get(name, {})
-      if preset not in presets:
-        raise DataError(None, f"source {name!r} has no preset {preset!r} (has: {sorted(presets)})")
-      kwargs.update(presets[preset])
-  else:
-    if input_path is not None:
-      raise DataError(input_path, f"source {name!r} is procedural and takes no --input")
-    if preset is not None:
-      preset_kwargs = _procedural_presets(module, name, preset)
-      kwargs.update({"preset": preset} if preset_kwargs is None else preset_kwargs)
-  kwargs.update(overrides or {})
-  factory = getattr(module, entry.attr)
-  try:
-    if entry.needs_input:
-      return factory(os.fspath(input_path), **kwargs)
-    return factory(name, **kwargs)
-  except DataError:
-    raise
-  except (TypeError, ValueError) as e:
-    raise DataError(None, f"source {name!r} rejected the settings {kwargs}: {e}") from None
 
 
 def _check_reuse(path: pathlib.Path, settings: Mapping[str, Any], overwrite: bool) -> None:
@@ -222,7 +96,7 @@ def prepare_source(
   """Constructs source `name` and stores it with `storage.prepare`.
 
   Args:
-    name: a key of `SOURCES`.
+    name: a registered source (`camrep.data.sources`).
     data_dir: tfds data directory.
     input_path: dataset root (real formats).
     preset: named override set.
@@ -236,7 +110,7 @@ def prepare_source(
   Returns:
     The dataset directory.
   """
-  source = make_source(name, input_path=input_path, preset=preset, overrides=overrides)
+  source = sources.build(name, input_path=input_path, preset=preset, overrides=overrides)
   config_name = config_name or preset
   dataset_name = dataset_name or name
   settings = {
@@ -263,7 +137,7 @@ def _parser() -> argparse.ArgumentParser:
     prog="python -m camrep.data.prepare",
     description="Store a camrep source as a tfds ArrayRecord dataset.",
   )
-  parser.add_argument("--source", choices=sorted(SOURCES), help="source to prepare")
+  parser.add_argument("--source", choices=sorted(sources.SOURCES), help="source to prepare")
   parser.add_argument("--data_dir", help="tfds data directory to write into")
   parser.add_argument("--input", help="dataset root (real formats only)")
   parser.add_argument("--preset", help="named override set, e.g. 'small'")
@@ -285,14 +159,14 @@ def main(argv: Sequence[str] | None = None) -> pathlib.Path | None:
   parser = _parser()
   args = parser.parse_args(argv)
   if args.list:
-    for name, entry in SOURCES.items():
-      state = "" if is_available(name) else f"  [missing: {entry.module}]"
+    for name, entry in sources.SOURCES.items():
+      state = "" if sources.is_available(name) else f"  [missing: {entry.module}]"
       kind = "--input PATH" if entry.needs_input else "procedural"
       print(f"{name:13s} {kind:13s} {entry.description}{state}")
     return None
   if args.source is None or args.data_dir is None:
     parser.error("--source and --data_dir are required")
-  entry = SOURCES[args.source]
+  entry = sources.get(args.source)
   if entry.needs_input and args.input is None:
     parser.error(f"--source {args.source} reads a dataset: give its root with --input PATH")
   if not entry.needs_input and args.input is not None:

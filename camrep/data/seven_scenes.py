@@ -29,10 +29,9 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
-from camrep.data import textio
+from camrep.data import sources, textio
 from camrep.data.errors import DataError
 from camrep.data.imageio import PathLike, check_image_size, crop_and_resize, read_image
-from camrep.data.records import POSE_NAMES
 
 DEFAULT_EXTENT = (4.0, 1.5, 3.0)
 """Grid cuboid (x, y, z) in metres that the re-based translations must fit (paper / digest)."""
@@ -536,7 +535,7 @@ class SevenScenes:
   """
 
   name = "seven_scenes"
-  pose_names = POSE_NAMES["seven_scenes"]
+  pose_names = sources.get("seven_scenes").pose_names
   splits = SPLITS
 
   def __init__(

@@ -59,7 +59,7 @@ class ViewSource(Protocol):
 
   Attributes:
     name: short dataset name, e.g. "rooms", "gqn", "srn_cars".
-    pose_names: names of the P pose coordinates (see `camrep.data.records.POSE_NAMES`).
+    pose_names: names of the P pose coordinates (see `camrep.data.sources`).
     image_size: side of the square images, or (H, W).
 
   A source may also have `splits` (a sequence of split names); without it the splits are the

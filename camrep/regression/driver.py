@@ -14,7 +14,7 @@ writes into DIR:
   errors_<split>.npz per-example errors, scene ids, true and predicted poses of the test split(s)
 
 Data (`views.make_data`), all from the setting's procedural family
-(`records.SOURCE_OF_SETTING`), rendered once and held in memory (cached in `data.cache_dir`
+(`camrep.data.sources.procedural_of`), rendered once and held in memory (cached in `data.cache_dir`
 when set):
 
   train       the family's "train" split minus the validation part;
@@ -64,7 +64,7 @@ import ml_collections
 import numpy as np
 
 from camrep import pose_inputs
-from camrep.data import records
+from camrep.data import sources
 from camrep.regression import learner, scoring
 from camrep.regression import targets as T
 from camrep.regression import views as views_lib
@@ -152,12 +152,12 @@ def check_source(config) -> None:
     if d.get("dir", ""):
       raise ConfigError(
         "data.dir is set but data.source is empty: name the prepared dataset's source "
-        f"(--config.data.source={records.SOURCE_OF_SETTING.get(config.setting, '...')} is "
+        f"(--config.data.source={data_source(config)} is "
         "procedural; real ones: gqn, srn_cars, gibson, seven_scenes)"
       )
     return
   try:
-    setting = records.setting_of_source(source)
+    setting = sources.setting_of(source)
   except ValueError as e:
     raise ConfigError(f"data.source: {e}") from None
   if setting != config.setting:
@@ -165,7 +165,7 @@ def check_source(config) -> None:
       f"data.source {source!r} is data of the {setting!r} setting, but setting is "
       f"{config.setting!r}: pass --config.setting={setting}"
     )
-  if source in records.PROCEDURAL:
+  if sources.is_procedural(source):
     if d.dir:
       raise ConfigError(f"data.source {source!r} is procedural and takes no data.dir")
     return
@@ -180,7 +180,7 @@ def check_source(config) -> None:
 
 def data_source(config) -> str:
   """The config's data source: data.source, or the setting's procedural family."""
-  return config.data.get("source", "") or records.SOURCE_OF_SETTING[config.setting]
+  return config.data.get("source", "") or sources.procedural_of(config.setting)
 
 
 # --------------------------------------------------------------------------------------------

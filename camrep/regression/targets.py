@@ -1,7 +1,7 @@
 """Pose representations as regression targets (paper section 4.4, Table 1; digest 4.1-4.5).
 
 A pose regressor predicts a dict of heads {head name: (..., size)}; this module maps poses in the
-dataset's pose columns (`camrep.data.records.POSE_NAMES`) to those heads and back, and holds the
+dataset's pose columns (`camrep.data.sources`) to those heads and back, and holds the
 losses and the per-setting training defaults. Everything is a pure, batched function; callers jit.
 
 Settings and pose columns (radians; positions in the dataset's unit):
@@ -55,12 +55,12 @@ import jax.numpy as jnp
 
 from camrep import pose as P
 from camrep import pose_inputs
-from camrep.data import records
+from camrep.data import sources
 from camrep.models import pose_regressor
 
 Array = jax.Array
 
-SETTINGS = records.SETTINGS
+SETTINGS = sources.SETTINGS
 REPRESENTATIONS = ("ours", "mlp", "euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d")
 LEARNED = ("ours", "mlp")
 BASELINES = ("euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d")

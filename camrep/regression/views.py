@@ -32,7 +32,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from camrep.data import records
+from camrep.data import sources
 from camrep.runtime.runconfig import ConfigError
 
 Array = jax.Array
@@ -180,21 +180,10 @@ class Data:
   info: dict[str, Any]
 
 
-def make_family(config):
-  """The config's procedural family (`camrep.data.procedural.make_family`)."""
-  from camrep.data import procedural
-
-  overrides = config.data.family.to_dict()
-  overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
-  return procedural.make_family(
-    records.SOURCE_OF_SETTING[config.setting], preset=config.data.preset, **overrides
-  )
-
-
 def is_real(config) -> bool:
   """Whether the config reads a prepared real dataset (data.source a real source)."""
   source = config.data.get("source", "")
-  return bool(source) and source not in records.PROCEDURAL
+  return bool(source) and not sources.is_procedural(source)
 
 
 def make_data(config) -> Data:
@@ -202,7 +191,7 @@ def make_data(config) -> Data:
   if is_real(config):
     return make_real_data(config)
   setting, cache = config.setting, config.data.cache_dir
-  family = make_family(config)
+  family = sources.family_of_config(config.data, sources.procedural_of(config.setting))
   full_train = load_split(family, "train", cache_dir=cache)
   train, val = split_validation(setting, full_train, config.data.validation_fraction)
   gqn = setting == "gqn"
@@ -474,12 +463,10 @@ def seven_scenes_names(meta: dict[str, Any]) -> list[str]:
   """Scene names of a prepared 7-Scenes dataset in scene-id order (the reader's `scenes`: the
   `--set scenes=...` override, else the preset's, else every scene folder of the input), or []
   when they cannot be told."""
-  from camrep.data import prepare
-
   m = meta.get("metadata", {})
   scenes = m.get("overrides", {}).get("scenes")
   if scenes is None and m.get("preset"):
-    scenes = prepare.PRESETS.get("seven_scenes", {}).get(m["preset"], {}).get("scenes")
+    scenes = sources.get("seven_scenes").presets.get(m["preset"], {}).get("scenes")
   root = m.get("input")
   if scenes is None and root and os.path.isdir(root):
     scenes = sorted(
