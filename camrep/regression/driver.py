@@ -49,7 +49,6 @@ same prepared directory and dataset) and, for "ours", with the learned grid syst
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import os
@@ -229,15 +228,11 @@ def check_same_data(workdir: str, syn_config, config) -> None:
     )
 
 
-def load_pose_system(
-  workdir: str, setting: str, *, cache_dir: str = "", config=None
-) -> dict[str, Any]:
+def load_pose_system(workdir: str, setting: str, *, config=None) -> dict[str, Any]:
   """The frozen pose input of a view-synthesis workdir, checked against the setting (and, with
   the regression's `config`, against its data: `check_same_data`).
 
-  Restores the latest checkpoint with the synthesis `load_run`; with `cache_dir`, the pose
-  parameters are also saved there (keyed by the workdir's path and checkpoint step), so later
-  runs skip load_run's data rendering.
+  Restores the latest checkpoint with the synthesis `load_run` (which reads no data).
 
   Returns:
     {"spec": PoseSystemSpec, "rep": pose-input params, "kind": "grid" / "mlp" / "lowdim",
@@ -246,8 +241,6 @@ def load_pose_system(
   Raises:
     ConfigError: the workdir is missing, has no checkpoint, or its setting or data differ.
   """
-  import flax.serialization
-
   from camrep.runtime import checkpoint as ckpt_lib
 
   workdir = os.path.abspath(workdir)
@@ -277,26 +270,12 @@ def load_pose_system(
     step = None
   if step is None:
     raise ConfigError(f"synthesis_workdir {workdir} has no checkpoint (train it first)")
-  path = ""
-  if cache_dir:
-    key = hashlib.sha256(f"{workdir}|{step}".encode()).hexdigest()[:16]
-    path = os.path.join(cache_dir, f"pose_system_{key}.msgpack")
-  if path and os.path.exists(path):
-    with open(path, "rb") as f:
-      rep = flax.serialization.msgpack_restore(f.read())
-  else:
-    try:
-      run = restore.load_run(workdir)
-    except (FileNotFoundError, ckpt_lib.CheckpointError) as e:
-      raise ConfigError(f"synthesis_workdir: {e}") from None
-    rep, step = jax.tree.map(np.asarray, run.params["rep"]), run.step
-    if path:
-      os.makedirs(cache_dir, exist_ok=True)
-      with open(path + ".tmp", "wb") as f:
-        f.write(flax.serialization.msgpack_serialize(rep))
-      os.replace(path + ".tmp", path)
-  rep = jax.tree.map(jnp.asarray, rep)
-  return {"spec": spec, "rep": rep, "kind": kind, "step": int(step), "workdir": workdir}
+  try:
+    run = restore.load_run(workdir)
+  except (FileNotFoundError, ckpt_lib.CheckpointError) as e:
+    raise ConfigError(f"synthesis_workdir: {e}") from None
+  rep = jax.tree.map(jnp.asarray, run.params["rep"])
+  return {"spec": spec, "rep": rep, "kind": kind, "step": int(run.step), "workdir": workdir}
 
 
 def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
@@ -310,9 +289,7 @@ def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
     return None, None, {"source": "none"}
   system = None
   if config.synthesis_workdir:
-    system = load_pose_system(
-      config.synthesis_workdir, config.setting, cache_dir=config.data.cache_dir, config=config
-    )
+    system = load_pose_system(config.synthesis_workdir, config.setting, config=config)
   if rep == "ours":
     if system["kind"] != "grid":
       raise ConfigError(

@@ -118,7 +118,7 @@ def load_split(family, split: str, *, cache_dir: str = "") -> ViewSet:
   The cache file `<cache_dir>/<family>_<split>_<hash of the family config>.npz` is written
   atomically, so concurrent or interrupted runs never read a partial file.
   """
-  from camrep.data import pipeline
+  from camrep.data import storage
 
   path = ""
   if cache_dir:
@@ -126,7 +126,7 @@ def load_split(family, split: str, *, cache_dir: str = "") -> ViewSet:
     if os.path.exists(path):
       with np.load(path) as z:
         return ViewSet(z["images"], z["poses"], z["scenes"], z["views"])
-  index, images = pipeline.views_in_memory(family, split)
+  index, images = storage.views_in_memory(family, split)
   views = ViewSet(images, index.pose.astype(np.float32), index.scene, index.view)
   if path:
     os.makedirs(cache_dir, exist_ok=True)

@@ -13,8 +13,8 @@ import jax.numpy as jnp
 
 from camrep import pose as P
 from camrep import pose_inputs
+from camrep.data import batches, sources
 from camrep.data import pipeline as pipeline_lib
-from camrep.data import sources
 from camrep.data.errors import DataError
 from camrep.models.composite import GQNSynthesis, TableSynthesis
 from camrep.models.convdraw import GQNConvDraw
@@ -243,9 +243,8 @@ def make_pipeline(
   kw = dict(process_index=process_index, process_count=process_count)
   if d.dir:
     pcfg = dataclasses.replace(pcfg, num_workers=0 if for_eval else num_workers(config))
-    dataset_config = d.preset if d.preset != "default" else None
     return pipeline_lib.tfds_pipeline(
-      d.dir, d.source, split, pcfg, dataset_config=dataset_config, **kw
+      d.dir, d.source, split, pcfg, dataset_config=batches.prepared_config_name(d), **kw
     )
   if not sources.is_procedural(d.source):
     raise DataError(
