@@ -14,8 +14,8 @@ writes into DIR:
   errors_<split>.npz per-example errors, scene ids, true and predicted poses of the test split(s)
 
 Data (`views.make_data`), all from the setting's procedural family
-(`camrep.data.sources.procedural_of`), rendered once and held in memory (cached in `data.cache_dir`
-when set):
+(`camrep.data.sources.procedural_of`), rendered once and held in memory (prepared once as an
+ArrayRecord dataset in `data.cache_dir` when set), batched by the view-synthesis pipeline:
 
   train       the family's "train" split minus the validation part;
   validation  held out of "train" to choose the learning rate and for nothing else: gqn the last
@@ -32,9 +32,9 @@ when set):
 Real data: with `data.source` a real source (gqn, srn_cars, gibson, seven_scenes; it must be of
 `setting`) and `data.dir` a directory prepared by `camrep.data.prepare`, the views come from that
 dataset with the paper's splits per dataset (`views.make_real_data`; its module docstring lists
-them), decoded once (cached in `data.cache_dir`, keyed by dataset, split and size) and held in
-memory. results.json's "data" then names the source, the directory, the dataset path, the test
-split, what each evaluation split is, and the number of test views.
+them), decoded once and held in memory (or batch by batch with `data.stream`). results.json's
+"data" then names the source, the directory, the dataset path, the test split, what each
+evaluation split is, and the number of test views.
 
 Representations: baselines need nothing more; "ours" restores the frozen pose system of a
 view-synthesis workdir (`load_pose_system`, via `camrep.synthesis`'s `load_run`); "mlp" uses that
@@ -411,9 +411,11 @@ def train(setup: Setup, writer, eval_sets, *, predict_fn, log=print):
     (state, the last logged train/* scalars, training seconds).
   """
   config = setup.config
-  batches = views_lib.train_batches(config, setup.data.train)
+  train_views = setup.data.train
+  pipe = views_lib.train_pipeline(config, train_views)
+  batches = (views_lib.learner_batch(config, train_views, b) for b in pipe.iterator())
   init_key = jax.random.fold_in(jax.random.key(config.seed), 0)
-  first = views_lib.train_batch_fn(config, setup.data.train)(0)
+  first = views_lib.learner_batch(config, train_views, pipe.batch(0))
   state = learner.init(init_key, setup.reg, first, rep_params=setup.rep_params)
   state = load_resnet_weights(config, state)
   step_fn = jax.jit(learner.train_step, donate_argnums=0)
