@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from camrep import pose as P
-from camrep.data import records
+from camrep.data import sources
 
 Array = jax.Array
 
@@ -58,7 +58,7 @@ def lowdim_vectors(config, spec: P.PoseSystemSpec, poses: Array) -> dict[str, Ar
   procedural rooms' constant camera height and pitch: "xy" -> (x, y, z), "yaw" -> (sin yaw,
   cos yaw, sin pitch, cos pitch). Other settings: polar / linear DOFs raw, angles (sin, cos).
   """
-  gqn = records.setting_of_source(config.data.source) == "gqn"
+  gqn = sources.setting_of(config.data.source) == "gqn"
   z, pitch = lowdim_constants(config) if gqn else (0.0, 0.0)
   out = {}
   for d in spec.dofs:

@@ -181,7 +181,8 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   # share of the training scenes, the other settings this share of every training scene's views
   # (its last views by id; for 7-Scenes the end of the training trajectory).
   c.data.validation_fraction = 0.1
-  # Rendered splits are cached here (.npz per family config and split); empty: no cache.
+  # The procedural family is prepared here once (an ArrayRecord dataset per family config, as
+  # `camrep.data.prepare` writes) and decoded by later runs; empty: rendered by every run.
   c.data.cache_dir = ""
   # Real data, read as `camrep.main` reads it: "" = the setting's procedural family; gqn,
   # srn_cars, gibson or seven_scenes (must match `setting`) read `dir`, a directory prepared by
@@ -194,9 +195,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.data.image_size = config_dict.placeholder(int)
   # Real GQN: this share of the prepared scenes (the last by id) is the held-out test scenes.
   c.data.test_scenes_fraction = 0.1
-  # Real data is decoded into memory (and cached); a split larger than this is refused unless
-  # `stream`: then batches are decoded on the fly from the prepared files by `num_threads` grain
-  # reader threads, `prefetch` batches ahead (nothing cached).
+  # Real data is decoded into memory; a split larger than this is refused unless `stream`: then
+  # batches are decoded on the fly from the prepared files. Training and evaluation batches are
+  # read by `num_threads` grain reader threads, `prefetch` batches ahead.
   c.data.max_memory_gb = 16.0
   c.data.stream = False
   c.data.num_threads = 2

@@ -75,7 +75,7 @@ import grain
 import jax
 import numpy as np
 
-from camrep.data import pipeline, procedural, storage
+from camrep.data import pipeline, procedural, sources, storage
 
 WIDTHS = {"paper": 1.0, "quick": 0.125}
 
@@ -195,7 +195,7 @@ def input_bound(
   n_dev = jax.local_device_count()
   pipeline_steps = pipeline_steps or steps
   d = config.data
-  family = components.make_source(config)
+  family = sources.family_of_config(config.data)
   own = components.make_pipeline(config, "train", num_devices=n_dev)
   pcfg = own.config
   images = pcfg.scenes_per_step * pcfg.views_per_scene

@@ -67,7 +67,7 @@ from camrep.runtime import progress as progress_lib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SETTINGS = ("gqn", "car", "gibson", "seven_scenes")
-# The real source each setting's --data directory holds (camrep.data.records.SETTING_OF_SOURCE).
+# The real source each setting's --data directory holds (camrep.data.sources: the real source of each setting).
 REAL_SOURCES = {"gqn": "gqn", "car": "srn_cars", "gibson": "gibson", "seven_scenes": "seven_scenes"}
 SYNTHESIS_CONFIGS = {
   "gqn": "configs/gqn.py",

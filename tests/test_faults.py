@@ -173,12 +173,12 @@ def test_fields_the_run_does_not_use_are_refused_when_set(capsys):
 
 
 def _fake_prepared(root: pathlib.Path, name: str, config: str, shape, poses=None) -> None:
-  from camrep.data import records
+  from camrep.data import sources
 
   d = root / name / config / "1.0.0"
   d.mkdir(parents=True)
   (d / "dataset_info.json").write_text("{}")
-  meta = {"image_shape": list(shape), "pose_names": list(poses or records.POSE_NAMES[name])}
+  meta = {"image_shape": list(shape), "pose_names": list(poses or sources.get(name).pose_names)}
   (d / "camrep_source.json").write_text(json.dumps(meta))
 
 

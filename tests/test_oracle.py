@@ -32,7 +32,7 @@ def test_regression_views_are_their_labels_rendered(name, tmp_path):
   views_lib.load_split(fam, "train", cache_dir=str(tmp_path))  # renders and writes the cache
   views = views_lib.load_split(fam, "train", cache_dir=str(tmp_path))  # reads it back
   rows = np.flatnonzero(views.scenes == 1)[::3]
-  np.testing.assert_array_equal(fam.render_views(1, views.poses[rows]), views.images[rows])
+  np.testing.assert_array_equal(fam.render_views(1, views.poses[rows]), views.images(rows))
 
 
 def test_the_oracle_sees_the_pose_only_where_labels_fit():

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from camrep.data import procedural, seven_scenes
-from camrep.data.records import POSE_NAMES, RECORD_KEYS
+from camrep.data import procedural, seven_scenes, sources
+from camrep.data.records import RECORD_KEYS
 
 SIZE = 16
 TWO_PI = 2 * np.pi
@@ -35,7 +35,7 @@ def records(name: str, split: str) -> list[dict]:
 @pytest.mark.parametrize("name", procedural.FAMILIES)
 def test_records_follow_the_contract(name):
   fam = family(name)
-  assert fam.pose_names == POSE_NAMES[name] and fam.image_size == SIZE
+  assert fam.pose_names == sources.get(name).pose_names and fam.image_size == SIZE
   for split in fam.splits:
     recs = records(name, split)
     expected = sum(len(fam.poses(split, s)) for s in fam.scene_ids(split))

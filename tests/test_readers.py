@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from camrep.data import gibson, gqn, imageio, seven_scenes, srn
+from camrep.data import gibson, gqn, imageio, seven_scenes, sources, srn
 from camrep.data.errors import DataError
-from camrep.data.records import POSE_NAMES, RECORD_KEYS
+from camrep.data.records import RECORD_KEYS
 from tests import readers_fixtures as fx
 
 _REPO = pathlib.Path(__file__).resolve().parents[1]
@@ -301,7 +301,8 @@ def test_read_split_real_sample_order_and_crlf():
 def test_seven_scenes_reader_real_sample(caplog):
   reader = seven_scenes.SevenScenes(STAIRS.parent, image_size=32)
   assert reader.scenes == ["stairs"] and reader.num_scenes("train") == 1
-  assert reader.pose_names == POSE_NAMES["seven_scenes"] and reader.name == "seven_scenes"
+  assert reader.name == "seven_scenes"
+  assert reader.pose_names == sources.get("seven_scenes").pose_names
   records = list(reader.iter_views("train"))
   _check_records(records, pose_dim=6, image_size=32, num_scenes=1)
   assert len(records) == 12
@@ -749,6 +750,6 @@ def test_gibson_bad_inputs(tmp_path):
 
 def test_all_readers_share_the_interface():
   for cls in (gqn.GQN, srn.SRNCars, gibson.GibsonRooms, seven_scenes.SevenScenes):
-    assert cls.pose_names == POSE_NAMES[cls.name]
+    assert cls.pose_names == sources.get(cls.name).pose_names
     for method in ("num_scenes", "iter_views"):
       assert callable(getattr(cls, method))

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from camrep.data import gqn, pipeline, prepare, records, storage
+from camrep.data import gqn, pipeline, prepare, sources, storage
 from camrep.data.errors import DataError
 from camrep.data.storage import ViewSource
 from tests import readers_fixtures as fx
@@ -159,10 +159,10 @@ def test_prepare_cli_errors(tmp_path, capsys):
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err, (args, err)
   assert not (tmp_path / "tfds").exists()
-  with pytest.raises(DataError, match="unknown source 'nope'"):
-    prepare.make_source("nope")
+  with pytest.raises(DataError, match="unknown data source 'nope'"):
+    sources.build("nope")
   with pytest.raises(DataError, match="no preset 'huge'"):
-    prepare.make_source("gqn", input_path=tmp_path, preset="huge")
+    sources.build("gqn", input_path=tmp_path, preset="huge")
 
 
 def test_source_fields_are_the_constructors_keywords():
@@ -171,12 +171,14 @@ def test_source_fields_are_the_constructors_keywords():
   assert prepare.source_fields("gqn")["max_files"] is None
   assert prepare.source_fields("seven_scenes")["extent"] == (4.0, 1.5, 3.0)
   assert prepare.source_fields("rooms")["num_train_scenes"] == 200_000
-  for name in prepare.SOURCES:
+  for name in sources.SOURCES:
     assert "root" not in prepare.source_fields(name)
 
 
-def test_registry_lists_every_family_and_reader():
-  assert set(prepare.SOURCES) == set(records.POSE_NAMES)
+def test_prepare_lists_every_registered_source(capsys):
+  prepare.main(["--list"])
+  listed = [line.split()[0] for line in capsys.readouterr().out.splitlines()]
+  assert listed == list(sources.SOURCES)
 
 
 def test_prepare_cli_real_reader_end_to_end(tmp_path, capsys):

@@ -24,9 +24,9 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
+from camrep.data import sources
 from camrep.data.errors import DataError
 from camrep.data.imageio import PathLike, crop_and_resize, read_image
-from camrep.data.records import POSE_NAMES
 
 SPLITS = ("train", "test")
 META_FILES = {"train": "train_meta.json", "test": "test_meta.json"}
@@ -187,7 +187,7 @@ class GibsonRooms:
   """
 
   name = "gibson"
-  pose_names = POSE_NAMES["gibson"]
+  pose_names = sources.get("gibson").pose_names
   splits = SPLITS
 
   def __init__(

@@ -37,9 +37,9 @@ import numpy as np
 from google.protobuf.message import DecodeError
 from tfrecord import example_pb2
 
+from camrep.data import sources
 from camrep.data.errors import DataError
 from camrep.data.imageio import PathLike, check_image_size, decode_image
-from camrep.data.records import POSE_NAMES
 
 ROOMS = "rooms_free_camera_no_object_rotations"
 """The GQN dataset the paper uses."""
@@ -288,7 +288,7 @@ class GQN:
   """
 
   name = "gqn"
-  pose_names = POSE_NAMES["gqn"]
+  pose_names = sources.get("gqn").pose_names
   splits = SPLITS
 
   def __init__(

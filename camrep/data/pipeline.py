@@ -1,12 +1,9 @@
 """Input pipeline: batches of posed views laid out for a pmapped train step (grain).
 
-A batch is a dict of numpy arrays, D = `num_devices` (local devices), S = `scenes_per_device`,
-V = `views_per_scene`, P = pose size:
-
-  "image": uint8   (D, S, V, H, W, 3) RGB
-  "pose":  float32 (D, S, V, P)
-  "scene": int32   (D, S)      scene ids
-  "view":  int32   (D, S, V)   view ids within the scene
+A batch is a `camrep.data.batches.ViewBatch` of numpy arrays, D = `num_devices` (local
+devices), S = `scenes_per_device`, V = `views_per_scene`: image uint8 (D, S, V, H, W, 3), pose
+float32 (D, S, V, P), scene int32 (D, S), view int32 (D, S, V); `batches.dummy_batch` gives its
+shapes without reading data.
 
 View selection per scene (`PipelineConfig.mode`):
 
@@ -65,7 +62,7 @@ import jax
 import numpy as np
 from absl import flags as absl_flags
 
-from camrep.data import storage
+from camrep.data import batches, storage
 from camrep.data.errors import DataError
 from camrep.data.storage import ViewIndex, ViewSource
 
@@ -75,7 +72,7 @@ PERIODIC_POSE_NAMES = frozenset({"yaw", "azimuth", "theta", "psi"})
 
 _NO_END = 2**62  # "Infinite" stream length for grain's MapDataset.range.
 
-Batch = dict[str, np.ndarray]
+Batch = batches.ViewBatch
 ImageReader = Callable[[np.ndarray], np.ndarray]
 """Maps record positions, int (...,), to images, uint8 (..., H, W, 3)."""
 
@@ -386,19 +383,14 @@ class BatchPipeline:
     return rows.reshape(*shape, cfg.views_per_scene), self.scene_ids[chosen].reshape(shape)
 
   def batch(self, step: int) -> Batch:
-    """The batch at `step`: a pure function of (seed, step, process, split).
-
-    Returns:
-      {"image": uint8 (D, S, V, H, W, 3), "pose": float32 (D, S, V, P),
-       "scene": int32 (D, S), "view": int32 (D, S, V)}.
-    """
+    """The batch at `step`: a pure function of (seed, step, process, split); a `ViewBatch`."""
     rows, scenes = self.plan(step)
-    return {
-      "image": self._read_images(self.index.record[rows]),
-      "pose": self.index.pose[rows].astype(np.float32),
-      "scene": scenes.astype(np.int32),
-      "view": self.index.view[rows].astype(np.int32),
-    }
+    return Batch(
+      image=self._read_images(self.index.record[rows]),
+      pose=self.index.pose[rows].astype(np.float32),
+      scene=scenes.astype(np.int32),
+      view=self.index.view[rows].astype(np.int32),
+    )
 
   def dataset(self, *, start_step: int = 0, num_steps: int | None = None) -> grain.MapDataset:
     """A grain MapDataset whose i-th element is `batch(start_step + i)`.
@@ -471,47 +463,6 @@ class BatchPipeline:
     return self._read_images(self.index.record[rows]), self.index.pose[rows].astype(np.float32)
 
 
-def views_in_memory(source: ViewSource, split: str) -> tuple[ViewIndex, np.ndarray]:
-  """Reads a whole split of a source into memory.
-
-  Args:
-    source: the view-record source.
-    split: split name.
-
-  Returns:
-    index: the split's `ViewIndex` (record = position in `images`).
-    images: uint8 (N, H, W, 3).
-
-  Raises:
-    DataError: unknown split, empty split or a record breaking the contract.
-  """
-  splits = storage.source_splits(source)
-  if split not in splits:
-    raise DataError(None, f"source {source.name!r} has no split {split!r}; available: {splits}")
-  shape = storage.image_shape(source)
-  p = len(source.pose_names)
-  images, poses, scenes, views = [], [], [], []
-  for i, rec in enumerate(source.iter_views(split)):
-    storage.check_record(rec, shape, p, f"{source.name}/{split} #{i}")
-    images.append(rec["image"])
-    poses.append(np.asarray(rec["pose"], np.float32))
-    scenes.append(int(rec["scene"]))
-    views.append(int(rec["view"]))
-  n = len(images)
-  if n == 0:
-    raise DataError(None, f"source {source.name!r} split {split!r} holds no views")
-  index = ViewIndex(
-    record=np.arange(n, dtype=np.int64),
-    index=np.arange(n, dtype=np.int64),
-    scene=np.asarray(scenes, np.int64),
-    view=np.asarray(views, np.int64),
-    pose=np.stack(poses),
-    pose_names=tuple(source.pose_names),
-    image_shape=shape,
-  )
-  return index, np.stack(images)
-
-
 def memory_pipeline(
   source: ViewSource,
   split: str,
@@ -529,7 +480,7 @@ def memory_pipeline(
     process_index: this process.
     process_count: number of processes.
   """
-  index, images = views_in_memory(source, split)
+  index, images = storage.views_in_memory(source, split)
   return BatchPipeline(
     index,
     lambda records: images[records],
@@ -688,12 +639,8 @@ class RenderPipeline(BatchPipeline):
     return views, scenes
 
   def batch(self, step: int) -> Batch:
-    """The batch at `step` (a pure function of (seed, step, process, split)), rendered.
-
-    Returns:
-      {"image": uint8 (D, S, V, H, W, 3) (NumPy, or a jax.Array with `images_on_device`),
-       "pose": float32 (D, S, V, P), "scene": int32 (D, S), "view": int32 (D, S, V)}.
-    """
+    """The batch at `step` (a pure function of (seed, step, process, split)), rendered: a
+    `ViewBatch` whose image is NumPy, or a jax.Array with `images_on_device`."""
     views, scenes, scene_poses = self._plan(step)
     flat_v, flat_s = views.reshape(-1, views.shape[-1]), scenes.reshape(-1)
     poses = np.stack([all_poses[v] for v, all_poses in zip(flat_v, scene_poses, strict=True)])
@@ -709,12 +656,12 @@ class RenderPipeline(BatchPipeline):
       per_scene = zip(flat_s, poses, strict=True)
       images = np.stack([self.family.render_views(int(s), p) for s, p in per_scene])
     lead = views.shape
-    return {
-      "image": images.reshape(*lead, *images.shape[2:]),
-      "pose": poses.reshape(*lead, -1),
-      "scene": scenes.astype(np.int32),
-      "view": views.astype(np.int32),
-    }
+    return Batch(
+      image=images.reshape(*lead, *images.shape[2:]),
+      pose=poses.reshape(*lead, -1),
+      scene=scenes.astype(np.int32),
+      view=views.astype(np.int32),
+    )
 
   def num_scene_views(self, scene: int) -> int:
     return len(self._scene_poses(scene))

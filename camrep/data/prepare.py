@@ -10,14 +10,14 @@ Commands (run from the repository root):
       --config.max_files=2
   python -m camrep.data.prepare --list
 
-Sources (`SOURCES`): the procedural families "rooms", "object", "area", "scene6dof"
-(`camrep.data.procedural.make_family(name, **overrides)`) and the real-format readers
+Sources: every source of the registry `camrep.data.sources` (`--list` prints them): the
+procedural families "rooms", "object", "area", "scene6dof" and the real-format readers
 "gqn", "srn_cars", "gibson", "seven_scenes", which need `--input PATH` (the dataset root; see
 each reader's docstring for the layout). `--config.FIELD=VALUE` passes a keyword override to
 the chosen source's family / reader constructor (`source_fields`; `--list` names them): values
 are parsed as the default's type for numbers, strings and booleans, as Python literals otherwise
 (`--config.scenes="('chess',)"`); an unknown field is an error. `--preset NAME` applies a named
-set of overrides first (see `PRESETS`).
+set of overrides first (a reader's `Source.presets`; the families' "default" / "small").
 
 Output: `DATA_DIR/NAME/CONFIG/VERSION/`, CONFIG being `--config_name` or else the preset name
 (no CONFIG level without either); see `camrep.data.storage` for the files. Preparing
@@ -43,64 +43,9 @@ from typing import Any
 
 from absl import flags
 
-from camrep.data import storage
+from camrep.data import sources, storage
 from camrep.data.errors import DataError
-from camrep.data.storage import ViewSource
 from camrep.runtime import cli
-
-
-@dataclasses.dataclass(frozen=True)
-class SourceEntry:
-  """How to construct one registered source.
-
-  Attributes:
-    module: module that defines it.
-    attr: the reader class (called as `attr(input_path, **overrides)`) or, for procedural
-      families, "make_family" (called as `make_family(name, **overrides)`).
-    needs_input: whether `--input PATH` is required (real formats) or refused (procedural).
-    description: one line for `--list`.
-  """
-
-  module: str
-  attr: str
-  needs_input: bool
-  description: str
-
-
-SOURCES: dict[str, SourceEntry] = {
-  "rooms": SourceEntry(
-    "camrep.data.procedural", "make_family", False, "procedural GQN-rooms-like scenes"
-  ),
-  "object": SourceEntry(
-    "camrep.data.procedural", "make_family", False, "procedural object on a view sphere (car)"
-  ),
-  "area": SourceEntry(
-    "camrep.data.procedural", "make_family", False, "procedural Gibson-like areas"
-  ),
-  "scene6dof": SourceEntry(
-    "camrep.data.procedural", "make_family", False, "procedural 6-DOF scenes (7-Scenes)"
-  ),
-  "gqn": SourceEntry("camrep.data.gqn", "GQN", True, "DeepMind GQN TFRecords (rooms)"),
-  "srn_cars": SourceEntry("camrep.data.srn", "SRNCars", True, "SRN ShapeNet cars renders"),
-  "gibson": SourceEntry("camrep.data.gibson", "GibsonRooms", True, "authors' Gibson renders"),
-  "seven_scenes": SourceEntry(
-    "camrep.data.seven_scenes", "SevenScenes", True, "Microsoft 7-Scenes RGB-D"
-  ),
-}
-
-PRESETS: dict[str, dict[str, dict[str, Any]]] = {
-  "gqn": {"small": {"max_files": 1, "max_scenes": 200}},
-  "srn_cars": {"small": {"image_size": 64}},
-  "gibson": {"small": {"image_size": 64}},
-  "seven_scenes": {"small": {"image_size": 64, "scenes": ["chess"]}},
-}
-"""Named override sets for the real readers. The procedural families take their presets from
-`camrep.data.procedural` itself (`make_family(..., preset=NAME)` or its `PRESETS` table)."""
-
-
-def is_available(name: str) -> bool:
-  """Whether the module implementing source `name` is present in this tree."""
-  return importlib.util.find_spec(SOURCES[name].module) is not None
 
 
 def source_fields(name: str) -> dict[str, Any]:
@@ -110,13 +55,11 @@ def source_fields(name: str) -> dict[str, Any]:
   Raises:
     DataError: unknown or absent source.
   """
-  if name not in SOURCES:
-    raise DataError(None, f"unknown source {name!r}; registered: {sorted(SOURCES)}")
-  entry = SOURCES[name]
-  if not is_available(name):
+  entry = sources.get(name)
+  if not sources.is_available(name):
     raise DataError(None, f"source {name!r} needs {entry.module}, which is not in this tree")
   module = importlib.import_module(entry.module)
-  if entry.attr == "make_family":
+  if entry.procedural:
     return dataclasses.asdict(module.make_config(name))
   params = list(inspect.signature(getattr(module, entry.attr)).parameters.values())
   return {
@@ -125,74 +68,6 @@ def source_fields(name: str) -> dict[str, Any]:
     if p.default is not inspect.Parameter.empty
     and p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)
   }
-
-
-def _procedural_presets(module: Any, name: str, preset: str) -> dict[str, Any] | None:
-  """The procedural module's own overrides for `preset`, or None if it routes presets itself."""
-  if "preset" in inspect.signature(module.make_family).parameters:
-    return None
-  table = getattr(module, "PRESETS", {})
-  per_family = table.get(name, table)
-  if preset not in per_family:
-    raise DataError(None, f"source {name!r} has no preset {preset!r} (has: {sorted(per_family)})")
-  return dict(per_family[preset])
-
-
-def make_source(
-  name: str,
-  *,
-  input_path: str | os.PathLike | None = None,
-  preset: str | None = None,
-  overrides: Mapping[str, Any] | None = None,
-) -> ViewSource:
-  """Constructs a registered source.
-
-  Args:
-    name: a key of `SOURCES`.
-    input_path: dataset root, for the real-format readers only.
-    preset: named override set applied before `overrides`.
-    overrides: keyword overrides for the family / reader.
-
-  Returns:
-    The source.
-
-  Raises:
-    DataError: unknown or absent source, unknown preset, missing/extra input path,
-      or overrides the constructor does not accept.
-  """
-  if name not in SOURCES:
-    raise DataError(None, f"unknown source {name!r}; registered: {sorted(SOURCES)}")
-  entry = SOURCES[name]
-  if not is_available(name):
-    raise DataError(None, f"source {name!r} needs {entry.module}, which is not in this tree")
-  module = importlib.import_module(entry.module)
-  kwargs: dict[str, Any] = {}
-  if entry.needs_input:
-    if input_path is None:
-      raise DataError(None, f"source {name!r} reads a dataset: give its root with --input PATH")
-    if not pathlib.Path(input_path).exists():
-      raise DataError(input_path, "input path does not exist")
-    if preset is not None:
-      presets = PRESETS.get(name, {})
-      if preset not in presets:
-        raise DataError(None, f"source {name!r} has no preset {preset!r} (has: {sorted(presets)})")
-      kwargs.update(presets[preset])
-  else:
-    if input_path is not None:
-      raise DataError(input_path, f"source {name!r} is procedural and takes no --input")
-    if preset is not None:
-      preset_kwargs = _procedural_presets(module, name, preset)
-      kwargs.update({"preset": preset} if preset_kwargs is None else preset_kwargs)
-  kwargs.update(overrides or {})
-  factory = getattr(module, entry.attr)
-  try:
-    if entry.needs_input:
-      return factory(os.fspath(input_path), **kwargs)
-    return factory(name, **kwargs)
-  except DataError:
-    raise
-  except (TypeError, ValueError) as e:
-    raise DataError(None, f"source {name!r} rejected the settings {kwargs}: {e}") from None
 
 
 def _check_reuse(path: pathlib.Path, settings: Mapping[str, Any], overwrite: bool) -> None:
@@ -234,7 +109,7 @@ def prepare_source(
   """Constructs source `name` and stores it with `storage.prepare`.
 
   Args:
-    name: a key of `SOURCES`.
+    name: a registered source (`camrep.data.sources`).
     data_dir: tfds data directory.
     input_path: dataset root (real formats).
     preset: named override set.
@@ -248,7 +123,7 @@ def prepare_source(
   Returns:
     The dataset directory.
   """
-  source = make_source(name, input_path=input_path, preset=preset, overrides=overrides)
+  source = sources.build(name, input_path=input_path, preset=preset, overrides=overrides)
   config_name = config_name or preset
   dataset_name = dataset_name or name
   settings = {
@@ -273,7 +148,7 @@ def prepare_source(
 def define_flags(fv: flags.FlagValues, argv: Sequence[str] = ()) -> None:
   """The tool's flags (`camrep.runtime.cli.Define`); `--config.` are the chosen source's
   constructor keywords (`source_fields`)."""
-  flags.DEFINE_enum("source", None, sorted(SOURCES), "Source to prepare.", flag_values=fv)
+  flags.DEFINE_enum("source", None, sorted(sources.SOURCES), "Source to prepare.", flag_values=fv)
   flags.DEFINE_string("data_dir", None, "tfds data directory to write into.", flag_values=fv)
   flags.DEFINE_string("input", None, "Dataset root (real formats only).", flag_values=fv)
   flags.DEFINE_string("preset", None, "Named override set, e.g. 'small'.", flag_values=fv)
@@ -286,7 +161,7 @@ def define_flags(fv: flags.FlagValues, argv: Sequence[str] = ()) -> None:
   flags.DEFINE_bool("no_progress", False, "No progress bars.", flag_values=fv)
   flags.DEFINE_bool("list", False, "List the sources and their fields, and exit.", flag_values=fv)
   source = cli.peek_flag(argv, "source")
-  if source in SOURCES and is_available(source):
+  if source in sources.SOURCES and sources.is_available(source):
     cli.define_overrides(
       fv, argv, source_fields(source), f"A keyword of the {source!r} source's constructor."
     )
@@ -295,9 +170,9 @@ def define_flags(fv: flags.FlagValues, argv: Sequence[str] = ()) -> None:
 
 
 def _list() -> None:
-  for name, entry in SOURCES.items():
-    state = "" if is_available(name) else f"  [missing: {entry.module}]"
-    kind = "--input PATH" if entry.needs_input else "procedural"
+  for name, entry in sources.SOURCES.items():
+    state = "" if sources.is_available(name) else f"  [missing: {entry.module}]"
+    kind = "procedural" if entry.procedural else "--input PATH"
     print(f"{name:13s} {kind:13s} {entry.description}{state}")
     if not state:
       print(f"{'':13s} --config.: {', '.join(source_fields(name))}")
@@ -310,10 +185,10 @@ def run_cli(fv: flags.FlagValues) -> int:
     return 0
   if fv.source is None or fv.data_dir is None:
     raise cli.UsageError("--source and --data_dir are required (--list shows the sources)")
-  entry = SOURCES[fv.source]
-  if entry.needs_input and fv.input is None:
+  entry = sources.get(fv.source)
+  if not entry.procedural and fv.input is None:
     raise cli.UsageError(f"--source={fv.source} reads a dataset: give its root with --input PATH")
-  if not entry.needs_input and fv.input is not None:
+  if entry.procedural and fv.input is not None:
     raise cli.UsageError(f"--source={fv.source} is procedural and takes no --input")
   target = target_dir(fv.data_dir, fv.name or fv.source, fv.config_name or fv.preset, fv.version)
   existed = (target / storage.METADATA_FILE).exists() and not fv.overwrite

@@ -42,8 +42,7 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from camrep.data import render, seven_scenes
-from camrep.data.records import POSE_NAMES
+from camrep.data import render, seven_scenes, sources
 
 FAMILIES = ("rooms", "object", "area", "scene6dof")
 PRESETS = ("default", "small")
@@ -284,8 +283,8 @@ class ProceduralFamily(abc.ABC):
 
   @property
   def pose_names(self) -> tuple[str, ...]:
-    """Names of the pose components (`records.POSE_NAMES`)."""
-    return POSE_NAMES[self.name]
+    """Names of the pose components (the registry's, `camrep.data.sources`)."""
+    return sources.get(self.name).pose_names
 
   @property
   def image_size(self) -> int:

@@ -3,7 +3,8 @@
 A *view record* is one posed image:
 
   {"image": uint8 (H, W, 3) RGB,
-   "pose":  float32 (P,), the family's pose in physical units (see `POSE_NAMES`),
+   "pose":  float32 (P,), the source's pose in physical units (its columns:
+            `camrep.data.sources.get(name).pose_names`),
    "scene": int, index of the scene / instance / area within the source,
    "view":  int, index of the view within its scene (stable, 0-based)}
 
@@ -22,43 +23,4 @@ scenes, for the families that have them).
 
 from __future__ import annotations
 
-POSE_NAMES: dict[str, tuple[str, ...]] = {
-  "rooms": ("x", "y", "yaw"),
-  "gqn": ("x", "y", "yaw"),
-  "object": ("azimuth", "polar"),
-  "srn_cars": ("azimuth", "polar"),
-  "area": ("x", "y", "yaw"),
-  "gibson": ("x", "y", "yaw"),
-  "scene6dof": ("x", "y", "z", "theta", "phi", "psi"),
-  "seven_scenes": ("x", "y", "z", "theta", "phi", "psi"),
-}
-
 RECORD_KEYS = ("image", "pose", "scene", "view")
-
-
-# The procedural family that stands in for each setting's real dataset.
-SOURCE_OF_SETTING = {"gqn": "rooms", "car": "object", "gibson": "area", "seven_scenes": "scene6dof"}
-SETTINGS = tuple(SOURCE_OF_SETTING)
-PROCEDURAL = ("rooms", "object", "area", "scene6dof")
-
-
-SETTING_OF_SOURCE = {
-  "rooms": "gqn",
-  "gqn": "gqn",
-  "object": "car",
-  "srn_cars": "car",
-  "area": "gibson",
-  "gibson": "gibson",
-  "scene6dof": "seven_scenes",
-  "seven_scenes": "seven_scenes",
-}
-
-
-def setting_of_source(source: str) -> str:
-  """The paper's setting (gqn, car, gibson, seven_scenes) of a data source, real or procedural."""
-  try:
-    return SETTING_OF_SOURCE[source]
-  except KeyError:
-    raise ValueError(
-      f"unknown data source {source!r}; choose one of {sorted(SETTING_OF_SOURCE)}"
-    ) from None

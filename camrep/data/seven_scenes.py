@@ -29,10 +29,9 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
-from camrep.data import textio
+from camrep.data import sources, textio
 from camrep.data.errors import DataError
 from camrep.data.imageio import PathLike, check_image_size, crop_and_resize, read_image
-from camrep.data.records import POSE_NAMES
 from camrep.rotations import (
   euler_sxyz_to_matrix,
   matrix_to_euler_sxyz,
@@ -458,7 +457,7 @@ class SevenScenes:
   """
 
   name = "seven_scenes"
-  pose_names = POSE_NAMES["seven_scenes"]
+  pose_names = sources.get("seven_scenes").pose_names
   splits = SPLITS
 
   def __init__(

@@ -28,10 +28,9 @@ from collections.abc import Iterator, Mapping
 
 import numpy as np
 
-from camrep.data import textio
+from camrep.data import sources, textio
 from camrep.data.errors import DataError
 from camrep.data.imageio import PathLike, check_image_size, crop_and_resize, read_image
-from camrep.data.records import POSE_NAMES
 
 DEFAULT_SPLIT_DIRS = {"train": "cars_train", "test": "cars_train_test"}
 _STEM_RE = re.compile(r"^(\d+)\.(png|txt)$")
@@ -184,7 +183,7 @@ class SRNCars:
   """
 
   name = "srn_cars"
-  pose_names = POSE_NAMES["srn_cars"]
+  pose_names = sources.get("srn_cars").pose_names
 
   def __init__(
     self,

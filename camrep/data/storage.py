@@ -59,7 +59,7 @@ class ViewSource(Protocol):
 
   Attributes:
     name: short dataset name, e.g. "rooms", "gqn", "srn_cars".
-    pose_names: names of the P pose coordinates (see `camrep.data.records.POSE_NAMES`).
+    pose_names: names of the P pose coordinates (see `camrep.data.sources`).
     image_size: side of the square images, or (H, W).
 
   A source may also have `splits` (a sequence of split names); without it the splits are the
@@ -586,6 +586,47 @@ class StoredSplit(Sequence):
     if images is None:
       return np.zeros((*records.shape, *self.index.image_shape, 3), np.uint8)
     return images.reshape(*records.shape, *images.shape[1:])
+
+
+def views_in_memory(source: ViewSource, split: str) -> tuple[ViewIndex, np.ndarray]:
+  """Reads a whole split of a source into memory.
+
+  Args:
+    source: the view-record source.
+    split: split name.
+
+  Returns:
+    index: the split's `ViewIndex` (record = position in `images`).
+    images: uint8 (N, H, W, 3).
+
+  Raises:
+    DataError: unknown split, empty split or a record breaking the contract.
+  """
+  splits = source_splits(source)
+  if split not in splits:
+    raise DataError(None, f"source {source.name!r} has no split {split!r}; available: {splits}")
+  shape = image_shape(source)
+  p = len(source.pose_names)
+  images, poses, scenes, views = [], [], [], []
+  for i, rec in enumerate(source.iter_views(split)):
+    check_record(rec, shape, p, f"{source.name}/{split} #{i}")
+    images.append(rec["image"])
+    poses.append(np.asarray(rec["pose"], np.float32))
+    scenes.append(int(rec["scene"]))
+    views.append(int(rec["view"]))
+  n = len(images)
+  if n == 0:
+    raise DataError(None, f"source {source.name!r} split {split!r} holds no views")
+  index = ViewIndex(
+    record=np.arange(n, dtype=np.int64),
+    index=np.arange(n, dtype=np.int64),
+    scene=np.asarray(scenes, np.int64),
+    view=np.asarray(views, np.int64),
+    pose=np.stack(poses),
+    pose_names=tuple(source.pose_names),
+    image_shape=shape,
+  )
+  return index, np.stack(images)
 
 
 def load(

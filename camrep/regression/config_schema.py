@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from camrep.data import records
+from camrep.data import sources
 from camrep.regression import driver
 from camrep.regression import targets as T
 from camrep.runtime import validate as V
@@ -58,7 +58,7 @@ SCHEMA: dict[str, V.Field] = {
   "data.n_query": _F(V.POSITIVE, _U(_gqn, _NOT_GQN)),
   "data.validation_fraction": _F(V.Rule("fraction")),
   "data.cache_dir": _F(V.ANY),
-  "data.source": _F(V.optional(V.one_of(records.SETTING_OF_SOURCE))),
+  "data.source": _F(V.optional(V.one_of(sources.SOURCES))),
   "data.dir": _F(V.optional(V.Rule("dir"))),
   "data.dataset_config": _F(V.ANY, _U(_real, _NOT_REAL)),
   "data.image_size": _F(V.optional(V.POSITIVE), _U(_real, _NOT_REAL)),

@@ -14,8 +14,8 @@ writes into DIR:
   errors_<split>.npz per-example errors, scene ids, true and predicted poses of the test split(s)
 
 Data (`views.make_data`), all from the setting's procedural family
-(`records.SOURCE_OF_SETTING`), rendered once and held in memory (cached in `data.cache_dir`
-when set):
+(`camrep.data.sources.procedural_of`), rendered once and held in memory (prepared once as an
+ArrayRecord dataset in `data.cache_dir` when set), batched by the view-synthesis pipeline:
 
   train       the family's "train" split minus the validation part;
   validation  held out of "train" to choose the learning rate and for nothing else: gqn the last
@@ -32,9 +32,9 @@ when set):
 Real data: with `data.source` a real source (gqn, srn_cars, gibson, seven_scenes; it must be of
 `setting`) and `data.dir` a directory prepared by `camrep.data.prepare`, the views come from that
 dataset with the paper's splits per dataset (`views.make_real_data`; its module docstring lists
-them), decoded once (cached in `data.cache_dir`, keyed by dataset, split and size) and held in
-memory. results.json's "data" then names the source, the directory, the dataset path, the test
-split, what each evaluation split is, and the number of test views.
+them), decoded once and held in memory (or batch by batch with `data.stream`). results.json's
+"data" then names the source, the directory, the dataset path, the test split, what each
+evaluation split is, and the number of test views.
 
 Representations: baselines need nothing more; "ours" restores the frozen pose system of a
 view-synthesis workdir (`load_pose_system`, via `camrep.synthesis`'s `load_run`); "mlp" uses that
@@ -49,7 +49,6 @@ same prepared directory and dataset) and, for "ours", with the learned grid syst
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import os
@@ -64,7 +63,7 @@ import ml_collections
 import numpy as np
 
 from camrep import pose_inputs
-from camrep.data import records
+from camrep.data import sources
 from camrep.regression import learner, scoring
 from camrep.regression import targets as T
 from camrep.regression import views as views_lib
@@ -158,12 +157,12 @@ def check_source(config) -> None:
     if d.get("dir", ""):
       raise ConfigError(
         "data.dir is set but data.source is empty: name the prepared dataset's source "
-        f"(--config.data.source={records.SOURCE_OF_SETTING.get(config.setting, '...')} is "
+        f"(--config.data.source={data_source(config)} is "
         "procedural; real ones: gqn, srn_cars, gibson, seven_scenes)"
       )
     return
   try:
-    setting = records.setting_of_source(source)
+    setting = sources.setting_of(source)
   except ValueError as e:
     raise ConfigError(f"data.source: {e}") from None
   if setting != config.setting:
@@ -171,7 +170,7 @@ def check_source(config) -> None:
       f"data.source {source!r} is data of the {setting!r} setting, but setting is "
       f"{config.setting!r}: pass --config.setting={setting}"
     )
-  if source in records.PROCEDURAL:
+  if sources.is_procedural(source):
     if d.dir:
       raise ConfigError(f"data.source {source!r} is procedural and takes no data.dir")
     return
@@ -186,7 +185,7 @@ def check_source(config) -> None:
 
 def data_source(config) -> str:
   """The config's data source: data.source, or the setting's procedural family."""
-  return config.data.get("source", "") or records.SOURCE_OF_SETTING[config.setting]
+  return config.data.get("source", "") or sources.procedural_of(config.setting)
 
 
 # --------------------------------------------------------------------------------------------
@@ -235,15 +234,11 @@ def check_same_data(workdir: str, syn_config, config) -> None:
     )
 
 
-def load_pose_system(
-  workdir: str, setting: str, *, cache_dir: str = "", config=None
-) -> dict[str, Any]:
+def load_pose_system(workdir: str, setting: str, *, config=None) -> dict[str, Any]:
   """The frozen pose input of a view-synthesis workdir, checked against the setting (and, with
   the regression's `config`, against its data: `check_same_data`).
 
-  Restores the latest checkpoint with the synthesis `load_run`; with `cache_dir`, the pose
-  parameters are also saved there (keyed by the workdir's path and checkpoint step), so later
-  runs skip load_run's data rendering.
+  Restores the latest checkpoint with the synthesis `load_run` (which reads no data).
 
   Returns:
     {"spec": PoseSystemSpec, "rep": pose-input params, "kind": "grid" / "mlp" / "lowdim",
@@ -252,8 +247,6 @@ def load_pose_system(
   Raises:
     ConfigError: the workdir is missing, has no checkpoint, or its setting or data differ.
   """
-  import flax.serialization
-
   from camrep.runtime import checkpoint as ckpt_lib
 
   workdir = os.path.abspath(workdir)
@@ -283,26 +276,12 @@ def load_pose_system(
     step = None
   if step is None:
     raise ConfigError(f"synthesis_workdir {workdir} has no checkpoint (train it first)")
-  path = ""
-  if cache_dir:
-    key = hashlib.sha256(f"{workdir}|{step}".encode()).hexdigest()[:16]
-    path = os.path.join(cache_dir, f"pose_system_{key}.msgpack")
-  if path and os.path.exists(path):
-    with open(path, "rb") as f:
-      rep = flax.serialization.msgpack_restore(f.read())
-  else:
-    try:
-      run = restore.load_run(workdir)
-    except (FileNotFoundError, ckpt_lib.CheckpointError) as e:
-      raise ConfigError(f"synthesis_workdir: {e}") from None
-    rep, step = jax.tree.map(np.asarray, run.params["rep"]), run.step
-    if path:
-      os.makedirs(cache_dir, exist_ok=True)
-      with open(path + ".tmp", "wb") as f:
-        f.write(flax.serialization.msgpack_serialize(rep))
-      os.replace(path + ".tmp", path)
-  rep = jax.tree.map(jnp.asarray, rep)
-  return {"spec": spec, "rep": rep, "kind": kind, "step": int(step), "workdir": workdir}
+  try:
+    run = restore.load_run(workdir)
+  except (FileNotFoundError, ckpt_lib.CheckpointError) as e:
+    raise ConfigError(f"synthesis_workdir: {e}") from None
+  rep = jax.tree.map(jnp.asarray, run.params["rep"])
+  return {"spec": spec, "rep": rep, "kind": kind, "step": int(run.step), "workdir": workdir}
 
 
 def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
@@ -316,9 +295,7 @@ def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
     return None, None, {"source": "none"}
   system = None
   if config.synthesis_workdir:
-    system = load_pose_system(
-      config.synthesis_workdir, config.setting, cache_dir=config.data.cache_dir, config=config
-    )
+    system = load_pose_system(config.synthesis_workdir, config.setting, config=config)
   if rep == "ours":
     if system["kind"] != "grid":
       raise ConfigError(
@@ -440,9 +417,11 @@ def train(setup: Setup, writer, eval_sets, *, predict_fn, log=print):
     (state, the last logged train/* scalars, training seconds).
   """
   config = setup.config
-  batches = views_lib.train_batches(config, setup.data.train)
+  train_views = setup.data.train
+  pipe = views_lib.train_pipeline(config, train_views)
+  batches = (views_lib.learner_batch(config, train_views, b) for b in pipe.iterator())
   init_key = jax.random.fold_in(jax.random.key(config.seed), 0)
-  first = views_lib.train_batch_fn(config, setup.data.train)(0)
+  first = views_lib.learner_batch(config, train_views, pipe.batch(0))
   state = learner.init(init_key, setup.reg, first, rep_params=setup.rep_params)
   state = load_resnet_weights(config, state)
   step_fn = jax.jit(learner.train_step, donate_argnums=0)

@@ -1,7 +1,7 @@
 """Pose representations as regression targets (paper section 4.4, Table 1).
 
 A pose regressor predicts a dict of heads {head name: (..., size)}; this module maps poses in the
-dataset's pose columns (`camrep.data.records.POSE_NAMES`) to those heads and back, and holds the
+dataset's pose columns (`camrep.data.sources`) to those heads and back, and holds the
 head losses and their weighting. Each representation is one `Codec` record (head size, loss,
 encoder, decoder) in `CODECS`; `encode`, `decode` and `head_specs` look it up. Training
 hyper-parameters (which loss weighting, learning rates, ...) live in configs/regression.py.
@@ -41,12 +41,12 @@ import jax.numpy as jnp
 
 from camrep import pose as P
 from camrep import pose_inputs, rotations
-from camrep.data import records
+from camrep.data import sources
 from camrep.models import pose_regressor
 
 Array = jax.Array
 
-SETTINGS = records.SETTINGS
+SETTINGS = sources.SETTINGS
 
 TWO_PI = 2.0 * math.pi
 

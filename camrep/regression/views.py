@@ -1,12 +1,21 @@
-"""The posed images a regression run learns from and is scored on (paper section 4.4): the
-setting's procedural family rendered once into memory, or a real dataset prepared by
-`python -m camrep.data.prepare` decoded once into memory (both cached on disk when asked), split
-into train / validation / test, and batched for the learner.
+"""The posed images a regression run learns from and is scored on (paper section 4.4), read
+through the data layer view synthesis uses: every split is a `storage.ViewIndex` (ids and poses)
+plus an image reader, training batches come from a `pipeline.BatchPipeline` over the training
+views, and evaluation batches read their rows through the same reader.
 
-Real data (`config.data.source` a real source, `config.data.dir` its prepared tfds directory,
-read as `camrep.main` reads it: dataset `data.source`, builder config `data.dataset_config`, else
-the preset's when the dataset has it, else its only one). The paper's splits per dataset
-(`real_split_plan`):
+Where the images come from:
+
+  procedural  the setting's family (`sources.procedural_of`, `config.data.family` overrides),
+              rendered into memory; with `data.cache_dir`, prepared once into that directory as
+              an ArrayRecord dataset (`storage.prepare`, one builder config per family config,
+              reused by later runs) and decoded from it, the same pixels.
+  real        `config.data.source` a real source and `config.data.dir` its prepared tfds
+              directory, read as `camrep.main` reads it (dataset `data.source`, builder config
+              `data.dataset_config`, else the preset's when the dataset has it, else its only
+              one): decoded once into memory (resized to `data.image_size`), or with
+              `data.stream` decoded batch by batch from the ArrayRecord files.
+
+The paper's splits per real dataset (`real_split_plan`):
 
   seven_scenes  train = the TrainSplit sequences, test = the TestSplit sequences; validation the
                 end of every scene's training trajectory (never a test sequence).
@@ -17,11 +26,18 @@ the preset's when the dataset has it, else its only one). The paper's splits per
                 `data.test_scenes_fraction` are the held-out test scenes ("test_scenes"), the
                 `validation_fraction` before them validation, the rest training; "test" = view
                 9 of the training scenes.
+
+Training batches (`train_pipeline`): gqn draws `batch_size` scenes a step (epoch permutations of
+the training scenes) with n_context + n_query distinct views each; the other settings draw
+`batch_size` single views (epoch permutations of all training views: each view is its own group
+of the pipeline). Both are a pure function of (seed, step), the draws the stage made before it
+read through the pipeline (one process: NumPy's seed [seed, 1, step, 0] is [seed, 1, step]).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import fcntl
 import hashlib
 import math
 import os
@@ -29,39 +45,80 @@ import pathlib
 from collections.abc import Callable, Iterator
 from typing import Any
 
-import jax
+import grain
 import numpy as np
 
-from camrep.data import records
+from camrep.data import pipeline, sources, storage
 from camrep.runtime.runconfig import ConfigError
 
-Array = jax.Array
+ImageReader = Callable[[np.ndarray], np.ndarray]
+"""Record positions int (...,) -> images uint8 (..., H, W, 3)."""
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class ViewSet:
-  """Views held in memory, N of them.
+  """N views: ids and poses in memory, images behind a reader (in memory or a prepared split).
 
   Attributes:
-    images: (N, H, W, 3) uint8.
-    poses: (N, P) float32, in the setting's pose columns.
-    scenes: (N,) int64 scene ids.
-    views: (N,) int64 view ids within the scene.
+    index: the views' `storage.ViewIndex`; `index.record` addresses `read_images`.
+    read_images: the reader of `index.record` positions.
   """
 
-  images: np.ndarray
-  poses: np.ndarray
-  scenes: np.ndarray
-  views: np.ndarray
+  index: storage.ViewIndex
+  read_images: ImageReader
+
+  @classmethod
+  def in_memory(
+    cls, images: np.ndarray, poses: np.ndarray, scenes: np.ndarray, views: np.ndarray
+  ) -> ViewSet:
+    """Views held as arrays: images (N, H, W, 3) uint8, poses (N, P), scenes and views (N,)."""
+    n = len(images)
+    index = storage.ViewIndex(
+      record=np.arange(n, dtype=np.int64),
+      index=np.arange(n, dtype=np.int64),
+      scene=np.asarray(scenes, np.int64),
+      view=np.asarray(views, np.int64),
+      pose=np.asarray(poses, np.float32),
+      pose_names=tuple(f"p{i}" for i in range(np.shape(poses)[-1])),
+      image_shape=tuple(images.shape[1:3]),
+    )
+    return cls(index, images.__getitem__)
+
+  @property
+  def poses(self) -> np.ndarray:
+    """(N, P) float32, in the setting's pose columns."""
+    return self.index.pose
+
+  @property
+  def scenes(self) -> np.ndarray:
+    """(N,) int64 scene ids."""
+    return self.index.scene
+
+  @property
+  def views(self) -> np.ndarray:
+    """(N,) int64 view ids within the scene."""
+    return self.index.view
+
+  @property
+  def image_shape(self) -> tuple[int, int]:
+    """(H, W) of the images `images` returns."""
+    return tuple(self.index.image_shape)
+
+  def images(self, rows) -> np.ndarray:
+    """Images of `rows` (int (...,)): uint8 (..., H, W, 3)."""
+    return self.read_images(self.index.record[np.asarray(rows)])
 
   def __len__(self) -> int:
-    return len(self.scenes)
+    return len(self.index)
 
   def subset(self, rows: np.ndarray) -> ViewSet:
-    """The views at `rows` (int indices or a boolean mask); streamed images stay streamed."""
-    images = self.images
-    images = images.subset(rows) if isinstance(images, StreamedImages) else images[rows]
-    return ViewSet(images, self.poses[rows], self.scenes[rows], self.views[rows])
+    """The views at `rows` (int indices or a boolean mask), read by the same reader."""
+    i = self.index
+    sub = dataclasses.replace(
+      i, record=i.record[rows], index=i.index[rows], scene=i.scene[rows], view=i.view[rows],
+      pose=i.pose[rows],
+    )  # fmt: skip
+    return ViewSet(sub, self.read_images)
 
   def scene_ids(self) -> np.ndarray:
     """Sorted distinct scene ids."""
@@ -73,67 +130,54 @@ class ViewSet:
     return rows[np.argsort(self.views[rows], kind="stable")]
 
 
-class StreamedImages:
-  """The images of a prepared split, decoded when indexed (`data.stream`): `x[rows]` reads the
-  PNGs of those rows from the ArrayRecord files (any index shape (...,) -> (..., H, W, 3) uint8),
-  resized to `size` when given. Stands in for `ViewSet.images` when a split does not fit in
-  memory.
-
-  Attributes:
-    stored: the `camrep.data.storage.StoredSplit`.
-    records: int64 (N,), record position of each row.
-    size: output side, or None (as stored).
-  """
-
-  def __init__(self, stored, records: np.ndarray, size: int | None = None):
-    self.stored, self.records, self.size = stored, np.asarray(records, np.int64), size
-
-  @property
-  def shape(self) -> tuple[int, int, int, int]:
-    h, w = (self.size, self.size) if self.size else self.stored.index.image_shape
-    return (len(self.records), h, w, 3)
-
-  def __len__(self) -> int:
-    return len(self.records)
-
-  def subset(self, rows: np.ndarray) -> StreamedImages:
-    """The rows `rows` (int indices or a boolean mask), still streamed."""
-    return StreamedImages(self.stored, self.records[rows], self.size)
-
-  def __getitem__(self, rows) -> np.ndarray:
-    rows = np.asarray(rows)
-    images = self.stored.read_images(self.records[rows])
-    flat = _resize(images.reshape(-1, *images.shape[-3:]), self.size)
-    return flat.reshape(*rows.shape, *flat.shape[1:])
+def _decoded(stored: storage.StoredSplit, size: int | None) -> ViewSet:
+  """A prepared split decoded into memory (in the sidecar's order), resized to `size`."""
+  index = stored.index
+  images = [
+    _resize(stored.read_images(index.record[start : start + 256]), size)
+    for start in range(0, len(index), 256)
+  ]
+  images = np.concatenate(images)
+  return ViewSet(
+    dataclasses.replace(
+      index, record=np.arange(len(index), dtype=np.int64), image_shape=tuple(images.shape[1:3])
+    ),
+    images.__getitem__,
+  )
 
 
-def _family_key(family, split: str) -> str:
-  text = f"{family.name}|{split}|{family.config!r}"
-  return hashlib.sha256(text.encode()).hexdigest()[:16]
+def _streamed(stored: storage.StoredSplit, size: int | None) -> ViewSet:
+  """A prepared split whose images are decoded (and resized to `size`) when read."""
+
+  def read(records: np.ndarray) -> np.ndarray:
+    records = np.asarray(records)
+    images = stored.read_images(records)
+    flat = _resize(images.reshape(-1, *images.shape[-3:]), size)
+    return flat.reshape(*records.shape, *flat.shape[1:])
+
+  shape = (size, size) if size else tuple(stored.index.image_shape)
+  return ViewSet(dataclasses.replace(stored.index, image_shape=shape), read)
+
+
+def prepared_family(family, cache_dir: str) -> pathlib.Path:
+  """The family's splits prepared as an ArrayRecord dataset under `cache_dir` (done once per
+  family config, under a file lock, so concurrent runs prepare it once and reuse it)."""
+  key = "c" + hashlib.sha256(repr(family.config).encode()).hexdigest()[:16]
+  os.makedirs(cache_dir, exist_ok=True)
+  with open(os.path.join(cache_dir, f".{family.name}_{key}.lock"), "w") as lock:
+    fcntl.flock(lock, fcntl.LOCK_EX)
+    return storage.prepare(
+      family, cache_dir, config=key, metadata={"family": repr(family.config)}, progress=False
+    )
 
 
 def load_split(family, split: str, *, cache_dir: str = "") -> ViewSet:
-  """Renders (or reads from `cache_dir`) one split of a procedural family.
-
-  The cache file `<cache_dir>/<family>_<split>_<hash of the family config>.npz` is written
-  atomically, so concurrent or interrupted runs never read a partial file.
-  """
-  from camrep.data import pipeline
-
-  path = ""
+  """One split of a procedural family in memory: rendered, or with `cache_dir` decoded from the
+  family prepared there (`prepared_family`)."""
   if cache_dir:
-    path = os.path.join(cache_dir, f"{family.name}_{split}_{_family_key(family, split)}.npz")
-    if os.path.exists(path):
-      with np.load(path) as z:
-        return ViewSet(z["images"], z["poses"], z["scenes"], z["views"])
-  index, images = pipeline.views_in_memory(family, split)
-  views = ViewSet(images, index.pose.astype(np.float32), index.scene, index.view)
-  if path:
-    os.makedirs(cache_dir, exist_ok=True)
-    tmp = f"{path}.{os.getpid()}.tmp.npz"
-    np.savez(tmp, **dataclasses.asdict(views))
-    os.replace(tmp, path)
-  return views
+    return _decoded(storage.StoredSplit(prepared_family(family, cache_dir), split), None)
+  index, images = storage.views_in_memory(family, split)
+  return ViewSet(index, images.__getitem__)
 
 
 def split_validation(setting: str, views: ViewSet, fraction: float) -> tuple[ViewSet, ViewSet]:
@@ -180,21 +224,10 @@ class Data:
   info: dict[str, Any]
 
 
-def make_family(config):
-  """The config's procedural family (`camrep.data.procedural.make_family`)."""
-  from camrep.data import procedural
-
-  overrides = config.data.family.to_dict()
-  overrides = {k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()}
-  return procedural.make_family(
-    records.SOURCE_OF_SETTING[config.setting], preset=config.data.preset, **overrides
-  )
-
-
 def is_real(config) -> bool:
   """Whether the config reads a prepared real dataset (data.source a real source)."""
   source = config.data.get("source", "")
-  return bool(source) and source not in records.PROCEDURAL
+  return bool(source) and not sources.is_procedural(source)
 
 
 def make_data(config) -> Data:
@@ -202,7 +235,7 @@ def make_data(config) -> Data:
   if is_real(config):
     return make_real_data(config)
   setting, cache = config.setting, config.data.cache_dir
-  family = make_family(config)
+  family = sources.family_of_config(config.data, sources.procedural_of(config.setting))
   full_train = load_split(family, "train", cache_dir=cache)
   train, val = split_validation(setting, full_train, config.data.validation_fraction)
   gqn = setting == "gqn"
@@ -223,7 +256,7 @@ def make_data(config) -> Data:
     "family": family.name,
     "preset": config.data.preset,
     "family_overrides": config.data.family.to_dict(),
-    "image_size": int(full_train.images.shape[1]),
+    "image_size": int(full_train.image_shape[0]),
     "train_views": len(train),
     "train_scenes": len(train.scene_ids()),
     "validation": (
@@ -249,7 +282,6 @@ def open_dataset(config) -> tuple[str, dict[str, Any]]:
   Raises:
     ConfigError: no data.dir, a missing directory or dataset, or a dataset of another source.
   """
-  from camrep.data import storage
   from camrep.data.errors import DataError
 
   d = config.data
@@ -287,19 +319,15 @@ def _resize(images: np.ndarray, size: int | None) -> np.ndarray:
 
 
 def load_real_split(
-  path: str, meta: dict[str, Any], split: str, *, image_size: int | None, cache_dir: str = "",
+  path: str, meta: dict[str, Any], split: str, *, image_size: int | None,
   max_bytes: float = float("inf"), stream: bool = False,
 ) -> ViewSet:  # fmt: skip
-  """Decodes (or reads from `cache_dir`) one split of a prepared dataset, in the sidecar's order;
-  with `stream`, the images stay on disk (`StreamedImages`, no cache, no memory limit).
-
-  The cache file `<cache_dir>/<source>_<split>_<hash>.npz` is keyed by the dataset directory, its
-  camrep_source.json (a re-prepared dataset gets a new key), the split and the image size.
+  """One split of a prepared dataset, decoded into memory in the sidecar's order; with `stream`,
+  decoded when read (no memory limit).
 
   Raises:
     ConfigError: the split is absent or empty, or its decoded images exceed `max_bytes`.
   """
-  from camrep.data import storage
   from camrep.data.errors import DataError
 
   counts = meta.get("splits", {}).get(split)
@@ -317,42 +345,11 @@ def load_real_split(
       "--config.data.stream=True (decode batches on the fly), lower data.image_size or raise "
       "the limit"
     )
-  key = hashlib.sha256(
-    f"{os.path.abspath(path)}|{json_dumps(meta)}|{split}|{size}".encode()
-  ).hexdigest()[:16]
-  cache = ""
-  if cache_dir and not stream:
-    cache = os.path.join(cache_dir, f"{meta['source']}_{split}_{key}.npz")
-  if cache and os.path.exists(cache):
-    with np.load(cache) as z:
-      return ViewSet(z["images"], z["poses"], z["scenes"], z["views"])
   try:
     stored = storage.StoredSplit(pathlib.Path(path), split)
   except DataError as e:
     raise ConfigError(f"data.dir: {e}") from None
-  index = stored.index
-  if stream:
-    return ViewSet(
-      StreamedImages(stored, index.record, size), index.pose.astype(np.float32), index.scene,
-      index.view,
-    )  # fmt: skip
-  images = []
-  for start in range(0, len(index), 256):
-    images.append(_resize(stored.read_images(index.record[start : start + 256]), size))
-  views = ViewSet(np.concatenate(images), index.pose.astype(np.float32), index.scene, index.view)
-  if cache:
-    os.makedirs(cache_dir, exist_ok=True)
-    tmp = f"{cache}.{os.getpid()}.tmp.npz"
-    np.savez(tmp, **dataclasses.asdict(views))
-    os.replace(tmp, cache)
-  return views
-
-
-def json_dumps(x: Any) -> str:
-  """Canonical JSON text of `x` (sorted keys), for cache keys."""
-  import json
-
-  return json.dumps(x, sort_keys=True, default=str)
+  return _streamed(stored, size) if stream else _decoded(stored, size)
 
 
 def real_split_plan(setting: str, splits: Any) -> dict[str, str]:
@@ -403,7 +400,6 @@ def make_real_data(config) -> Data:
       )
   load = dict(
     image_size=d.get("image_size"),
-    cache_dir=d.cache_dir,
     max_bytes=float(d.get("max_memory_gb", 16.0)) * 2**30,
     stream=bool(d.get("stream", False)),
   )
@@ -437,7 +433,7 @@ def make_real_data(config) -> Data:
       evals[name] = EvalSet(views)
   if gqn:
     _check_gqn_counts(config, train, evals)
-  image_size = int(full_train.images.shape[1])
+  image_size = int(full_train.image_shape[0])
   info = {
     "source": d.source,
     "dataset": meta.get("name", d.source),
@@ -474,12 +470,10 @@ def seven_scenes_names(meta: dict[str, Any]) -> list[str]:
   """Scene names of a prepared 7-Scenes dataset in scene-id order (the reader's `scenes`: the
   `--config.scenes=...` override, else the preset's, else every scene folder of the input), or []
   when they cannot be told."""
-  from camrep.data import prepare
-
   m = meta.get("metadata", {})
   scenes = m.get("overrides", {}).get("scenes")
   if scenes is None and m.get("preset"):
-    scenes = prepare.PRESETS.get("seven_scenes", {}).get(m["preset"], {}).get("scenes")
+    scenes = sources.get("seven_scenes").presets.get(m["preset"], {}).get("scenes")
   root = m.get("input")
   if scenes is None and root and os.path.isdir(root):
     scenes = sorted(
@@ -510,89 +504,62 @@ def _check_gqn_counts(config, train: ViewSet, evals: dict[str, EvalSet]) -> None
     raise ConfigError("a training scene has fewer than n_context + n_query views")
 
 
-def train_batch_fn(config, views: ViewSet) -> Callable[[int], dict[str, np.ndarray]]:
-  """The training batch at a step, a pure function of (seed, step) (`train_batches`' layout).
+def train_pipeline(config, views: ViewSet) -> pipeline.BatchPipeline:
+  """The `BatchPipeline` of the training views (see the module docstring): gqn one group per
+  scene (its views in view-id order), the other settings one group per view.
 
   Raises:
     ConfigError: fewer training scenes (gqn) or views than a batch.
   """
-  bs, seed = config.data.batch_size, config.seed
-  epochs: dict[int, np.ndarray] = {}
+  bs, d = config.data.batch_size, config.data
+  gqn = config.setting == "gqn"
+  if gqn:
+    views = views.subset(np.lexsort((views.views, views.scenes)))
+    index, groups, what = views.index, len(views.scene_ids()), "scenes"
+  else:  # each view its own group: the batch's "scene" holds its row
+    index = dataclasses.replace(views.index, scene=np.arange(len(views), dtype=np.int64))
+    groups, what = len(views), "images"
+  if groups // bs == 0:
+    unit = "scenes" if gqn else "views"
+    raise ConfigError(f"batch of {bs} {what} but only {groups} training {unit}")
+  pcfg = pipeline.PipelineConfig(
+    num_devices=1,
+    scenes_per_device=bs,
+    views_per_scene=d.n_context + d.n_query if gqn else 1,
+    seed=config.seed,
+    num_threads=int(d.get("num_threads", 0)),
+    prefetch=int(d.get("prefetch", 2)),
+  )
+  return pipeline.BatchPipeline(index, views.read_images, pcfg, where="regression training views")
 
-  def order(epoch: int, n: int) -> np.ndarray:
-    perm = epochs.get(epoch)
-    if perm is None:
-      if len(epochs) >= 4:  # reader threads only ever need the current epoch(s)
-        epochs.clear()
-      perm = epochs[epoch] = np.random.default_rng([seed, 0, epoch]).permutation(n)
-    return perm
 
+def learner_batch(config, views: ViewSet, batch: pipeline.Batch) -> dict[str, np.ndarray]:
+  """A pipeline batch in the learner's layout.
+
+  gqn: "context_image" (S, C, H, W, 3), "context_pose" (S, C, P), "image" (S, Q, H, W, 3),
+  "pose" (S, Q, P), "scene" (S,), C = n_context, Q = n_query. Others: "image" (B, H, W, 3),
+  "pose" (B, P), "scene" (B,).
+  """
+  image, pose = batch["image"][0], batch["pose"][0]
   if config.setting == "gqn":
-    ids = views.scene_ids()
-    rows = [views.scene_rows(s) for s in ids]
-    c, q = config.data.n_context, config.data.n_query
-    per_epoch = len(ids) // bs
-    if per_epoch == 0:
-      raise ConfigError(f"batch of {bs} scenes but only {len(ids)} training scenes")
-
-    def gqn_batch(step: int) -> dict[str, np.ndarray]:
-      epoch, pos = divmod(step, per_epoch)
-      chosen = order(epoch, len(ids))[pos * bs : (pos + 1) * bs]
-      rng = np.random.default_rng([seed, 1, step])
-      picked = np.stack([rng.choice(rows[i], c + q, replace=False) for i in chosen])
-      return {
-        "context_image": views.images[picked[:, :c]],
-        "context_pose": views.poses[picked[:, :c]],
-        "image": views.images[picked[:, c:]],
-        "pose": views.poses[picked[:, c:]],
-        "scene": ids[chosen].astype(np.int32),
-      }
-
-    return gqn_batch
-  n = len(views)
-  per_epoch = n // bs
-  if per_epoch == 0:
-    raise ConfigError(f"batch of {bs} images but only {n} training views")
-
-  def batch(step: int) -> dict[str, np.ndarray]:
-    epoch, pos = divmod(step, per_epoch)
-    rows = order(epoch, n)[pos * bs : (pos + 1) * bs]
+    c = config.data.n_context
     return {
-      "image": views.images[rows],
-      "pose": views.poses[rows],
-      "scene": views.scenes[rows].astype(np.int32),
+      "context_image": image[:, :c],
+      "context_pose": pose[:, :c],
+      "image": image[:, c:],
+      "pose": pose[:, c:],
+      "scene": batch["scene"][0],
     }
-
-  return batch
+  rows = batch["scene"][0]
+  return {"image": image[:, 0], "pose": pose[:, 0], "scene": views.scenes[rows].astype(np.int32)}
 
 
 def train_batches(config, views: ViewSet) -> Iterator[dict[str, np.ndarray]]:
-  """Endless training batches in `learner`'s layout, a pure function of (seed, step).
-
-  gqn: per step `batch_size` distinct scenes (epoch permutations), each with n_context + n_query
-  distinct random views, the first n_context the context: "context_image" (S, V, H, W, 3),
-  "context_pose" (S, V, P), "image" (S, Q, H, W, 3), "pose" (S, Q, P), "scene" (S,). Others:
-  `batch_size` distinct views (epoch permutations of all training views): "image" (B, H, W, 3),
-  "pose" (B, P), "scene" (B,).
-
-  Streamed images (`StreamedImages`, data.stream) are decoded by grain reader threads
-  (`data.num_threads`, `data.prefetch` batches ahead), as the view-synthesis pipeline does.
-  """
-  fn = train_batch_fn(config, views)
-  threads = int(config.data.get("num_threads", 0))
-  if isinstance(views.images, StreamedImages) and threads > 0:
-    import grain
-
-    ds = grain.MapDataset.range(0, 2**62).map(fn)
-    opts = grain.ReadOptions(
-      num_threads=threads, prefetch_buffer_size=max(1, int(config.data.get("prefetch", 2)))
-    )
-    yield from ds.to_iter_dataset(opts)
-    return
-  step = 0
-  while True:
-    yield fn(step)
-    step += 1
+  """Endless training batches in the learner's layout (`learner_batch`), a pure function of
+  (seed, step), read by `data.num_threads` grain reader threads, `data.prefetch` ahead."""
+  pipe = train_pipeline(config, views)
+  for batch in pipe.iterator():
+    yield learner_batch(config, views, batch)
 
 
 def _pad(x: np.ndarray, n: int) -> np.ndarray:
@@ -602,96 +569,69 @@ def _pad(x: np.ndarray, n: int) -> np.ndarray:
   return np.concatenate([x, np.repeat(x[-1:], n - len(x), axis=0)])
 
 
-def eval_batches(config, eval_set: EvalSet) -> list[dict[str, np.ndarray]] | StreamedBatches:
-  """Fixed-shape evaluation batches with a "mask" (False for padding) and the queries' "view" ids
-  (a list; `StreamedBatches`, decoded batch by batch, when the images are streamed).
+def eval_plan(config, eval_set: EvalSet) -> list[dict[str, np.ndarray]]:
+  """Rows and masks of fixed-shape evaluation batches (no image read): per batch "rows" (the
+  query rows), "mask" (False for padding), gqn also "context_rows".
 
   gqn: per scene, context = the first n_context views (by id) of `eval_set.context`; queries =
   the scene's query views (minus the context views when both are the same set), padded to the
   largest count; `max(1, batch_size // Q)` scenes per batch. Others: `batch_size` views a batch.
   """
   q_views, bs = eval_set.queries, config.evals.batch_size
-  out = []
   if config.setting != "gqn":
+    plans = []
     for start in range(0, len(q_views), bs):
       rows = np.arange(start, min(start + bs, len(q_views)))
-      mask = np.arange(bs) < len(rows)
-      rows = _pad(rows, bs)
-      out.append(
-        {
-          "image": _take(q_views.images, rows),
-          "pose": q_views.poses[rows],
-          "scene": q_views.scenes[rows].astype(np.int32),
-          "view": q_views.views[rows].astype(np.int32),
-          "mask": mask,
-        }
-      )
-    return _batches(out)
+      plans.append({"rows": _pad(rows, bs), "mask": np.arange(bs) < len(rows)})
+    return plans
   c = config.data.n_context
   same = eval_set.context is q_views
   ctx_rows, query_rows = [], []
   for s in q_views.scene_ids():
-    ctx_all = eval_set.context.scene_rows(s)
-    ctx_rows.append(ctx_all[:c])
+    ctx_rows.append(eval_set.context.scene_rows(s)[:c])
     qr = q_views.scene_rows(s)
     query_rows.append(qr[c:] if same else qr)
   n_q = max(len(r) for r in query_rows)
   per_batch = max(1, bs // n_q)
+  plans = []
   for start in range(0, len(ctx_rows), per_batch):
     chunk = list(range(start, min(start + per_batch, len(ctx_rows))))
     qr = np.stack([_pad(query_rows[i], n_q) for i in chunk])
     qmask = np.stack([np.arange(n_q) < len(query_rows[i]) for i in chunk])
     cr = np.stack([ctx_rows[i] for i in chunk])
-    n_real = len(chunk)
-    qr, cr = _pad(qr, per_batch), _pad(cr, per_batch)
-    qmask = np.concatenate([qmask, np.zeros((per_batch - n_real, n_q), bool)])
-    ctx = eval_set.context
-    out.append(
-      {
-        "context_image": _take(ctx.images, cr),
-        "context_pose": ctx.poses[cr],
-        "image": _take(q_views.images, qr),
-        "pose": q_views.poses[qr],
-        "scene": q_views.scenes[qr[:, 0]].astype(np.int32),
-        "view": q_views.views[qr].astype(np.int32),
-        "mask": qmask,
-      }
-    )
-  return _batches(out)
+    qmask = np.concatenate([qmask, np.zeros((per_batch - len(chunk), n_q), bool)])
+    plans.append({"rows": _pad(qr, per_batch), "context_rows": _pad(cr, per_batch), "mask": qmask})
+  return plans
 
 
-@dataclasses.dataclass(frozen=True)
-class _Pending:
-  """Rows of streamed images, decoded when an evaluation batch is used."""
+def eval_batches(config, eval_set: EvalSet) -> grain.IterDataset:
+  """Fixed-shape evaluation batches with a "mask" (False for padding) and the queries' "view" ids,
+  laid out by `eval_plan`, their images read when the batch is (so a streamed evaluation set is
+  never held whole); re-iterable, read by `data.num_threads` grain threads.
 
-  images: StreamedImages
-  rows: np.ndarray
+  gqn: "context_image" (S, C, H, W, 3), "context_pose" (S, C, P), "image" (S, Q, H, W, 3),
+  "pose" (S, Q, P), "scene" (S,), "view" (S, Q), "mask" (S, Q). Others: "image" (B, H, W, 3),
+  "pose" (B, P), "scene" (B,), "view" (B,), "mask" (B,).
+  """
+  q_views, ctx = eval_set.queries, eval_set.context
+  gqn = config.setting == "gqn"
 
+  def read(plan: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    rows = plan["rows"]
+    out = {}
+    if gqn:
+      out["context_image"] = ctx.images(plan["context_rows"])
+      out["context_pose"] = ctx.poses[plan["context_rows"]]
+    out["image"] = q_views.images(rows)
+    out["pose"] = q_views.poses[rows]
+    out["scene"] = q_views.scenes[rows[:, 0] if gqn else rows].astype(np.int32)
+    out["view"] = q_views.views[rows].astype(np.int32)
+    out["mask"] = plan["mask"]
+    return out
 
-def _take(images, rows: np.ndarray):
-  """images[rows] now (in memory), or a `_Pending` read (streamed)."""
-  if isinstance(images, StreamedImages):
-    return _Pending(images, rows)
-  return images[rows]
-
-
-class StreamedBatches:
-  """Evaluation batches whose streamed images are decoded batch by batch, each time the batches
-  are iterated (so an evaluation set larger than memory is never held whole)."""
-
-  def __init__(self, batches: list[dict[str, Any]]):
-    self._batches = batches
-
-  def __len__(self) -> int:
-    return len(self._batches)
-
-  def __iter__(self) -> Iterator[dict[str, np.ndarray]]:
-    for b in self._batches:
-      yield {k: v.images[v.rows] if isinstance(v, _Pending) else v for k, v in b.items()}
-
-
-def _batches(out: list[dict[str, Any]]):
-  """The batch list itself (in memory), or `StreamedBatches` when some images are streamed."""
-  if any(isinstance(v, _Pending) for b in out for v in b.values()):
-    return StreamedBatches(out)
-  return out
+  threads = int(config.data.get("num_threads", 0))
+  opts = grain.ReadOptions(
+    num_threads=threads,
+    prefetch_buffer_size=max(1, int(config.data.get("prefetch", 2))) if threads else 0,
+  )
+  return grain.MapDataset.source(eval_plan(config, eval_set)).map(read).to_iter_dataset(opts)

@@ -13,8 +13,8 @@ import jax.numpy as jnp
 
 from camrep import pose as P
 from camrep import pose_inputs
+from camrep.data import batches, sources
 from camrep.data import pipeline as pipeline_lib
-from camrep.data import records
 from camrep.data.errors import DataError
 from camrep.models.composite import GQNSynthesis, TableSynthesis
 from camrep.models.convdraw import GQNConvDraw
@@ -25,7 +25,7 @@ Array = jax.Array
 
 def setting(config) -> str:
   """The paper's setting of the config's data source: gqn, car, gibson or seven_scenes."""
-  return records.setting_of_source(config.data.source)
+  return sources.setting_of(config.data.source)
 
 
 # config.model.kind: camrep's decoders (trained on L_rec) or GQN's generator (trained on its ELBO).
@@ -214,15 +214,6 @@ def num_workers(config) -> int:
   return pipeline_lib.default_num_workers() if n == -1 else n
 
 
-def make_source(config, split_hint: str = "train"):
-  """The procedural family of the config (for in-memory / rendered data)."""
-  from camrep.data import procedural
-
-  del split_hint
-  overrides = dict(config.data.family.to_dict()) if config.data.family else {}
-  return procedural.make_family(config.data.source, preset=config.data.preset, **overrides)
-
-
 def make_pipeline(
   config,
   split: str,
@@ -252,18 +243,17 @@ def make_pipeline(
   kw = dict(process_index=process_index, process_count=process_count)
   if d.dir:
     pcfg = dataclasses.replace(pcfg, num_workers=0 if for_eval else num_workers(config))
-    dataset_config = d.preset if d.preset != "default" else None
     return pipeline_lib.tfds_pipeline(
-      d.dir, d.source, split, pcfg, dataset_config=dataset_config, **kw
+      d.dir, d.source, split, pcfg, dataset_config=batches.prepared_config_name(d), **kw
     )
-  if d.source not in records.PROCEDURAL:
+  if not sources.is_procedural(d.source):
     raise DataError(
       None,
       f"data.source {d.source!r} is a real dataset: prepare it with "
       f"`python -m camrep.data.prepare --source {d.source} --input PATH --data_dir DIR` "
       "and pass --config.data.dir=DIR",
     )
-  family = make_source(config)
+  family = sources.family_of_config(d)
   if d.in_memory:
     return pipeline_lib.memory_pipeline(family, split, pcfg, **kw)
   return pipeline_lib.render_pipeline(family, split, pcfg, **kw)

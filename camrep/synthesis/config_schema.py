@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from camrep import lie, pose, pose_inputs
-from camrep.data import procedural, records, storage
+from camrep.data import procedural, sources, storage
 from camrep.data.errors import DataError
 from camrep.runtime import runconfig
 from camrep.runtime import validate as V
@@ -72,7 +72,7 @@ SCHEMA: dict[str, V.Field] = {
   # Retention that keeps no checkpoint would lose the run: refused (issue 27).
   "ckpt_every_steps": _F(V.POSITIVE),
   "max_to_keep": _F(V.POSITIVE),
-  "data.source": _F(V.one_of(records.SETTING_OF_SOURCE)),
+  "data.source": _F(V.one_of(sources.SOURCES)),
   "data.preset": _F(V.ANY),  # procedural: checked by `check_data`; prepared: a builder config
   "data.dir": _F(V.optional(V.Rule("dir"))),
   "data.in_memory": _F(V.ANY, _U(lambda c: not _prepared(c), "data.dir is set (prepared data)")),
@@ -173,7 +173,7 @@ def data_image_shape(config) -> tuple[tuple[int, int], str]:
     shape = meta.get("image_shape")
     if not shape:
       raise DataError(path, "its camrep_source.json has no image_shape; prepare it again")
-    want = records.POSE_NAMES.get(d.source)
+    want = sources.SOURCES[d.source].pose_names if d.source in sources.SOURCES else None
     got = meta.get("pose_names")
     if want is not None and got is not None and tuple(got) != tuple(want):
       raise ConfigError(
@@ -194,7 +194,7 @@ def data_image_shape(config) -> tuple[tuple[int, int], str]:
 
 def check_data(config) -> None:
   """The model's image size against the data's (before any data is read or step compiled)."""
-  if config.data.source not in records.PROCEDURAL and not config.data.dir:
+  if not sources.is_procedural(config.data.source) and not config.data.dir:
     return  # components.make_pipeline names the missing prepared directory
   (h, w), where = data_image_shape(config)
   side = model_image_size(config)

@@ -1,10 +1,14 @@
 """A trained view-synthesis run restored from its workdir: config, pose system, model,
 parameters and pipelines (for evaluation, figures and regression targets).
+
+Restoring reads no data: the state template comes from `batches.dummy_batch` and the per-scene
+table size from `batches.describe`; the pipelines are built when first used.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
 import flax
@@ -16,6 +20,7 @@ import ml_collections
 import numpy as np
 
 from camrep import pose as P
+from camrep.data import batches
 from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import components
 from camrep.synthesis import step as step_lib
@@ -34,8 +39,9 @@ class Run:
     model: its view-synthesis model (flax module).
     params: {"model": flax params, "rep": pose-system params} of the restored checkpoint.
     step: the restored checkpoint's step.
-    train_pipe: training-split pipeline (context views of the evaluation set).
-    test_pipe: held-out-view pipeline (for_eval).
+    train_pipe: training-split pipeline (context views of the evaluation set), built (and, for
+      in-memory data, rendered) on first use.
+    test_pipe: held-out-view pipeline (for_eval), built on first use.
   """
 
   workdir: str
@@ -44,8 +50,15 @@ class Run:
   model: Any
   params: dict
   step: int
-  train_pipe: Any
-  test_pipe: Any
+
+  @functools.cached_property
+  def train_pipe(self) -> Any:
+    n = jax.local_device_count()
+    return components.make_pipeline(self.config, "train", num_devices=n)
+
+  @functools.cached_property
+  def test_pipe(self) -> Any:
+    return components.make_pipeline(self.config, "test", num_devices=1, for_eval=True)
 
 
 def _zeros(x):
@@ -82,14 +95,14 @@ def load_run(workdir: str, *, step: int | None = None) -> Run:
       raise ckpt_lib.CheckpointError(
         f"no checkpoint for step {step} in {checkpointer.directory}; available: {steps}"
       )
-    # As train.train_and_evaluate (the template's shapes come from the training layout).
-    train_pipe = components.make_pipeline(config, "train", num_devices=jax.local_device_count())
-    test_pipe = components.make_pipeline(config, "test", num_devices=1, for_eval=True)
+    # As train.train_and_evaluate, with the training layout's shapes from the config alone.
+    info = batches.describe(config.data, "train")
     spec = components.pose_spec(config)
-    model = components.make_model(config, components.num_train_scenes(train_pipe))
+    model = components.make_model(config, int(info.scene_ids.max()) + 1)
     init_key = jax.random.split(jax.random.key(config.seed))[0]
+    dummy = batches.dummy_batch(config, num_devices=jax.local_device_count(), info=info)
     template = jax.eval_shape(
-      lambda: step_lib.create_train_state(init_key, config, model, spec, train_pipe.batch(0))
+      lambda: step_lib.create_train_state(init_key, config, model, spec, dummy)
     )
     state_d, _, restored = checkpointer.restore(
       step_lib.state_dict(jax.tree.map(_zeros, template)), step=step
@@ -105,6 +118,4 @@ def load_run(workdir: str, *, step: int | None = None) -> Run:
     model=model,
     params=params,
     step=int(restored),
-    train_pipe=train_pipe,
-    test_pipe=test_pipe,
   )

@@ -35,6 +35,7 @@ import ml_collections
 import numpy as np
 
 from camrep import pose as P
+from camrep.data import batches
 from camrep.data import pipeline as pipeline_lib
 from camrep.runtime import grids, runconfig
 from camrep.runtime import progress as progress_lib
@@ -201,8 +202,8 @@ def restore_or_init(job: Job, init_key: Array) -> tuple[step_lib.TrainState, int
   """
   # Jitted: eager init of the pose system and model costs seconds of op dispatch.
   init_fn = jax.jit(lambda k, b: step_lib.create_train_state(k, job.config, job.model, job.spec, b))
-  first = job.train_pipe.batch(0)
-  batch0 = {k: first[k] for k in ("image", "pose", "scene")}
+  # Shapes only (the init reads no pixel): the same template for a fresh start and a restore.
+  batch0 = batches.dummy_batch(job.config, num_devices=jax.local_device_count())
   if job.checkpointer.latest_step() is None:
     return init_fn(init_key, batch0), 0
   template = jax.eval_shape(init_fn, init_key, batch0)
