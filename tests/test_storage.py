@@ -177,7 +177,7 @@ def test_source_fields_are_the_constructors_keywords():
 
 def test_prepare_lists_every_registered_source(capsys):
   prepare.main(["--list"])
-  listed = [line.split()[0] for line in capsys.readouterr().out.splitlines()]
+  listed = [line.split()[0] for line in capsys.readouterr().out.splitlines() if line[:1].strip()]
   assert listed == list(sources.SOURCES)
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from camrep.data import sources
-from camrep.regression import driver
+from camrep.regression import driver, learner
 from camrep.regression import targets as T
 from camrep.runtime import validate as V
 
@@ -82,6 +82,15 @@ SCHEMA: dict[str, V.Field] = {
     V.ANY, _U(lambda c: c.representation != "ours", "used by the baselines only, not 'ours'")
   ),
   "optax.lr": _F(V.optional(V.POSITIVE)),
+  "optax.weight_decay": _F(V.optional(V.NONNEG)),
+  "model.extra_fc": _F(V.optional(V.NONNEG)),
+  "model.quantisation": _F(V.optional(V.one_of(learner.QUANTISATIONS))),
+  "loss.kind": _F(V.optional(V.one_of(T.LOSSES))),
+  "loss.weighting": _F(V.optional(V.one_of(T.WEIGHTINGS))),
+  "loss.init_s": _F(V.optional(V.NUMBERS)),
+  "loss.s_factor": _F(V.optional(V.POSITIVE)),
+  "loss.learn_s": _F(V.optional(V.ANY)),
+  "loss.weights": _F(V.optional(V.NUMBERS)),
   "evals.batch_size": _F(V.POSITIVE),
   "evals.extra_splits": _F(V.ANY),
   "evals.periodic_all_splits": _F(V.ANY),
@@ -96,6 +105,17 @@ for _name in T.SETTINGS:
       f"settings.{_name}.test_split": _F(V.one_of(driver.SPLITS), _other_setting(_name)),
     }
   )
+
+
+for _setting in T.SETTINGS:
+  for _group in ("ours", "baselines"):
+    for _key in list(SCHEMA):
+      if _key.split(".")[0] in ("loss", "optax", "model") and _key in (
+        "optax.lr", "optax.weight_decay", "model.extra_fc", "model.quantisation",
+        "loss.kind", "loss.weighting", "loss.init_s", "loss.s_factor", "loss.learn_s",
+        "loss.weights",
+      ):  # fmt: skip
+        SCHEMA[f"hparams.{_setting}.{_group}.{_key}"] = SCHEMA[_key]
 
 
 def validate(config, *, overridden: Iterable[str] = ()) -> None:

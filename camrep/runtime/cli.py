@@ -141,7 +141,10 @@ def describe_flag_error(exc: BaseException, argv: Sequence[str]) -> str:
   or failing config file, an unknown `--config.` field."""
   if isinstance(exc, flags.Error):
     text = _clean(str(exc))
-    return text.replace("flag --", "--", 1) if text.startswith("flag --") else text
+    if text.startswith("flag --"):
+      return text.replace("flag --", "--", 1)
+    named = _override_named_by(text, argv)
+    return f"{named}: {text}" if named else text
   # ml_collections: a config file that cannot be loaded fails on first use of the flag's value.
   for name in ("config",):
     path = _flag_value(argv, name)
@@ -160,7 +163,19 @@ def describe_flag_error(exc: BaseException, argv: Sequence[str]) -> str:
     return f"{flag}: the config has no field {field!r} ({key!r} is unknown)" + (
       f"; {hint}" if hint else ""
     )
-  return _root_message(exc)
+  message = _root_message(exc)
+  named = _override_named_by(message, argv) if isinstance(exc, (ValueError, TypeError)) else None
+  return f"{named}: {message}" if named else message
+
+
+def _override_named_by(message: str, argv: Sequence[str]) -> str | None:
+  """The `--config.FIELD=VALUE` argument a parse failure's message is about (its value appears
+  in the message, or it is the only override), or None."""
+  overrides = [a for a in argv if a.startswith("--config.") and "=" in a]
+  named = [a for a in overrides if a.split("=", 1)[1] and a.split("=", 1)[1] in message]
+  if len(named) == 1:
+    return named[0]
+  return overrides[0] if len(overrides) == 1 else None
 
 
 def parse_flags(argv: list[str]) -> list[str]:

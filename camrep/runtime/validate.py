@@ -38,7 +38,8 @@ class Rule:
 
   Attributes:
     kind: "positive" (> 0), "nonneg" (>= 0), "at_least" (>= low), "fraction" (strictly between
-      0 and 1), "enum" (one of `choices`), "dir" / "file" (an existing path, "" allowed when
+      0 and 1), "number_tuple" (a non-empty tuple of finite numbers), "enum" (one of
+      `choices`), "dir" / "file" (an existing path, "" allowed when
       `optional`), "positive_tuple" (a non-empty tuple of positive ints), "any" (no constraint
       beyond the type), "section" (a mapping checked elsewhere, e.g. a family's overrides).
     low: for "at_least".
@@ -71,6 +72,16 @@ class Rule:
         and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in value)
       )
       return None if ok else "a non-empty tuple of positive integers"
+    if self.kind == "number_tuple":
+      ok = (
+        isinstance(value, (tuple, list))
+        and len(value) > 0
+        and all(
+          isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+          for v in value
+        )
+      )
+      return None if ok else "a non-empty tuple of finite numbers"
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
       return "a finite number"
     if self.kind == "positive":
@@ -94,10 +105,12 @@ class Rule:
       "dir": ["/nonexistent/camrep-validate"],
       "file": ["/nonexistent/camrep-validate.npz"],
       "positive_tuple": [(0,)],
+      "number_tuple": [("abc",)],
     }.get(self.kind, [])
 
 
 POSITIVE = Rule("positive")
+NUMBERS = Rule("number_tuple")
 NONNEG = Rule("nonneg")
 ANY = Rule("any")
 SECTION = Rule("section")
