@@ -79,6 +79,14 @@ SOURCES: dict[str, SourceEntry] = {
   "seven_scenes": SourceEntry(
     "camrep.data.seven_scenes", "SevenScenes", True, "Microsoft 7-Scenes RGB-D"
   ),
+  # Posed captures (camrep.data.captures.source), one --input folder per instance.
+  **{
+    f"{fmt}{suffix}": SourceEntry(
+      "camrep.data.captures.source", f"{fmt}_{kind}", True, f"{what} captures, {setting}"
+    )
+    for fmt, what in (("nerf", "NeRF transforms.json"), ("llff", "LLFF"), ("colmap", "COLMAP"))
+    for suffix, kind, setting in (("", "car", "car setting"), ("_6dof", "6dof", "6-DOF setting"))
+  },
 }
 
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
@@ -86,6 +94,11 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
   "srn_cars": {"small": {"image_size": 64}},
   "gibson": {"small": {"image_size": 64}},
   "seven_scenes": {"small": {"image_size": 64, "scenes": ["chess"]}},
+  **{
+    f"{f}{x}": {"small": {"image_size": 64}}
+    for f in ("nerf", "llff", "colmap")
+    for x in ("", "_6dof")
+  },
 }
 """Named override sets for the real readers. The procedural families take their presets from
 `camrep.data.procedural` itself (`make_family(..., preset=NAME)` or its `PRESETS` table)."""
@@ -158,8 +171,12 @@ def make_source(
   if entry.needs_input:
     if input_path is None:
       raise DataError(None, f"source {name!r} reads a dataset: give its root with --input PATH")
-    if not pathlib.Path(input_path).exists():
-      raise DataError(input_path, "input path does not exist")
+    paths = list(input_path) if isinstance(input_path, list | tuple) else [input_path]
+    for p in paths:
+      if not pathlib.Path(p).exists():
+        raise DataError(p, "input path does not exist")
+    # Several inputs (one capture folder each) go to the reader as a list.
+    input_path = os.fspath(paths[0]) if len(paths) == 1 else [os.fspath(p) for p in paths]
     if preset is not None:
       presets = PRESETS.get(name, {})
       if preset not in presets:
@@ -175,7 +192,7 @@ def make_source(
   factory = getattr(module, entry.attr)
   try:
     if entry.needs_input:
-      return factory(os.fspath(input_path), **kwargs)
+      return factory(input_path, **kwargs)
     return factory(name, **kwargs)
   except DataError:
     raise
@@ -241,7 +258,7 @@ def prepare_source(
   dataset_name = dataset_name or name
   settings = {
     "source": name,
-    "input": None if input_path is None else os.fspath(input_path),
+    "input": None if input_path is None else _input_setting(input_path),
     "preset": preset,
     "overrides": dict(overrides or {}),
   }
@@ -258,6 +275,14 @@ def prepare_source(
   )
 
 
+def _input_setting(input_path: Any) -> str | list[str]:
+  """The recorded --input: a path, or a list of paths (several capture folders)."""
+  if isinstance(input_path, list | tuple):
+    paths = [os.fspath(p) for p in input_path]
+    return paths[0] if len(paths) == 1 else paths
+  return os.fspath(input_path)
+
+
 def _parser() -> argparse.ArgumentParser:
   parser = argparse.ArgumentParser(
     prog="python -m camrep.data.prepare",
@@ -265,7 +290,9 @@ def _parser() -> argparse.ArgumentParser:
   )
   parser.add_argument("--source", choices=sorted(SOURCES), help="source to prepare")
   parser.add_argument("--data_dir", help="tfds data directory to write into")
-  parser.add_argument("--input", help="dataset root (real formats only)")
+  parser.add_argument(
+    "--input", nargs="+", help="dataset root (real formats); captures: one folder per instance"
+  )
   parser.add_argument("--preset", help="named override set, e.g. 'small'")
   parser.add_argument(
     "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",

@@ -31,6 +31,9 @@ POSE_NAMES: dict[str, tuple[str, ...]] = {
   "gibson": ("x", "y", "yaw"),
   "scene6dof": ("x", "y", "z", "theta", "phi", "psi"),
   "seven_scenes": ("x", "y", "z", "theta", "phi", "psi"),
+  # Posed captures (camrep.data.captures): object-centric (car) or 6-DOF.
+  **{f: ("azimuth", "polar") for f in ("nerf", "llff", "colmap")},
+  **{f"{f}_6dof": ("x", "y", "z", "theta", "phi", "psi") for f in ("nerf", "llff", "colmap")},
 }
 
 RECORD_KEYS = ("image", "pose", "scene", "view")
@@ -51,6 +54,8 @@ SETTING_OF_SOURCE = {
   "gibson": "gibson",
   "scene6dof": "seven_scenes",
   "seven_scenes": "seven_scenes",
+  **{f: "car" for f in ("nerf", "llff", "colmap")},
+  **{f"{f}_6dof": "seven_scenes" for f in ("nerf", "llff", "colmap")},
 }
 
 
