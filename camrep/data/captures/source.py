@@ -32,7 +32,13 @@ import numpy as np
 
 from camrep.data import seven_scenes, srn
 from camrep.data.captures import colmap, llff, nerf, normalize
-from camrep.data.captures.cameras import Capture, CaptureError, load_frame_image, parse_background
+from camrep.data.captures.cameras import (
+  Capture,
+  CaptureError,
+  DistortionError,
+  load_frame_image,
+  parse_background,
+)
 from camrep.data.errors import DataError
 from camrep.data.imageio import crop_and_resize
 from camrep.data.records import POSE_NAMES
@@ -126,6 +132,16 @@ class CaptureSource:
     if factor is not None and format != "llff":
       raise DataError(None, f"factor= is an LLFF option, not one of {format!r}")
     self.captures = [READERS[format](os.fspath(p), **kwargs) for p in paths]
+    if not self.undistort:  # refuse before anything is written
+      for cap in self.captures:
+        bad = [f for f in cap.frames if f.distorted]
+        if bad:
+          raise DistortionError(
+            bad[0].image_path,
+            f"{len(bad)} frame(s) of {cap.name} have lens distortion "
+            f"{bad[0].distortion.tolist()} (k1, k2, p1, p2, k3, ...) and undistort=False; "
+            "drop --set undistort=False to undistort them with OpenCV",
+          )
     names = [c.name for c in self.captures]
     if isinstance(unseen, int):
       if not 0 <= unseen < len(paths):
