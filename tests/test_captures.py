@@ -465,6 +465,15 @@ def test_not_object_centric_is_refused_or_routed_to_6dof(tmp_path):
   train = storage.StoredSplit(path, "train").index.pose
   assert train[:, :3].min() >= -1e-6 and (train[:, :3].max(0) <= [4.0, 1.5, 3.0]).all()
   assert train[:, 0].max() == pytest.approx(4.0, abs=1e-5)  # scaled into the 7-Scenes cuboid
+  # Several captures in the 6-DOF setting: the regression's scene naming takes a list of inputs.
+  from camrep.regression import views as views_lib
+
+  root2 = write_llff(tmp_path / "ff2", np.stack(c2w)[::-1].copy(), rng=rng)
+  path = prepare.prepare_source("llff_6dof", tmp_path / "d2", input_path=[str(root), str(root2)],
+                                overrides={"image_size": 16}, progress=False)  # fmt: skip
+  meta = storage.load_metadata(path)
+  assert meta["splits"]["train"]["num_scenes"] == 2
+  assert views_lib.seven_scenes_names(meta) == []
 
 
 # ------------------------------------------------------------------------------- splits, prepare
