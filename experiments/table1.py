@@ -28,6 +28,24 @@ from collections.abc import Sequence
 from camrep.regression import tables as C
 
 SETTINGS = ("car", "gqn", "gibson")
+PROCEDURAL_COLUMNS = {
+  "car": "car = `object` family (held-out views of the training cars)",
+  "gqn": "rooms = `rooms` family like GQN (held-out rooms; scene units, room [-1, 1]^2)",
+  "gibson": "area = `area` family like Gibson (held-out views; metres)",
+}
+"""What each setting's column holds when its runs read camrep's procedural family."""
+
+
+def procedural_note(selections) -> str:
+  """The sentence describing the columns filled from procedural families ("" when none is)."""
+  procedural = [
+    s
+    for s in SETTINGS
+    if any(not C.is_real(r) for (st, _), sel in selections.items() if st == s for r in sel.runs)
+  ]
+  if not procedural:
+    return ""
+  return " Procedural columns: " + ", ".join(PROCEDURAL_COLUMNS[s] for s in procedural) + "."
 
 
 def build(results: Sequence[dict]) -> str:
@@ -62,9 +80,7 @@ def build(results: Sequence[dict]) -> str:
     f"Measured on {kind} ({', '.join(variants) or 'no'} size; "
     f"{len(results)} runs read): mean test errors, mean ± sample std over "
     f"{'/'.join(map(str, seeds)) or '0'} seeds at the learning rate chosen on the validation "
-    "split. Procedural columns: car = `object` family (held-out views of the training cars), "
-    "rooms = `rooms` family like GQN (held-out rooms; scene units, room [-1, 1]^2), area = "
-    "`area` family like Gibson (held-out views; metres).",
+    f"split.{procedural_note(selections)}",
     "",
     C.markdown_table(header, rows),
     "",

@@ -299,7 +299,7 @@ def test_read_split_real_sample_order_and_crlf():
 
 @needs_stairs
 def test_seven_scenes_reader_real_sample(caplog):
-  reader = seven_scenes.SevenScenes(STAIRS.parent, image_size=32)
+  reader = seven_scenes.SevenScenes(STAIRS.parent, image_size=32, margin=0.0)
   assert reader.scenes == ["stairs"] and reader.num_scenes("train") == 1
   assert reader.name == "seven_scenes"
   assert reader.pose_names == sources.get("seven_scenes").pose_names
@@ -318,12 +318,16 @@ def test_seven_scenes_reader_real_sample(caplog):
   # refuses them, naming the frame; warn_only or a margin lets them through.
   with pytest.raises(DataError, match=r"seq-01/frame-000000\.pose\.txt: re-based translation"):
     list(reader.iter_views("test"))
-  lenient = seven_scenes.SevenScenes(STAIRS.parent, image_size=32, warn_only=True)
+  lenient = seven_scenes.SevenScenes(STAIRS.parent, image_size=32, margin=0.0, warn_only=True)
   with caplog.at_level(logging.WARNING):
     records = list(lenient.iter_views("test"))
   assert len(records) == 6 and "outside the grid cuboid" in caplog.text
   margin = seven_scenes.SevenScenes(STAIRS.parent, image_size=32, margin=0.5)
   assert len(list(margin.iter_views("test"))) == 6
+  # The default (issue 31): seven_scenes.DEFAULT_MARGIN admits the real test frames.
+  default = seven_scenes.SevenScenes(STAIRS.parent, image_size=32)
+  assert default.margin == seven_scenes.DEFAULT_MARGIN == 0.5
+  assert len(list(default.iter_views("test"))) == 6
 
 
 def test_check_pose_range():

@@ -200,6 +200,13 @@ def prefetch_to_device(
     yield out
 
 
+def _fit_hint(scenes: int, num_devices: int) -> str:
+  """The override that fits a split of `scenes` scenes per process on `num_devices` devices."""
+  if scenes >= num_devices:
+    return f": pass --config.data.scenes_per_device={scenes // num_devices}"
+  return f": use at most {scenes} device(s) (e.g. CUDA_VISIBLE_DEVICES) or more scenes"
+
+
 def _host_or_device(x: Any) -> Any:
   return x if isinstance(x, jax.Array) else np.asarray(x)
 
@@ -314,7 +321,7 @@ class BatchPipeline:
         where,
         f"batch layout needs {need} scenes per step ({config.num_devices} devices x "
         f"{config.scenes_per_device}) per process, but the split has {len(all_ids)} scenes "
-        f"for {process_count} process(es)",
+        f"for {process_count} process(es)" + _fit_hint(shard, config.num_devices),
       )
     min_views = min(len(r) for r in rows)
     need_views = config.scene_views_needed

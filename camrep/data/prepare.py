@@ -111,7 +111,7 @@ def prepare_source(
   Args:
     name: a registered source (`camrep.data.sources`).
     data_dir: tfds data directory.
-    input_path: dataset root (real formats).
+    input_path: dataset root (real formats); a list of folders for the capture sources.
     preset: named override set.
     overrides: keyword overrides for the family / reader.
     config_name: builder-config sub-directory; defaults to `preset`.
@@ -128,7 +128,7 @@ def prepare_source(
   dataset_name = dataset_name or name
   settings = {
     "source": name,
-    "input": None if input_path is None else os.fspath(input_path),
+    "input": None if input_path is None else _input_setting(input_path),
     "preset": preset,
     "overrides": dict(overrides or {}),
   }
@@ -145,12 +145,25 @@ def prepare_source(
   )
 
 
+def _input_setting(input_path: Any) -> str | list[str]:
+  """The recorded --input: a path, or a list of paths (several capture folders)."""
+  if isinstance(input_path, list | tuple):
+    paths = [os.fspath(p) for p in input_path]
+    return paths[0] if len(paths) == 1 else paths
+  return os.fspath(input_path)
+
+
 def define_flags(fv: flags.FlagValues, argv: Sequence[str] = ()) -> None:
   """The tool's flags (`camrep.runtime.cli.Define`); `--config.` are the chosen source's
   constructor keywords (`source_fields`)."""
   flags.DEFINE_enum("source", None, sorted(sources.SOURCES), "Source to prepare.", flag_values=fv)
   flags.DEFINE_string("data_dir", None, "tfds data directory to write into.", flag_values=fv)
-  flags.DEFINE_string("input", None, "Dataset root (real formats only).", flag_values=fv)
+  flags.DEFINE_multi_string(
+    "input",
+    None,
+    "Dataset root (real formats only); capture sources: one folder per instance (repeat).",
+    flag_values=fv,
+  )
   flags.DEFINE_string("preset", None, "Named override set, e.g. 'small'.", flag_values=fv)
   flags.DEFINE_string(
     "config_name", None, "Sub-directory for this variant (default: the preset).", flag_values=fv
@@ -196,7 +209,7 @@ def run_cli(fv: flags.FlagValues) -> int:
   path = prepare_source(
     fv.source,
     fv.data_dir,
-    input_path=fv.input,
+    input_path=None if fv.input is None else (fv.input[0] if len(fv.input) == 1 else fv.input),
     preset=fv.preset,
     overrides=cli.overrides(fv),
     config_name=fv.config_name,

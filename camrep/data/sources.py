@@ -113,6 +113,15 @@ for _source in (
   Source("seven_scenes", "camrep.data.seven_scenes", "SevenScenes", False, "seven_scenes",
          _SIX_DOF, ("train", "test"), "Microsoft 7-Scenes RGB-D",
          {"small": {"image_size": 64, "scenes": ["chess"]}}),
+  # Posed captures (camrep.data.captures.collection), one --input folder per instance.
+  *(
+    Source(f"{fmt}{suffix}", "camrep.data.captures.collection", f"{fmt}_{kind}", False, setting,
+           poses, ("train", "test", "test_scenes"), f"{what} captures, {setting} setting",
+           {"small": {"image_size": 64}})
+    for fmt, what in (("nerf", "NeRF transforms.json"), ("llff", "LLFF"), ("colmap", "COLMAP"))
+    for suffix, kind, setting, poses in (
+      ("", "car", "car", _VIEW_SPHERE), ("_6dof", "6dof", "seven_scenes", _SIX_DOF))
+  ),
 ):  # fmt: skip
   register(_source)
 
@@ -174,7 +183,8 @@ def build(
 
   Args:
     name: a key of `SOURCES`.
-    input_path: dataset root, for the real readers only.
+    input_path: dataset root, for the real readers only (capture sources: one folder or a list,
+      one capture each).
     preset: named override set applied before `overrides` (None: the source's defaults).
     overrides: keyword overrides of the family / reader (a family's lists become tuples, as
       its frozen config holds them).
@@ -193,8 +203,12 @@ def build(
   if entry.needs_input:
     if input_path is None:
       raise DataError(None, f"source {name!r} reads a dataset: give its root with --input PATH")
-    if not pathlib.Path(input_path).exists():
-      raise DataError(input_path, "input path does not exist")
+    paths = list(input_path) if isinstance(input_path, list | tuple) else [input_path]
+    for p in paths:
+      if not pathlib.Path(p).exists():
+        raise DataError(p, "input path does not exist")
+    # Several inputs (one capture folder each) go to the reader as a list.
+    input_path = os.fspath(paths[0]) if len(paths) == 1 else [os.fspath(p) for p in paths]
     if preset is not None:
       if preset not in entry.presets:
         raise DataError(
@@ -211,7 +225,7 @@ def build(
   factory = getattr(importlib.import_module(entry.module), entry.attr)
   try:
     if entry.needs_input:
-      return factory(os.fspath(input_path), **kwargs)
+      return factory(input_path, **kwargs)
     return factory(name, **kwargs)
   except DataError:
     raise

@@ -25,8 +25,10 @@ On-disk layout (`DATA_DIR/NAME[/CONFIG]/VERSION/`):
   views_index_SPLIT.npz                  the sidecar: per view (sorted by `index`) its
       record position, index, scene, view and pose, so the pipeline can group views by scene
       and sample them without decoding a single PNG
-  camrep_source.json                     name, pose names, image shape, per-split counts and
+  camrep_source.json                     name, pose names, image shape, per-split counts,
                                          whatever metadata the caller passed (overrides, input)
+                                         and, as "source_info", the source's `describe()` when
+                                         it has one (captures: normalisation, residuals)
 """
 
 from __future__ import annotations
@@ -201,6 +203,13 @@ class _SourceBuilderBase(tfds.core.GeneratorBasedBuilder, skip_registration=True
         }
       ),
     )
+
+  def _log_download_bytes(self) -> None:
+    """Silent: tfds' "Downloading and preparing dataset 0 bytes ..." misleads for a local
+    conversion (`camrep.data.prepare` prints what it wrote)."""
+
+  def _log_download_done(self) -> None:
+    """Silent, as `_log_download_bytes`."""
 
   def _split_generators(self, dl_manager):
     del dl_manager  # Nothing to download: the source reads its own input.
@@ -417,6 +426,9 @@ def prepare(
     "prepare_seconds": round(time.perf_counter() - t0, 3),
     "metadata": dict(metadata or {}),
   }
+  describe = getattr(source, "describe", None)
+  if callable(describe):  # optional: facts the source states about itself (captures)
+    meta["source_info"] = describe()
   _write_text_atomic(path / METADATA_FILE, json.dumps(meta, indent=2, sort_keys=True, default=str))
   return path
 
@@ -478,9 +490,9 @@ def dataset_dir(
     found = sorted(d.name for d in root.iterdir() if d.is_dir() and not d.name.startswith("."))
     raise DataError(root, f"no prepared dataset {name!r} here (found: {found or 'nothing'})")
   if config is not None:
+    if not (base / config).is_dir():
+      raise DataError(base / config, f"dataset {name!r} has no config {config!r}" + _variants(base))
     base = base / config
-    if not base.is_dir():
-      raise DataError(base, f"dataset {name!r} has no config {config!r}")
   versions = _version_dirs(base)
   if not versions and config is None:
     configs = [d for d in base.iterdir() if d.is_dir() and _version_dirs(d)]
@@ -497,6 +509,29 @@ def dataset_dir(
     if d.name == version:
       return d
   raise DataError(base, f"no version {version!r} (found: {[d.name for d in versions]})")
+
+
+def _variants(base: pathlib.Path) -> str:
+  """What `base` (DATA_DIR/NAME) holds, and how a config finds it, for "no config" errors."""
+  found = []
+  for d in [base, *sorted(p for p in base.iterdir() if p.is_dir())]:
+    versions = _version_dirs(d)
+    if not versions:
+      continue
+    try:
+      shape = json.loads((versions[-1] / METADATA_FILE).read_text())["image_shape"]
+      size = f" at {shape[0]}x{shape[1]} px"
+    except (OSError, KeyError, ValueError):
+      size = ""
+    found.append(("default (no config)" if d == base else repr(d.name)) + size)
+  if not found:
+    return " (nothing is prepared under it)"
+  return (
+    f"; it holds {', '.join(found)}. The configs read the dataset of data.preset (':quick' ones "
+    "'small'): prepare with `--preset small` (or `--config_name small` with your --set "
+    "overrides), or pass --config.data.preset=default to read the default one, when its image "
+    "size is the model's"
+  )
 
 
 def load_metadata(path: str | os.PathLike) -> dict[str, Any]:

@@ -475,7 +475,7 @@ def seven_scenes_names(meta: dict[str, Any]) -> list[str]:
   if scenes is None and m.get("preset"):
     scenes = sources.get("seven_scenes").presets.get(m["preset"], {}).get("scenes")
   root = m.get("input")
-  if scenes is None and root and os.path.isdir(root):
+  if scenes is None and isinstance(root, str) and os.path.isdir(root):  # captures: a list
     scenes = sorted(
       x for x in os.listdir(root) if os.path.isfile(os.path.join(root, x, "TrainSplit.txt"))
     )
