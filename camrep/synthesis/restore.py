@@ -7,13 +7,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-import flax
-import flax.serialization
-import flax.struct
 import jax
-import jax.numpy as jnp
 import ml_collections
-import numpy as np
 
 from camrep import pose as P
 from camrep.runtime import workdir as workdir_lib
@@ -31,7 +26,7 @@ class Run:
     workdir: the training workdir.
     config: the run's config, read back from workdir/config.json.
     spec: its pose system.
-    model: its view-synthesis model (flax module).
+    model: its view-synthesis model (`synthesizers.Synthesizer`).
     params: {"model": flax params, "rep": pose-system params} of the restored checkpoint.
     step: the restored checkpoint's step.
     train_pipe: training-split pipeline (context views of the evaluation set).
@@ -46,10 +41,6 @@ class Run:
   step: int
   train_pipe: Any
   test_pipe: Any
-
-
-def _zeros(x):
-  return np.zeros(x.shape, x.dtype)
 
 
 def load_run(workdir: str, *, step: int | None = None) -> Run:
@@ -85,25 +76,17 @@ def load_run(workdir: str, *, step: int | None = None) -> Run:
     # As train.train_and_evaluate (the template's shapes come from the training layout).
     train_pipe = components.make_pipeline(config, "train", num_devices=jax.local_device_count())
     test_pipe = components.make_pipeline(config, "test", num_devices=1, for_eval=True)
-    spec = components.pose_spec(config)
     model = components.make_model(config, components.num_train_scenes(train_pipe))
-    init_key = jax.random.split(jax.random.key(config.seed))[0]
-    template = jax.eval_shape(
-      lambda: step_lib.create_train_state(init_key, config, model, spec, train_pipe.batch(0))
-    )
-    state_d, _, restored = checkpointer.restore(
-      step_lib.state_dict(jax.tree.map(_zeros, template)), step=step
-    )
+    init = step_lib.init_fn(config, model, step_lib.make_optimizers(config), train_pipe)
+    state, restored = step_lib.restore_state(checkpointer, init, step=step)
   finally:
     checkpointer.close()
-  state = flax.serialization.from_state_dict(template, state_d)
-  params = jax.tree.map(jnp.asarray, state.params)
   return Run(
     workdir=workdir,
     config=config,
-    spec=spec,
+    spec=model.spec,
     model=model,
-    params=params,
+    params=state.params,
     step=int(restored),
     train_pipe=train_pipe,
     test_pipe=test_pipe,
