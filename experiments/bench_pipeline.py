@@ -189,7 +189,7 @@ def input_bound(
   import jax
   import jax.numpy as jnp
 
-  from camrep.synthesis import components, train
+  from camrep.synthesis import components
   from camrep.synthesis import step as step_lib
 
   n_dev = jax.local_device_count()
@@ -207,20 +207,15 @@ def input_bound(
     f"config data path: {'memory' if d.in_memory else 'render'}",
     flush=True,
   )
-  spec = components.pose_spec(config)
   model = components.make_model(config, components.num_train_scenes(own))
-  init_key, loop_key = jax.random.split(jax.random.key(config.seed))
+  tx = step_lib.make_optimizers(config)
+  init_key, keys = step_lib.root_keys(config)
   keys3 = ("image", "pose", "scene")
   b0 = own.batch(0)
   batch = {k: jnp.asarray(b0[k]) for k in keys3}
-  state = jax.jit(lambda k, b: step_lib.create_train_state(k, config, model, spec, b))(
-    init_key, batch
-  )
-  state = train._replicate(state, n_dev)
-  keys = jax.vmap(jax.random.wrap_key_data)(
-    jnp.asarray(train._replicate(jax.random.key_data(loop_key), n_dev))
-  )
-  p_step = step_lib.make_p_train_step(config, model, spec)
+  state = jax.jit(lambda k, b: step_lib.create_train_state(k, model, tx, b))(init_key, batch)
+  state = step_lib.replicate(state, n_dev)
+  p_step = step_lib.make_p_train_step(model, tx, pose_steps=config.optax.pose_steps)
   out: dict[str, float] = {}
 
   def one_step(_):

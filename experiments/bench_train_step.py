@@ -138,22 +138,15 @@ def time_step(config, *, steps: int, num_devices: int = 1) -> dict:
   import jax.numpy as jnp
   import numpy as np
 
-  from camrep.synthesis import train
-
   pipe = components.make_pipeline(config, "train", num_devices=num_devices)
-  spec = components.pose_spec(config)
   model = components.make_model(config, components.num_train_scenes(pipe))
-  init_key, loop_key = jax.random.split(jax.random.key(0))
+  tx = step_lib.make_optimizers(config)
+  init_key, keys = jax.random.split(jax.random.key(0))
   b0 = pipe.batch(0)
   batch = {k: jnp.asarray(b0[k]) for k in ("image", "pose", "scene")}
-  state = jax.jit(lambda k, b: step_lib.create_train_state(k, config, model, spec, b))(
-    init_key, batch
-  )
-  pstate = train._replicate(state, num_devices)
-  keys = jax.vmap(jax.random.wrap_key_data)(
-    train._replicate(jax.random.key_data(loop_key), num_devices)
-  )
-  p_step = step_lib.make_p_train_step(config, model, spec)
+  state = jax.jit(lambda k, b: step_lib.create_train_state(k, model, tx, b))(init_key, batch)
+  pstate = step_lib.replicate(state, num_devices)
+  p_step = step_lib.make_p_train_step(model, tx, pose_steps=config.optax.pose_steps)
   t = time.perf_counter()
   compiled = p_step.lower(pstate, batch, keys).compile()
   compile_s = time.perf_counter() - t
@@ -298,8 +291,10 @@ def breakdown(width: float, scenes: int, reps: int) -> dict[str, tuple[float, fl
     img, _ = dec.apply(p, scene, q_vec)
     return jnp.sum(img**2)
 
+  synth = components.make_model(config, 1)
+
   def rot_loss(r):
-    return step_lib.rotation_objective(config, spec, r, {}, jax.random.key(2), None)[0]
+    return synth.pose_loss(r, {}, jax.random.key(2))[0]
 
   return {
     "encoder (6 context views)": _timed(jax.grad(enc_loss), pe, reps=reps),

@@ -20,8 +20,8 @@ stopped):
   1. view-synthesis runs (`python -m camrep.main --config=configs/<setting>.py[:quick]
      --workdir=DIR/synthesis/<setting>`) for gqn, car, gibson, seven_scenes, plus car_mlp (the
      supplement's MLP embedding trained by view synthesis, `--config.rep.kind=mlp`) when the
-     trainer supports rep.kind; a run with final_metrics.json is done, otherwise it is started
-     or resumed from its checkpoint;
+     trainer supports rep.kind; a run whose final_metrics.json says "complete" is done (and
+     named as skipped), otherwise it is started or resumed from its checkpoint;
   2. regression runs (`python -m camrep.regression --config=configs/regression.py[:quick]`) into
      DIR/regression/<setting>/<representation>/lr<lr>_seed<seed>: phase 1 trains seed 0 at every
      learning rate of the setting's grid; phase 2 trains the other seeds at the lr that seed 0's
@@ -64,6 +64,7 @@ from collections.abc import Sequence
 
 from camrep.regression import tables as C
 from camrep.runtime import progress as progress_lib
+from camrep.runtime import session
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SETTINGS = ("gqn", "car", "gibson", "seven_scenes")
@@ -168,7 +169,13 @@ class Job:
   estimate_s: float
 
   def done(self) -> bool:
-    return bool(self.done_file) and os.path.exists(self.done_file)
+    """Whether the job's record exists; a view-synthesis run's final_metrics.json must also
+    say it completed (a killed resumed run leaves it marked incomplete)."""
+    if not self.done_file or not os.path.exists(self.done_file):
+      return False
+    if os.path.basename(self.done_file) == session.FINAL_FILE:
+      return session.is_complete(os.path.dirname(self.done_file))
+    return True
 
   def command(self) -> str:
     return shlex.join(self.argv)
@@ -331,6 +338,9 @@ def run_jobs(jobs: Sequence[Job], logs: str, *, at_once: int, label: str) -> lis
   """Runs the jobs that are not done, `at_once` subprocesses at a time (they must not depend on
   each other); returns the names of those that failed."""
   todo = [j for j in jobs if not j.done()]
+  for j in jobs:
+    if j not in todo:
+      print(f"[{label}skipped] {j.name}: done ({j.done_file})", flush=True)
   env = job_env(at_once)
 
   def one(i_job: tuple[int, Job]) -> str | None:

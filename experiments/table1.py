@@ -21,6 +21,7 @@ Runs in a second; prints the Markdown too.
 from __future__ import annotations
 
 import argparse
+import glob
 import os
 import sys
 from collections.abc import Sequence
@@ -108,12 +109,21 @@ def build(results: Sequence[dict]) -> str:
   return "\n".join(text)
 
 
+def unfinished(patterns: Sequence[str]) -> list[str]:
+  """The run directories the patterns match that hold no results.json (the regression driver
+  writes it atomically, last: a killed or running run has none)."""
+  dirs = {p for pattern in patterns for p in glob.glob(pattern) if os.path.isdir(p)}
+  return sorted(d for d in dirs if not os.path.isfile(os.path.join(d, C.RESULTS_FILE)))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument("--runs", nargs="+", required=True, help="glob(s) of run dirs / results.json")
   p.add_argument("--out", required=True, help="Markdown file to write")
   args = p.parse_args(argv)
   results = C.load_results(args.runs)
+  for run in unfinished(args.runs):
+    print(f"skipped {run}: no {C.RESULTS_FILE} (unfinished run)", file=sys.stderr)
   if not results:
     print(f"error: no results.json matches {args.runs}", file=sys.stderr)
     return 2

@@ -16,11 +16,8 @@ os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
-from camrep.synthesis import (
-  components,
-  train,  # noqa: E402
-)
-from camrep.synthesis import step as step_lib
+from camrep.synthesis import components  # noqa: E402
+from camrep.synthesis import step as step_lib  # noqa: E402
 from configs import gqn  # noqa: E402
 
 steps, out = int(sys.argv[1]), sys.argv[2]
@@ -33,23 +30,19 @@ pipes = [
   components.make_pipeline(config, "train", num_devices=1, process_index=p, process_count=2)
   for p in range(2)
 ]
-spec = components.pose_spec(config)
 model = components.make_model(config, components.num_train_scenes(pipes[0]))
-init_key, loop_key = jax.random.split(jax.random.key(config.seed))
-first = pipes[0].batch(0)
-state = jax.jit(lambda k, b: step_lib.create_train_state(k, config, model, spec, b))(
-  init_key, {k: first[k] for k in ("image", "pose", "scene")}
-)
-pstate = train._replicate(state, 2)
-keys = jax.vmap(jax.random.wrap_key_data)(train._replicate(jax.random.key_data(loop_key), 2))
-p_step = step_lib.make_p_train_step(config, model, spec)
+tx = step_lib.make_optimizers(config)
+state = step_lib.init_fn(config, model, tx)()
+pstate = step_lib.replicate(state, 2)
+loop_key = step_lib.root_keys(config)[1]
+p_step = step_lib.make_p_train_step(model, tx, pose_steps=config.optax.pose_steps)
 logged = {}
 for step in range(1, steps + 1):
   parts = [p.batch(step - 1) for p in pipes]
   batch = {k: np.concatenate([b[k] for b in parts]) for k in ("image", "pose", "scene")}
-  pstate, m = p_step(pstate, batch, keys)
-  for k, v in train._to_host(m).items():
+  pstate, m = p_step(pstate, batch, loop_key)
+  for k, v in step_lib.to_host(m).items():
     logged[f"metric/{step}/{k}"] = np.asarray(v)
-flat = jax.tree_util.tree_flatten_with_path(train._unreplicate(pstate.params))[0]
+flat = jax.tree_util.tree_flatten_with_path(step_lib.unreplicate(pstate.params))[0]
 params = {"param/" + jax.tree_util.keystr(k): np.asarray(v) for k, v in flat}
 np.savez(out, **params, **logged)

@@ -126,7 +126,7 @@ def test_config_variants_build():
   for variant in (None, "quick", "smoke"):
     c = gqn_convdraw.get_config(variant)
     components.check_config(c)
-    assert isinstance(components.make_model(c, 7), convdraw.GQNConvDraw)
+    assert isinstance(components.make_model(c, 7).module, convdraw.GQNConvDraw)
   c = gqn_convdraw.get_config()
   assert (c.model.draw_steps, c.loss.sigma_initial, c.loss.sigma_final) == (12, 2.0, 0.7)
   assert (c.loss.sigma_anneal_steps, c.optax.anneal_steps) == (200_000, 1_600_000)
@@ -151,7 +151,7 @@ def test_smoke_run_trains_evaluates_restores_and_takes_the_noise_test(tmp_path):
   assert all(r["train/finite"] == 1.0 for r in train_rows)
 
   run = restore.load_run(workdir)
-  assert run.step == 4 and isinstance(run.model, convdraw.GQNConvDraw)
+  assert run.step == 4 and isinstance(run.model.module, convdraw.GQNConvDraw)
   key = jax.random.key(0)
   res = noise.noise_robustness(run, key=key, alphas=[0.0, 0.3], quantisation="nearest")
   # alpha = 0 with the eval's rounding repeats the training loop's eval (same sample keys).

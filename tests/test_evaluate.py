@@ -80,7 +80,7 @@ def test_default_quantisation():
 
 
 def test_noise_levels(workdir, run):
-  batches = heldout.eval_batches(run.config, run.train_pipe, run.test_pipe)
+  batches = heldout.eval_batches(run.model, run.train_pipe, run.test_pipe)
   key = jax.random.key(3)
   res = noise_lib.noise_robustness(
     run, key=key, alphas=[0.0, 0.2, 0.2], quantisation="nearest", batches=batches
@@ -182,7 +182,7 @@ def test_other_pose_inputs_train_and_take_noise(kind, tmp_path):
   spec = run.spec
   poses = jnp.asarray([[0.1, -0.2, 1.0], [0.5, 0.3, 4.0]], jnp.float32)
   vecs = pose_inputs.pose_vectors(run.config, spec, run.params["rep"], poses)
-  betas = noise_lib.grid_betas(run.params["rep"], spec, run.config)
+  betas = noise_lib.grid_betas(run.params["rep"], spec, run.model)
   if kind == "lowdim":
     assert run.params["rep"] == {}
     z, pitch = pose_inputs.lowdim_constants(run.config)

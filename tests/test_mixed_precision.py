@@ -17,7 +17,7 @@ import pytest
 from camrep.models import fastconv
 from camrep.models.composite import GQNSynthesis, TableSynthesis
 from camrep.runtime import runconfig
-from camrep.synthesis import components, train
+from camrep.synthesis import components, synthesizers
 from camrep.synthesis import step as step_lib
 from configs import gqn, shapenet_car
 
@@ -38,21 +38,20 @@ def _runs(dtypes: tuple[str, ...], steps: int) -> dict:
   the same batches. Returns {dtype: (final state, [metrics of each step])}."""
   config = gqn.get_config("smoke")
   pipe = components.make_pipeline(config, "train", num_devices=1)
-  spec = components.pose_spec(config)
   init_key, loop_key = jax.random.split(jax.random.key(0))
   fields = ("image", "pose", "scene")
   batches = [{k: pipe.batch(s)[k] for k in fields} for s in range(steps)]
   model = components.make_model(config, components.num_train_scenes(pipe))
-  state = step_lib.create_train_state(init_key, config, model, spec, batches[0])
-  keys = jax.vmap(jax.random.wrap_key_data)(train._replicate(jax.random.key_data(loop_key), 1))
+  tx = step_lib.make_optimizers(config)
+  state = step_lib.create_train_state(init_key, model, tx, batches[0])
   out = {}
   for name in dtypes:
     config.model.dtype = name
     model = components.make_model(config, components.num_train_scenes(pipe))
-    p_step = step_lib.make_p_train_step(config, model, spec)
-    pstate, metrics = train._replicate(state, 1), []  # a fresh copy: the step donates it
+    p_step = step_lib.make_p_train_step(model, tx, pose_steps=config.optax.pose_steps)
+    pstate, metrics = step_lib.replicate(state, 1), []  # a fresh copy: the step donates it
     for b in batches:
-      pstate, m = p_step(pstate, b, keys)
+      pstate, m = p_step(pstate, b, loop_key)
       metrics.append({k: float(np.asarray(v)[0]) for k, v in m.items()})
     out[name] = (pstate, metrics)
   return out
@@ -133,10 +132,10 @@ def test_fastconv_bfloat16_gradients():
 
 def test_model_dtype_config_checks():
   c = gqn.get_config("smoke")
-  assert c.model.dtype == "float32" and components.compute_dtype(c) is None
+  assert c.model.dtype == "float32" and synthesizers.compute_dtype(c) is None
   c.model.dtype = "bfloat16"
   components.check_config(c)
-  assert components.make_model(c, 3).dtype == jnp.bfloat16
+  assert components.make_model(c, 3).module.dtype == jnp.bfloat16
   c.model.dtype = "float16"
   with pytest.raises(runconfig.ConfigError, match="model.dtype"):
     components.check_config(c)
@@ -146,4 +145,4 @@ def test_model_dtype_config_checks():
     components.check_config(c)
   c = shapenet_car.get_config("smoke")
   c.model.dtype = "bfloat16"
-  assert components.make_model(c, 3).dtype == jnp.bfloat16
+  assert components.make_model(c, 3).module.dtype == jnp.bfloat16

@@ -17,7 +17,7 @@ import numpy as np  # noqa: E402
 
 jax.config.update("jax_disable_most_optimizations", True)
 
-from camrep.synthesis import components, train  # noqa: E402
+from camrep.synthesis import components  # noqa: E402
 from camrep.synthesis import step as step_lib  # noqa: E402
 from configs import gqn  # noqa: E402
 
@@ -25,19 +25,18 @@ assert jax.local_device_count() == n_dev, jax.devices()
 config = gqn.get_config("smoke")
 config.data.scenes_per_device = 2 // n_dev  # the same global batch of 2 scenes
 pipe = components.make_pipeline(config, "train", num_devices=n_dev)
-spec = components.pose_spec(config)
 model = components.make_model(config, components.num_train_scenes(pipe))
-init_key, loop_key = jax.random.split(jax.random.key(config.seed))
-state = step_lib.create_train_state(init_key, config, model, spec, pipe.batch(0))
-pstate = train._replicate(state, n_dev)
-keys = jax.vmap(jax.random.wrap_key_data)(train._replicate(jax.random.key_data(loop_key), n_dev))
-p_step = step_lib.make_p_train_step(config, model, spec)
+tx = step_lib.make_optimizers(config)
+init_key, loop_key = step_lib.root_keys(config)
+state = step_lib.create_train_state(init_key, model, tx, pipe.batch(0))
+pstate = step_lib.replicate(state, n_dev)
+p_step = step_lib.make_p_train_step(model, tx, pose_steps=config.optax.pose_steps)
 logged = {}
 for step in range(steps):
   b = pipe.batch(step)
-  pstate, m = p_step(pstate, {k: b[k] for k in ("image", "pose", "scene")}, keys)
-  for k, v in train._to_host(m).items():
+  pstate, m = p_step(pstate, {k: b[k] for k in ("image", "pose", "scene")}, loop_key)
+  for k, v in step_lib.to_host(m).items():
     logged[f"metric/{step}/{k}"] = np.asarray(v)
-flat = jax.tree_util.tree_flatten_with_path(train._unreplicate(pstate.params))[0]
+flat = jax.tree_util.tree_flatten_with_path(step_lib.unreplicate(pstate.params))[0]
 params = {"param/" + jax.tree_util.keystr(k): np.asarray(v) for k, v in flat}
 np.savez(out, **params, **logged)

@@ -230,17 +230,30 @@ def append_history(
   }
   if topology is not None:
     row["topology"] = {k: int(v) for k, v in topology.items()}
-  with open(os.path.join(workdir, HISTORY_FILE), "a", encoding="utf-8") as f:
-    f.write(json.dumps(row, default=str) + "\n")
+  path = os.path.join(workdir, HISTORY_FILE)
+  text = json.dumps(row, default=str) + "\n"
+  with open(path, "a+b") as f:  # appends whatever the position
+    if f.seek(0, os.SEEK_END) > 0:
+      f.seek(-1, os.SEEK_END)
+      if f.read(1) != b"\n":  # a line cut short by a killed run: end it, do not glue onto it
+        text = "\n" + text
+    f.write(text.encode("utf-8"))
 
 
 def read_history(workdir: str) -> list[dict[str, Any]]:
-  """config_history.jsonl back (an empty list when there is none)."""
+  """config_history.jsonl back (an empty list when there is none), without lines cut short by
+  a killed run."""
   path = os.path.join(workdir, HISTORY_FILE)
   if not os.path.exists(path):
     return []
+  rows = []
   with open(path, encoding="utf-8") as f:
-    return [json.loads(line) for line in f if line.strip()]
+    for line in f:
+      try:
+        rows.append(json.loads(line))
+      except json.JSONDecodeError:  # blank, or cut short
+        continue
+  return [r for r in rows if isinstance(r, dict)]
 
 
 # `allow_changes` name that lets a resume change the global batch (another device count).

@@ -17,7 +17,7 @@ from camrep.data.errors import DataError
 from camrep.runtime import runconfig
 from camrep.runtime import validate as V
 from camrep.runtime.runconfig import ConfigError
-from camrep.synthesis import components
+from camrep.synthesis import components, synthesizers
 
 TASKS = ("gqn", "table")
 DATA_MODES = ("random", "pairs")
@@ -98,8 +98,8 @@ SCHEMA: dict[str, V.Field] = {
   "model.per_scene_norm": _F(V.ANY, _U(_table, _NOT_TABLE)),
   "model.norm_eps": _F(V.NONNEG, _U(_table, _NOT_TABLE)),
   "model.gamma_init_one": _F(V.ANY),
-  "model.kind": _F(V.one_of(components.MODEL_KINDS)),
-  "model.dtype": _F(V.one_of(components.COMPUTE_DTYPES)),
+  "model.kind": _F(V.one_of(synthesizers.MODEL_KINDS)),
+  "model.dtype": _F(V.one_of(synthesizers.COMPUTE_DTYPES)),
   "model.draw_steps": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW)),
   "model.z_channels": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW)),
   "model.draw_temperature": _F(V.NONNEG, _U(_convdraw, _NOT_CONVDRAW)),

@@ -13,7 +13,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from camrep import pose as P
-from camrep import pose_inputs
 from camrep.runtime import plots
 from camrep.synthesis.restore import Run
 
@@ -47,12 +46,10 @@ def gram_maps(run: Run) -> dict[str, np.ndarray]:
   grid points); a polar DOF with block_norm has 1 / n_blocks.
   """
   rep = run.params["rep"]
-  if pose_inputs.rep_kind(run.config) != "grid":  # the same map of another pose input's vectors
+  if not run.model.learns_pose_system:  # the same map of another pose input's vectors
     out = {}
     for n in run.spec.names:
-      v = pose_inputs.pose_vectors(
-        run.config, run.spec, rep, dof_poses(run.spec, n, gram_values(run.spec, n))
-      )[n]
+      v = run.model.per_dof(rep, dof_poses(run.spec, n, gram_values(run.spec, n)))[n]
       out[n] = np.asarray(v @ v.T)
     return out
   return {

@@ -4,33 +4,31 @@ held-out views against a trivial baseline, on a fixed evaluation set built once 
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from camrep import metrics as metrics_lib
-from camrep import pose as P
-from camrep import pose_inputs
 from camrep.data.errors import DataError
-from camrep.synthesis import components
+from camrep.runtime import grids
+from camrep.synthesis import synthesizers
 
 Array = jax.Array
 
 
-def eval_batches(config, train_pipe, test_pipe) -> list[dict[str, np.ndarray]]:
-  """Held-out-view evaluation set: per scene, the first test view as target and the first
-  training views as context (GQN: the encoder's n_context views; other settings: up to
-  evals.baseline_views views whose mean image is the baseline)."""
-  ev = config.evals
+def eval_batches(
+  model: synthesizers.Synthesizer, train_pipe, test_pipe
+) -> list[dict[str, np.ndarray]]:
+  """Held-out-view evaluation set of `model.config.evals`: per scene, the first test view as
+  target and the first training views as context (the model's `n_context` views; per-scene
+  tables: up to evals.baseline_views views whose mean image is the baseline)."""
+  ev = model.config.evals
   test_ids = np.intersect1d(test_pipe.all_scene_ids, train_pipe.all_scene_ids)
   if len(test_ids) == 0:
     raise DataError(None, "no scene has both training and held-out views to evaluate on")
   ids = test_ids[: ev.num_scenes]
-  if config.task == "gqn":
-    c = config.data.n_context
-  else:  # baseline only: the mean of (up to baseline_views of) the scene's training views
+  c = model.n_context
+  if c is None:  # baseline only: the mean of (up to baseline_views of) the scene's training views
     c = min(ev.baseline_views, min(train_pipe.num_scene_views(s) for s in ids))
   out = []
   for start in range(0, len(ids), ev.batch_scenes):
@@ -49,35 +47,17 @@ def eval_batches(config, train_pipe, test_pipe) -> list[dict[str, np.ndarray]]:
   return out
 
 
-def make_predict(config, model, spec):
+def make_predict(model: synthesizers.Synthesizer):
   """jit(params, batch) -> (prediction, baseline, others), images (E, 1, H, W, 3) in [-1, 1].
 
-  others: {} for decoders; for GQN's generator the predictions of both latent choices,
-  {"sample": temperature 1, "prior_mean": temperature 0} (the prediction is the config's).
+  others: the model's `variants` ({} for decoders; GQN's generator: {"sample": temperature 1,
+  "prior_mean": temperature 0}; the prediction is at the config's temperature).
   """
 
   def predict(params, b):
-    vec = lambda p: P.concat(
-      pose_inputs.pose_vectors(config, spec, params["rep"], p, mode="nearest"), spec
-    )
-    ctx = components.to_float_images(b["context_image"])
-    others = {}
-    if config.task == "gqn":
-      render = functools.partial(
-        components.render_gqn,
-        config,
-        model,
-        params["model"],
-        ctx,
-        vec(b["context_pose"]),
-        vec(b["target_pose"]),
-        b["scene"],
-      )
-      pred = render()
-      if components.model_kind(config) == "convdraw":
-        others = {"sample": render(temperature=1.0), "prior_mean": render(temperature=0.0)}
-    else:
-      pred, _ = model.apply({"params": params["model"]}, b["scene"], vec(b["target_pose"]))
+    pred = model.predict(params, b)
+    others = {name: model.predict(params, b, temperature=t) for name, t in model.variants.items()}
+    ctx = synthesizers.to_float_images(b["context_image"])
     baseline = jnp.broadcast_to(jnp.mean(ctx, axis=1, keepdims=True), pred.shape)
     return pred, baseline, others
 
@@ -96,7 +76,7 @@ def evaluate(predict, params, batches) -> tuple[dict[str, float], dict[str, np.n
   first = None
   for b in batches:
     pred, base, others = predict(params, {k: jnp.asarray(v) for k, v in b.items()})
-    tgt = components.to_float_images(jnp.asarray(b["target_image"]))
+    tgt = synthesizers.to_float_images(jnp.asarray(b["target_image"]))
     for name, o in others.items():
       extra.setdefault(f"eval/psnr_{name}", []).append(np.asarray(metrics_lib.psnr(o, tgt)).ravel())
       extra.setdefault(f"eval/ssim_{name}", []).append(np.asarray(metrics_lib.ssim(o, tgt)).ravel())
@@ -120,3 +100,19 @@ def evaluate(predict, params, batches) -> tuple[dict[str, float], dict[str, np.n
   }
   first.update(psnr=psnr, ssim=ssim, psnr_baseline=psnr_b)
   return scalars, first
+
+
+def evaluate_and_log(
+  writer, predict, batches, params, step: int, *, grid_scenes: int, log
+) -> dict[str, float]:
+  """`evaluate` written as eval/* scalars plus the eval/grid image of the first `grid_scenes`
+  scenes; `log` gets one line."""
+  scalars, first = evaluate(predict, params, batches)
+  writer.write_scalars(step, scalars)
+  g = grid_scenes
+  grid = grids.view_synthesis_grid(
+    first["context"][:g], first["target"][:g], first["prediction"][:g]
+  )
+  writer.write_images(step, {"eval/grid": grid})
+  log(f"step {step}: " + " ".join(f"{k}={v:.3f}" for k, v in scalars.items()))
+  return scalars

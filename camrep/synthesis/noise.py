@@ -29,10 +29,9 @@ import numpy as np
 
 from camrep import metrics as metrics_lib
 from camrep import pose as P
-from camrep import pose_inputs
 from camrep.runtime import plots
 from camrep.runtime import progress as progress_lib
-from camrep.synthesis import components, heldout
+from camrep.synthesis import components, heldout, synthesizers
 from camrep.synthesis import gram as gram_lib
 from camrep.synthesis.restore import Run
 
@@ -54,19 +53,21 @@ def default_quantisation(config: ml_collections.ConfigDict) -> str:
   return "random" if components.setting(config) in ("gqn", "car") else "nearest"
 
 
-def grid_betas(params_rep: dict, spec: P.PoseSystemSpec, config=None) -> dict[str, np.ndarray]:
+def grid_betas(
+  params_rep: dict, spec: P.PoseSystemSpec, model: synthesizers.Synthesizer | None = None
+) -> dict[str, np.ndarray]:
   """beta per DOF: {name: (d,)} std of each element over the DOF's normalised grid vectors.
 
-  With a config whose `rep.kind` is not the learned grid ("lowdim", "mlp"), the population is
+  With a `model` whose pose input is not the learned grid ("lowdim", "mlp"), the population is
   the same grid points (`P.candidates` at the grid spacing) pushed through that pose input, so
   every kind is noised relative to its own spread over the same poses.
   """
-  if config is None or pose_inputs.rep_kind(config) == "grid":
+  if model is None or model.learns_pose_system:
     return {n: np.asarray(P.grid_std(params_rep, spec, n)) for n in spec.names}
   out = {}
   for d in spec.dofs:
     poses = gram_lib.dof_poses(spec, d.name, P.candidates(spec, d.name, d.spacing))
-    v = pose_inputs.pose_vectors(config, spec, params_rep, poses)[d.name]
+    v = model.per_dof(params_rep, poses)[d.name]
     out[d.name] = np.asarray(jnp.std(v, axis=0))
   return out
 
@@ -78,21 +79,14 @@ def pose_vectors(
   keys: Array | None,
   *,
   mode: str,
-  config=None,
 ) -> dict[str, Array]:
-  """Vectors of exact poses, one quantisation key per image: (E, V, P) -> {name: (E, V, d)}.
+  """The learned system's vectors of exact poses, one quantisation key per image:
+  (E, V, P) -> {name: (E, V, d)}.
 
   Args:
     keys: (E,) PRNG keys, used (and required) only for mode="random".
-    config: the run's config; its `rep.kind` picks the pose input (default: the learned grid).
   """
-  if config is not None and pose_inputs.rep_kind(config) != "grid":
-    return pose_inputs.pose_vectors(config, spec, params_rep, poses)
-  if mode == "random":
-    if keys is None:
-      raise ValueError("quantisation 'random' needs per-image keys")
-    return jax.vmap(lambda p, k: P.embed(params_rep, spec, p, mode=mode, key=k))(poses, keys)
-  return P.embed(params_rep, spec, poses, mode=mode)
+  return synthesizers.grid_vectors(params_rep, spec, poses, mode=mode, keys=keys)
 
 
 def add_noise(
@@ -132,7 +126,7 @@ def image_keys(key: Array, image_ids: Array) -> tuple[Array, Array, Array]:
   return keys[:, 0], keys[:, 1], keys[:, 2]
 
 
-def make_noisy_predict(config, model, spec: P.PoseSystemSpec, mode: str):
+def make_noisy_predict(model: synthesizers.Synthesizer, mode: str):
   """jit(params, batch, key, alpha, betas, image_ids) -> (psnr (E,), ssim (E,), pred).
 
   The query pose vectors get `add_noise` with the `image_keys` of each image; context poses
@@ -155,16 +149,9 @@ def make_noisy_predict(config, model, spec: P.PoseSystemSpec, mode: str):
 
   def predict(params, b, key, alpha, betas, image_ids):
     k_ctx, k_query, k_noise = image_keys(key, image_ids)
-    query = pose_vectors(params["rep"], spec, b["target_pose"], k_query, mode=mode, config=config)
-    q = P.concat(add_noise(query, spec, k_noise, alpha=alpha, betas=betas), spec)
-    if config.task == "gqn":
-      ctx = components.to_float_images(b["context_image"])
-      c = pose_vectors(params["rep"], spec, b["context_pose"], k_ctx, mode=mode, config=config)
-      c = P.concat(c, spec)
-      pred = components.render_gqn(config, model, params["model"], ctx, c, q, b["scene"])
-    else:
-      pred, _ = model.apply({"params": params["model"]}, b["scene"], q)
-    target = components.to_float_images(b["target_image"])
+    noise = lambda v: add_noise(v, model.spec, k_noise, alpha=alpha, betas=betas)
+    pred = model.predict(params, b, mode=mode, keys=(k_ctx, k_query), transform=noise)
+    target = synthesizers.to_float_images(b["target_image"])
     return metrics_lib.psnr(pred, target), metrics_lib.ssim(pred, target), pred
 
   return jax.jit(predict)
@@ -187,7 +174,7 @@ def noise_robustness(
     alphas: noise levels; default `default_alphas()` (0, 0.025, ..., 0.3).
     quantisation: "random", "nearest" or "floor" for the exact poses; default
       `default_quantisation(run.config)`.
-    batches: the evaluation set; default `heldout.eval_batches(config, train_pipe, test_pipe)`.
+    batches: the evaluation set; default `heldout.eval_batches(model, train_pipe, test_pipe)`.
     progress: called with one line per level (e.g. `print`).
 
   Returns:
@@ -198,10 +185,10 @@ def noise_robustness(
   alphas = default_alphas() if alphas is None else np.asarray(alphas, np.float64).ravel()
   mode = quantisation or default_quantisation(run.config)
   if batches is None:
-    batches = heldout.eval_batches(run.config, run.train_pipe, run.test_pipe)
-  betas = grid_betas(run.params["rep"], run.spec, run.config)
+    batches = heldout.eval_batches(run.model, run.train_pipe, run.test_pipe)
+  betas = grid_betas(run.params["rep"], run.spec, run.model)
   betas_j = {n: jnp.asarray(b) for n, b in betas.items()}
-  predict = make_noisy_predict(run.config, run.model, run.spec, mode)
+  predict = make_noisy_predict(run.model, mode)
   dev_batches = [{k: jnp.asarray(v) for k, v in b.items()} for b in batches]
   offsets = np.cumsum([0] + [len(b["scene"]) for b in batches])
   psnr_all, ssim_all = [], []
@@ -278,8 +265,8 @@ def write_noise(out: str, run: Run, result: Mapping[str, Any]) -> list[str]:
     "psnr_std": [float(v) for v in np.std(result["psnr_per_image"], axis=1)],
     "beta": _beta_stats(result["beta"]),
   }
-  if components.model_kind(run.config) == "convdraw":  # GQN's generator: which latents
-    record["draw_temperature"] = components.draw_temperature(run.config)
+  if run.model.temperature is not None:  # GQN's generator: which latents
+    record["draw_temperature"] = run.model.temperature
   paths = [os.path.join(out, "noise.json"), os.path.join(out, "noise.png")]
   with open(paths[0], "w", encoding="utf-8") as f:
     json.dump(record, f, indent=1)

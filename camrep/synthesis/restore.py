@@ -11,13 +11,8 @@ import dataclasses
 import functools
 from typing import Any
 
-import flax
-import flax.serialization
-import flax.struct
 import jax
-import jax.numpy as jnp
 import ml_collections
-import numpy as np
 
 from camrep import pose as P
 from camrep.data import batches
@@ -36,7 +31,7 @@ class Run:
     workdir: the training workdir.
     config: the run's config, read back from workdir/config.json.
     spec: its pose system.
-    model: its view-synthesis model (flax module).
+    model: its view-synthesis model (`synthesizers.Synthesizer`).
     params: {"model": flax params, "rep": pose-system params} of the restored checkpoint.
     step: the restored checkpoint's step.
     train_pipe: training-split pipeline (context views of the evaluation set), built (and, for
@@ -59,10 +54,6 @@ class Run:
   @functools.cached_property
   def test_pipe(self) -> Any:
     return components.make_pipeline(self.config, "test", num_devices=1, for_eval=True)
-
-
-def _zeros(x):
-  return np.zeros(x.shape, x.dtype)
 
 
 def load_run(workdir: str, *, step: int | None = None) -> Run:
@@ -95,27 +86,19 @@ def load_run(workdir: str, *, step: int | None = None) -> Run:
       raise ckpt_lib.CheckpointError(
         f"no checkpoint for step {step} in {checkpointer.directory}; available: {steps}"
       )
-    # As train.train_and_evaluate, with the training layout's shapes from the config alone.
+    # As train.train_and_evaluate, with the training layout's shapes from the config alone
+    # (`batches.describe` / `dummy_batch`): a restore reads and renders no data.
     info = batches.describe(config.data, "train")
-    spec = components.pose_spec(config)
     model = components.make_model(config, int(info.scene_ids.max()) + 1)
-    init_key = jax.random.split(jax.random.key(config.seed))[0]
-    dummy = batches.dummy_batch(config, num_devices=jax.local_device_count(), info=info)
-    template = jax.eval_shape(
-      lambda: step_lib.create_train_state(init_key, config, model, spec, dummy)
-    )
-    state_d, _, restored = checkpointer.restore(
-      step_lib.state_dict(jax.tree.map(_zeros, template)), step=step
-    )
+    init = step_lib.init_fn(config, model, step_lib.make_optimizers(config))
+    state, restored = step_lib.restore_state(checkpointer, init, step=step)
   finally:
     checkpointer.close()
-  state = flax.serialization.from_state_dict(template, state_d)
-  params = jax.tree.map(jnp.asarray, state.params)
   return Run(
     workdir=workdir,
     config=config,
-    spec=spec,
+    spec=model.spec,
     model=model,
-    params=params,
+    params=state.params,
     step=int(restored),
   )

@@ -1,0 +1,424 @@
+"""View-synthesis models behind one interface (paper sections 3.3-3.6), and `from_config`, the one
+place that maps a config to its model.
+
+A `Synthesizer` holds a Flax module, the pose input that feeds it (`config.rep.kind`, see
+`camrep.pose_inputs`) and its losses. Its parameters are two groups, {"model": module params,
+"rep": pose-input params}, each trained by its own optimiser (`step.train_step`):
+
+  model group  minimises the model's loss (`loss`): L_rec of eq. 9 for camrep's decoders, the
+               negative ELBO for GQN's generator;
+  rep group    minimises `loss_weight` * that loss + the pose input's own loss (`pose_loss`:
+               lambda_2 sum_l L_rot,l + lambda_4 L_rot,theta, eqs. 6-9; zero without generators).
+
+Implementations: `GQNDecoder` (encoder over context views, AdaIN decoder), `TableDecoder`
+(per-scene tables) and `ConvDraw` (GQN's generator, Eslami et al. 2018).
+
+Batches, on one device (see camrep.data.pipeline): training {"image": uint8 (S, V, H, W, 3),
+"pose": (S, V, P), "scene": (S,)}; held-out views (`heldout.eval_batches`) {"context_image"
+(E, C, H, W, 3), "context_pose" (E, C, P), "target_image" (E, Q, H, W, 3), "target_pose"
+(E, Q, P), "scene" (E,)}.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable, Mapping
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from camrep import pose as P
+from camrep import pose_inputs
+from camrep.models import convdraw
+from camrep.models.composite import GQNSynthesis, TableSynthesis
+from camrep.runtime.runconfig import ConfigError
+
+Array = jax.Array
+Params = dict
+Terms = dict[str, Array]
+
+AXIS = "batch"  # the pmapped step's device axis
+
+# config.model.kind: camrep's decoders (trained on L_rec) or GQN's generator (trained on its ELBO).
+MODEL_KINDS = ("decoder", "convdraw")
+
+# config.model.dtype -> the models' `dtype` (None: float32, Flax's inference from the parameters).
+COMPUTE_DTYPES = {"float32": None, "bfloat16": jnp.bfloat16}
+
+# Latent draws of GQN's generator at evaluation: scene s samples from fold_in(key(SAMPLE_SEED), s),
+# so predictions do not depend on the batching, and the noise test at alpha = 0 repeats the eval.
+SAMPLE_SEED = 20180615
+
+
+def to_float_images(images: Array) -> Array:
+  """uint8 [0, 255] -> float32 [-1, 1]."""
+  return images.astype(jnp.float32) * (2.0 / 255.0) - 1.0
+
+
+def compute_dtype(config):
+  """The dtype of the model's computation from `config.model.dtype` (absent: float32)."""
+  name = config.model.get("dtype", "float32")
+  if name not in COMPUTE_DTYPES:
+    raise ValueError(f"unknown model.dtype {name!r}; choose one of {tuple(COMPUTE_DTYPES)}")
+  return COMPUTE_DTYPES[name]
+
+
+def model_kind(config) -> str:
+  kind = config.model.get("kind", "decoder")
+  if kind not in MODEL_KINDS:
+    raise ValueError(f"unknown model.kind {kind!r}; choose one of {MODEL_KINDS}")
+  return kind
+
+
+def scene_keys(key: Array, num_scenes: int) -> Array:
+  """Per-scene keys from the scene's position in the GLOBAL batch (device-count independent);
+  call inside the pmapped step."""
+  start = jax.lax.axis_index(AXIS) * num_scenes
+  return jax.vmap(lambda i: jax.random.fold_in(key, i))(start + jnp.arange(num_scenes))
+
+
+def sample_keys(scene_ids: Array) -> Array:
+  """(E,) scene ids -> (E,) PRNG keys of GQN's generator at evaluation (`SAMPLE_SEED`)."""
+  base = jax.random.key(SAMPLE_SEED)
+  return jax.vmap(lambda i: jax.random.fold_in(base, i))(scene_ids)
+
+
+def grid_vectors(
+  params_rep: Params, spec: P.PoseSystemSpec, poses: Array, *, mode: str, keys: Array | None
+) -> dict[str, Array]:
+  """The learned system's vectors of poses (E, V, P) -> {name: (E, V, d)}; quantisation "random"
+  draws with one key per leading row (keys (E,))."""
+  if mode == "random":
+    if keys is None:
+      raise ValueError("quantisation 'random' needs per-image keys")
+    return jax.vmap(lambda p, k: P.embed(params_rep, spec, p, mode=mode, key=k))(poses, keys)
+  return P.embed(params_rep, spec, poses, mode=mode)
+
+
+class Synthesizer(abc.ABC):
+  """A view-synthesis model: a Flax module fed by a pose input, with its losses.
+
+  Attributes:
+    config: the run's config.
+    spec: the pose system (the DOFs whose columns the poses hold).
+    module: the Flax module.
+    pose_input: the pose input's kind (`config.rep.kind`).
+    loss_weight: lambda_1, the weight of `loss` in the rep group's objective.
+    n_context: context views per scene (GQN layouts), None for per-scene tables.
+    temperature: latent temperature of `predict` for a generative model, else None.
+    variants: further predictions of the held-out evaluation, {name: temperature}.
+  """
+
+  n_context: int | None = None
+  temperature: float | None = None
+  variants: Mapping[str, float] = {}
+
+  def __init__(self, config, spec: P.PoseSystemSpec, module: nn.Module):
+    self.config, self.spec, self.module = config, spec, module
+    self.pose_input = pose_inputs.rep_kind(config)
+    self.loss_weight = float(config.loss.rec_weight)
+
+  @property
+  def learns_pose_system(self) -> bool:
+    """Whether the pose input is the learned grid (vectors rotated by generators)."""
+    return self.pose_input == "grid"
+
+  def init(self, key: Array, batch: Mapping[str, Array]) -> Params:
+    """Initial parameters {"model", "rep"} shaped from one device's training batch."""
+    k_model, k_rep = jax.random.split(key)
+    rep = pose_inputs.init_rep(k_rep, self.config, self.spec)
+    images = to_float_images(jnp.asarray(batch["image"]))
+    vecs = self.vectors(rep, jnp.asarray(batch["pose"]))
+    variables = self._init_module(k_model, images, vecs, jnp.asarray(batch["scene"]))
+    return {"model": variables["params"], "rep": rep}
+
+  @abc.abstractmethod
+  def _init_module(self, key: Array, images: Array, vecs: Array, scenes: Array) -> dict:
+    """The module's variables, from float images (S, V, H, W, 3) and pose vectors (S, V, P)."""
+
+  @abc.abstractmethod
+  def loss(
+    self, params: Params, batch: Mapping[str, Array], key: Array, step: Array
+  ) -> tuple[Array, Terms]:
+    """The model's training loss on one device's batch, inside the pmapped step.
+
+    Args:
+      params: {"model", "rep"}.
+      batch: a training batch.
+      key: the step's key (the loop key with the step folded in).
+      step: the step counter (annealed schedules).
+
+    Returns:
+      (total, terms): the loss the model group minimises, and its named terms and diagnostics,
+      logged as train/<name>.
+    """
+
+  @abc.abstractmethod
+  def predict(
+    self,
+    params: Params,
+    batch: Mapping[str, Array],
+    *,
+    mode: str = "nearest",
+    keys: tuple[Array | None, Array | None] = (None, None),
+    transform: Callable[[dict[str, Array]], dict[str, Array]] | None = None,
+    temperature: float | None = None,
+  ) -> Array:
+    """Predicted target views of a held-out batch: (E, Q, H, W, 3) in [-1, 1].
+
+    Args:
+      params: {"model", "rep"}.
+      batch: a held-out-view batch.
+      mode: quantisation of the poses ("nearest", "random", "floor").
+      keys: (context, target) per-image keys (E,), for mode "random".
+      transform: applied to the target views' per-DOF vectors (the noise test).
+      temperature: latents of a generative model (default `self.temperature`).
+    """
+
+  def vectors(
+    self, params_rep: Params, poses: Array, *, mode: str = "nearest", keys: Array | None = None
+  ) -> Array:
+    """Decoder input of poses (E, V, P): (E, V, n_dofs * d), `per_dof` concatenated."""
+    return P.concat(self.per_dof(params_rep, poses, mode=mode, keys=keys), self.spec)
+
+  def per_dof(
+    self, params_rep: Params, poses: Array, *, mode: str = "nearest", keys: Array | None = None
+  ) -> dict[str, Array]:
+    """The pose input's vectors of poses (E, V, P): {name: (E, V, k)}; `mode` and `keys` (E,)
+    quantise the learned system and are ignored by the other pose inputs."""
+    if self.learns_pose_system and (keys is not None or mode == "random"):
+      return grid_vectors(params_rep, self.spec, poses, mode=mode, keys=keys)
+    return pose_inputs.pose_vectors(self.config, self.spec, params_rep, poses, mode=mode)
+
+  def pose_loss(self, params_rep: Params, batch: Mapping[str, Array], key: Array):
+    """lambda_2 sum_l L_rot,l + lambda_4 sum L_rot,theta (eqs. 9, 9.2) and the terms.
+
+    Extra pairs use the same key on every device (the term is replicated); data pairs (the
+    batch's image pairs) use per-scene keys and are averaged over devices by the step's pmean.
+    """
+    L, spec = self.config.loss, self.spec
+    if not self.learns_pose_system:  # no generators: nothing ties nearby poses together
+      return jnp.zeros((), jnp.float32), {}
+    key_pairs, k_quant = jax.random.split(key)
+    mode = self.config.rep.quantisation
+    extra = P.rotation_losses(key_pairs, params_rep, spec, n_pairs=L.n_pairs, mode=mode)
+    keys = scene_keys(k_quant, batch["pose"].shape[0]) if L.data_pairs else None
+    terms = {}
+    for i, d in enumerate(spec.dofs):
+      loss = extra[d.name]
+      if L.data_pairs:
+        poses = batch["pose"]  # (S, V, P), views laid out as (anchor, partner) pairs
+        S, V = poses.shape[:2]
+        pairs = poses.reshape(S, V // 2, 2, -1)[..., spec.columns(d.name)]
+        x0, x1 = pairs[:, :, 0], pairs[:, :, 1]
+        if not isinstance(d, P.PolarDof):
+          x0, x1 = x0[..., 0], x1[..., 0]
+        kd = jax.vmap(lambda k, i=i: jax.random.fold_in(k, 1000 + i))(keys)
+        per_scene = jax.vmap(
+          lambda a, b, k, n=d.name: P.dof_rotation_loss(
+            params_rep, spec, n, a, b, mode=mode, key=k if mode == "random" else None
+          )
+        )(x0, x1, kd)
+        loss = 0.5 * loss + 0.5 * jnp.mean(per_scene)
+      terms[f"rot_{d.name}"] = loss
+    total = L.rot_weight * sum(terms.values())
+    if L.dir_weight:
+      for d in spec.dofs:
+        if isinstance(d, P.PolarDof) and d.variant == "binned":
+          terms[f"dir_{d.name}"] = P.direction_loss(params_rep, spec, d.name)
+          total = total + L.dir_weight * terms[f"dir_{d.name}"]
+    return total, terms
+
+
+class _Decoder(Synthesizer):
+  """camrep's decoders: trained on L_rec = mean over target images of the sum over pixels of
+  (x_hat - x)^2 (eq. 9); `_render` maps (images, pose vectors, scenes) to (prediction, target)."""
+
+  @abc.abstractmethod
+  def _render(self, params_model, images, vecs, scenes) -> tuple[Array, Array]:
+    """(prediction, target) images (S, Q, H, W, 3) of a training batch."""
+
+  def loss(self, params, batch, key, step):
+    del step
+    _, k_quant = jax.random.split(key)
+    keys = scene_keys(k_quant, batch["pose"].shape[0])
+    images = to_float_images(batch["image"])
+    mode = self.config.rep.quantisation
+    vecs = self.vectors(params["rep"], batch["pose"], mode=mode, keys=keys)
+    pred, target = self._render(params["model"], images, vecs, batch["scene"])
+    rec = jnp.mean(jnp.sum((pred - target) ** 2, axis=(-3, -2, -1)))
+    return rec, {"rec": rec}
+
+
+class GQNDecoder(_Decoder):
+  """GQN rooms: an encoder over the first `n_context` views of a scene and an AdaIN decoder of
+  the others (`camrep.models.composite.GQNSynthesis`)."""
+
+  def __init__(self, config, spec):
+    m = config.model
+    module = GQNSynthesis(
+      width=m.width, gamma_offset=1.0 if m.gamma_init_one else 0.0, dtype=compute_dtype(config)
+    )
+    super().__init__(config, spec, module)
+    self.n_context = int(config.data.n_context)
+
+  def _init_module(self, key, images, vecs, scenes):
+    c = self.n_context
+    return jax.jit(self.module.init)(key, images[:, :c], vecs[:, :c], vecs[:, c:])
+
+  def _render(self, params_model, images, vecs, scenes):
+    c = self.n_context
+    pred, _ = self.module.apply({"params": params_model}, images[:, :c], vecs[:, :c], vecs[:, c:])
+    return pred, images[:, c:]
+
+  def predict(self, params, batch, *, mode="nearest", keys=(None, None), transform=None, **_):
+    ctx = to_float_images(batch["context_image"])
+    c = self.vectors(params["rep"], batch["context_pose"], mode=mode, keys=keys[0])
+    q = _query_vectors(self, params, batch, mode, keys[1], transform)
+    pred, _ = self.module.apply({"params": params["model"]}, ctx, c, q)
+    return pred
+
+
+class TableDecoder(_Decoder):
+  """ShapeNet car, Gibson, 7-Scenes: a learned code per training scene and an up-convolution
+  decoder (`camrep.models.composite.TableSynthesis`)."""
+
+  def __init__(self, config, spec, num_scenes: int):
+    m = config.model
+    module = TableSynthesis(
+      num_scenes=num_scenes,
+      scene_dim=m.scene_dim,
+      width=m.width,
+      image_size=m.image_size,
+      per_scene_norm=m.per_scene_norm,
+      norm_eps=m.norm_eps,
+      gamma_init_one=m.gamma_init_one,
+      dtype=compute_dtype(config),
+    )
+    super().__init__(config, spec, module)
+
+  def _init_module(self, key, images, vecs, scenes):
+    return jax.jit(self.module.init)(key, scenes, vecs)
+
+  def _render(self, params_model, images, vecs, scenes):
+    pred, _ = self.module.apply({"params": params_model}, scenes, vecs)
+    return pred, images
+
+  def predict(self, params, batch, *, mode="nearest", keys=(None, None), transform=None, **_):
+    q = _query_vectors(self, params, batch, mode, keys[1], transform)
+    pred, _ = self.module.apply({"params": params["model"]}, batch["scene"], q)
+    return pred
+
+
+class ConvDraw(Synthesizer):
+  """GQN's generator (`camrep.models.convdraw`), trained on its negative ELBO with the pixel std
+  annealed by the step (config.loss.sigma_*) and an optional KL weight schedule
+  (config.loss.kl_*); fed GQN's 7-D pose vector (rep.kind "lowdim", no parameters). Predictions
+  are the mean image of one prior sample with the scenes' `sample_keys`, clipped to [-1, 1]."""
+
+  variants = {"sample": 1.0, "prior_mean": 0.0}
+
+  def __init__(self, config, spec):
+    m = config.model
+    module = convdraw.GQNConvDraw(width=m.width, steps=m.draw_steps, z_channels=m.z_channels)
+    super().__init__(config, spec, module)
+    self.n_context = int(config.data.n_context)
+    self.loss_weight = 1.0  # the pose input has no parameters: the objective is the ELBO's
+
+  @property
+  def temperature(self) -> float:
+    """config.model.draw_temperature: 1 GQN's sample, 0 the prior mean."""
+    return float(self.config.model.get("draw_temperature", 1.0))
+
+  def _init_module(self, key, images, vecs, scenes):
+    c = self.n_context
+    keys = jax.random.split(key, images.shape[0])
+    return jax.jit(self.module.init)(
+      key, images[:, :c], vecs[:, :c], vecs[:, c:], images[:, c:], keys
+    )
+
+  def loss(self, params, batch, key, step):
+    """Terms: elbo (negative ELBO per query image, nats) = nll + kl; the total is nll +
+    kl_weight kl (= elbo unless a KL weight schedule is set); rec (L_rec of the posterior mean,
+    comparable with the decoders' train/rec); sigma (pixel std of this step); kl_weight."""
+    L = self.config.loss
+    keys = scene_keys(key, batch["pose"].shape[0])
+    images = to_float_images(batch["image"])
+    vecs = self.vectors(params["rep"], batch["pose"])
+    c = self.n_context
+    target = images[:, c:]
+    mean, aux = self.module.apply(
+      {"params": params["model"]}, images[:, :c], vecs[:, :c], vecs[:, c:], target, keys
+    )
+    sigma = convdraw.pixel_sigma(
+      step, initial=L.sigma_initial, final=L.sigma_final, anneal_steps=L.sigma_anneal_steps
+    )
+    beta = convdraw.kl_weight(
+      step, initial=L.get("kl_weight_initial", 1.0), anneal_steps=L.get("kl_anneal_steps", 0)
+    )
+    loss, terms = convdraw.negative_elbo(mean, target, aux["kl"], sigma, beta)
+    rec = jnp.mean(jnp.sum((mean - target) ** 2, axis=(-3, -2, -1)))
+    return loss, {**terms, "rec": rec, "sigma": sigma, "kl_weight": beta}
+
+  def predict(
+    self, params, batch, *, mode="nearest", keys=(None, None), transform=None, temperature=None
+  ):
+    ctx = to_float_images(batch["context_image"])
+    c = self.vectors(params["rep"], batch["context_pose"], mode=mode, keys=keys[0])
+    q = _query_vectors(self, params, batch, mode, keys[1], transform)
+    t = self.temperature if temperature is None else temperature
+    pred, _ = self.module.apply(
+      {"params": params["model"]}, ctx, c, q, sample_keys(batch["scene"]), t, method="sample"
+    )
+    return jnp.clip(pred, -1.0, 1.0)
+
+
+def _query_vectors(model: Synthesizer, params, batch, mode, keys, transform) -> Array:
+  vecs = model.per_dof(params["rep"], batch["target_pose"], mode=mode, keys=keys)
+  return P.concat(vecs if transform is None else transform(vecs), model.spec)
+
+
+def check_config(config) -> None:
+  """Raises ConfigError on model / layout combinations the train step cannot run."""
+  d = config.data
+  try:
+    kind, mkind, dtype = pose_inputs.rep_kind(config), model_kind(config), compute_dtype(config)
+  except ValueError as e:  # unknown rep.kind, model.kind, model.dtype
+    raise ConfigError(str(e)) from None
+  if config.task == "gqn" and not 1 <= d.n_context < d.views_per_scene:
+    raise ConfigError(
+      f"data.n_context must be in [1, views_per_scene) so that each scene has query views, "
+      f"got n_context={d.n_context}, views_per_scene={d.views_per_scene}"
+    )
+  if mkind == "convdraw" and (config.task != "gqn" or kind != "lowdim"):
+    raise ConfigError(
+      "model.kind='convdraw' (GQN's generator) needs task='gqn' and rep.kind='lowdim' (its 7-D "
+      f"pose vector; the ELBO trains the model group only), got task={config.task!r}, "
+      f"rep.kind={kind!r}"
+    )
+  if mkind == "convdraw" and dtype is not None:
+    raise ConfigError(
+      f"model.dtype={config.model.dtype!r} is implemented for model.kind='decoder' only; "
+      "GQN's generator (convdraw) computes in float32"
+    )
+  if config.loss.data_pairs and kind == "grid" and d.mode != "pairs":
+    raise ConfigError(
+      "loss.data_pairs reads the batch's views as (anchor, partner) pairs: it needs "
+      f"data.mode='pairs', got {d.mode!r} (GQN rooms: leave data_pairs off)"
+    )
+
+
+def from_config(config, spec: P.PoseSystemSpec, num_scenes: int) -> Synthesizer:
+  """The view-synthesis model of a config: `config.model.kind` and `config.task` pick it.
+
+  Args:
+    config: the run's config (checked by `check_config`).
+    spec: its pose system.
+    num_scenes: size of the per-scene tables (one past the largest training scene id).
+  """
+  if model_kind(config) == "convdraw":
+    return ConvDraw(config, spec)
+  if config.task == "gqn":
+    return GQNDecoder(config, spec)
+  return TableDecoder(config, spec, num_scenes)
