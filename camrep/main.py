@@ -1,5 +1,7 @@
 """Entry point: `python -m camrep.main --config=configs/gqn.py[:quick|:smoke] --workdir=DIR`.
 
+`--config=gqn:quick` names the installed config instead of a file (`camrep.configs`).
+
 Kept short on purpose: it parses flags, joins a jax.distributed job when asked, logs the devices,
 and calls `camrep.synthesis.train.train_and_evaluate`. Override config fields with
 `--config.total_steps=...`
@@ -15,16 +17,16 @@ import sys
 
 import jax
 from absl import app, flags, logging
-from ml_collections import config_flags
 
+from camrep import configs
 from camrep.data.errors import DataError
 from camrep.runtime import runconfig
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime.checkpoint import CheckpointError
 from camrep.synthesis import train
 
-_CONFIG = config_flags.DEFINE_config_file(
-  "config", None, "Path to a config file (configs/*.py).", lock_config=True
+_CONFIG = configs.define_config_flag(
+  "config", "A config file (configs/gqn.py[:quick]) or an installed config's name (gqn:quick)."
 )
 _WORKDIR = flags.DEFINE_string("workdir", None, "Directory for checkpoints, metrics and images.")
 _COORDINATOR = flags.DEFINE_string(

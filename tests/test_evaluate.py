@@ -15,13 +15,13 @@ import pytest
 
 from camrep import pose as P
 from camrep import pose_inputs
+from camrep.configs import gibson, gqn, seven_scenes, shapenet_car
 from camrep.runtime import checkpoint as ckpt_lib
 from camrep.runtime import writers
 from camrep.synthesis import components, heldout, restore, train
 from camrep.synthesis import evaluate as ev
 from camrep.synthesis import gram as gram_lib
 from camrep.synthesis import noise as noise_lib
-from configs import gibson, gqn, seven_scenes, shapenet_car
 from tests.utils import load_experiment
 
 pytestmark = pytest.mark.usefixtures("fast_compile")

@@ -2,7 +2,7 @@
 
 Layers, lowest first (a module may import its own layer and those below):
 
-  0  camrep.lie, camrep.metrics                 Lie operators, image metrics
+  0  camrep.lie, camrep.metrics, camrep.configs Lie operators, image metrics, experiment configs
   1  camrep.pose, camrep.data, camrep.runtime   the pose system; data; checkpoints, writers, plots
   2  camrep.pose_inputs                         every pose input a decoder can take
   3  camrep.models                              Flax modules
@@ -24,6 +24,7 @@ PACKAGE = ROOT / "camrep"
 LAYERS = {
   "camrep.lie": 0,
   "camrep.metrics": 0,
+  "camrep.configs": 0,
   "camrep.pose": 1,
   "camrep.data": 1,
   "camrep.runtime": 1,

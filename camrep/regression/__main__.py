@@ -8,14 +8,14 @@ import sys
 
 import jax
 from absl import app, flags, logging
-from ml_collections import config_flags
 
+from camrep import configs
 from camrep.regression import driver
 from camrep.runtime import runconfig
 from camrep.runtime import workdir as workdir_lib
 
-_CONFIG = config_flags.DEFINE_config_file(
-  "config", None, "Path to configs/regression.py[:quick|:smoke].", lock_config=True
+_CONFIG = configs.define_config_flag(
+  "config", "configs/regression.py[:quick|:smoke], or the installed regression[:quick|:smoke]."
 )
 _WORKDIR = flags.DEFINE_string("workdir", None, "Output directory (results.json, metrics).")
 flags.mark_flags_as_required(["config", "workdir"])
