@@ -7,7 +7,8 @@ with `restore.load_run`, then runs `noise.noise_robustness` and `gram.gram_maps`
   python -m camrep.synthesis.evaluate --workdir DIR [--what noise,gram] [--levels 13]
     [--out DIR/eval]
 
-writes DIR/eval/noise.json, noise.png (PSNR and SSIM vs alpha), gram_<dof>.png and gram.npz.
+writes DIR/eval/noise.json, noise.png (PSNR and SSIM vs alpha), gram_<dof>.png (each with a PDF
+twin) and gram.npz.
 """
 
 from __future__ import annotations
