@@ -1,5 +1,6 @@
 """camrep after a plain (not editable) install: build a wheel from the checkout's files, install it
-into a fresh virtual environment outside the checkout, and train `gqn:smoke` from there.
+into a fresh virtual environment outside the checkout, then, from a directory outside the
+checkout, train `gqn:smoke` by name and execute the quickstart notebook.
 
 The new environment borrows the running interpreter's site-packages for the third-party
 dependencies (a .pth line, so nothing is downloaded); camrep itself comes only from the wheel.
@@ -73,7 +74,10 @@ def _env() -> dict[str, str]:
   return env
 
 
-def test_wheel_installs_and_trains_a_config_by_name(tmp_path):
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory):
+  """(python of a fresh venv with camrep's wheel installed, an empty directory to run in)."""
+  tmp_path = tmp_path_factory.mktemp("wheel_install")
   wheel = build_wheel(tmp_path / "wheel")
   python = fresh_venv(tmp_path / "venv")
   subprocess.run(
@@ -86,6 +90,12 @@ def test_wheel_installs_and_trains_a_config_by_name(tmp_path):
   )
   away = tmp_path / "elsewhere"  # no configs/ and no camrep/ here
   away.mkdir()
+  return python, away
+
+
+def test_wheel_installs_and_trains_a_config_by_name(installed):
+  python, away = installed
+  tmp_path = away.parent
   where = subprocess.run(
     [python, "-c", "import camrep.configs as c; print(c.__file__); print(c.path('gqn'))"],
     cwd=away,
@@ -109,3 +119,24 @@ def test_wheel_installs_and_trains_a_config_by_name(tmp_path):
   assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-3000:]
   final = json.loads((workdir / "final_metrics.json").read_text())
   assert final["step"] == 4 and "eval/psnr" in final, final
+
+
+def test_the_notebook_runs_on_the_installed_package(installed):
+  python, away = installed
+  notebook = away / "quickstart.ipynb"
+  shutil.copy(ROOT / "experiments" / "quickstart.ipynb", notebook)
+  r = subprocess.run(
+    [python, str(ROOT / "experiments" / "run_notebook.py"), str(notebook), "--write"],
+    cwd=away,
+    env=_env(),
+    capture_output=True,
+    text=True,
+    timeout=600,
+  )
+  assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-3000:]
+  nb = json.loads(notebook.read_text())
+  code = [c for c in nb["cells"] if c["cell_type"] == "code"]
+  # The install cell found the wheel's camrep (and installed nothing); every cell produced output.
+  assert "".join(code[0]["outputs"][0]["text"]).strip() == "camrep installed"
+  assert all(c["outputs"] for c in code)
+  assert not any(o["output_type"] == "error" for c in code for o in c["outputs"])
