@@ -33,7 +33,7 @@ def path(name: str) -> str:
 def resolve(spec: str) -> str:
   """A `--config` value as a file path: `NAME[:ARG]` -> `<installed>/NAME.py[:ARG]`.
 
-  A value whose file part ends in `.py` or names a directory is a path and is returned unchanged
+  A value whose file part ends in `.py` or contains a path separator is a path, returned unchanged
   (ml_collections loads it, relative to the working directory).
   """
   file, sep, arg = spec.partition(":")
