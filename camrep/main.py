@@ -1,6 +1,8 @@
 """Trains a view-synthesis run: `python -m camrep.main --config=configs/gqn.py[:quick|:smoke]
 --workdir=DIR [--config.FIELD=VALUE ...]`.
 
+`--config=gqn:quick` names the installed config instead of a file (`camrep.configs`).
+
 Kept short on purpose: it parses flags, checks the config (`camrep.synthesis.config_schema`:
 every field, what the task uses, the data's image size) before anything runs, joins a
 jax.distributed job when asked, logs the devices, and calls
@@ -20,13 +22,13 @@ import threading
 
 import jax
 from absl import flags, logging
-from ml_collections import config_flags
 
+from camrep import configs
 from camrep.runtime import cli
 from camrep.synthesis import config_schema, train
 
-_CONFIG = config_flags.DEFINE_config_file(
-  "config", None, "Path to a config file (configs/*.py[:variant]).", lock_config=True
+_CONFIG = configs.define_config_flag(
+  "config", "A config file (configs/gqn.py[:quick]) or an installed config's name (gqn:quick)."
 )
 _WORKDIR = flags.DEFINE_string("workdir", None, "Directory for checkpoints, metrics and images.")
 _COORDINATOR = flags.DEFINE_string(

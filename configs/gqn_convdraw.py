@@ -1,82 +1,8 @@
 """GQN rooms with GQN's own generator (Eslami et al. 2018): the paper's view-synthesis baseline.
 
-The tower representation network summed over context views and the ConvDRAW generator
-(`camrep.models.convdraw`), fed GQN's 7-D pose vector (`rep.kind = "lowdim"`), trained on the
-negative ELBO with GQN's annealed pixel std and learning rate; evaluation predicts the mean image
-of one prior sample with fixed per-scene keys. Same data, splits, loop, checkpoints and evaluation
-as configs/gqn.py (issue 17).
-
-Paper size (Eslami et al. 2018 supplement; sources in BUILD_NOTES "GQN generator (ConvDRAW)"):
-L = 12 steps, hidden 128, r 256, latent 3 channels per step (the issue's choice; open-source
-ports use 64), pixel std 2.0 -> 0.7 over 200k steps, Adam 5e-4 -> 5e-5 over 1.6M steps (b1 0.9,
-b2 0.999, eps 1e-8); batch 36 scenes in GQN, here the camrep GQN layout (30 scenes x 6 context +
-3 query views).
-
-  python -m camrep.main --config=configs/gqn_convdraw.py --workdir=/tmp/gqn_convdraw
-    paper size: GPU only (no figure measured). Expected: the GQN PSNR the paper compares with
-    (not reported in its full text) and a PSNR that falls faster with pose noise than ours.
-  python -m camrep.main --config=configs/gqn_convdraw.py:quick --workdir=/tmp/gqn_convdraw_quick
-    eighth width, the scenes of configs/gqn.py:quick (400 in memory) with 3 context + 2 query
-    views per scene, 4 generation steps, 2000 steps, the KL weight annealed 10 -> 1 over the
-    first 1000 (a camrep option for short runs; GQN: 1 throughout): ~11 minutes on 2 CPU cores
-    (3.1 steps/s). Measured on the compass rooms of gqn.py:quick: held-out-view PSNR 19.14 dB
-    (prior sample) against 16.95 dB for the mean of the 3 context views (10 min 42 s). On the old
-    rooms (wall_style=tinted) 19.72 against 19.12 dB; there, with GQN's plain ELBO
-    (--config.loss.kl_weight_initial=1) 18.92 dB, below the baseline: the prior ignored the pose
-    (BUILD_NOTES "GQN generator (ConvDRAW)").
-  python -m camrep.main --config=configs/gqn_convdraw.py:smoke --workdir=/tmp/gqn_convdraw_smoke
-    seconds; for tests.
-  python -m camrep.synthesis.evaluate --workdir W --what=noise
-    the noise test on its own 7-D query pose vector.
+Loaded by path (`--config=configs/gqn_convdraw.py[:quick|:smoke]`) from a checkout. The config
+itself, with its commands, run times and expected results, is camrep/configs/gqn_convdraw.py,
+installed with the package and also named by `--config=gqn_convdraw[:quick|:smoke]`.
 """
 
-from __future__ import annotations
-
-import pathlib
-import sys
-
-# Loaded by path (`--config=configs/x.py`): make `configs.gqn` importable from any directory.
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-from configs import common, gqn  # noqa: E402
-
-
-def get_config(arg: str | None = None):
-  common.parse_arg(arg, common.NO_MEDIUM)  # no `:medium` size for the generator yet
-  c = gqn.get_config(arg)  # data, layout and durations of the GQN-rooms setting and variant
-  c.model.kind = "convdraw"
-  c.model.draw_steps = 12
-  c.model.z_channels = 3
-  c.model.gamma_init_one = False  # (decoder option, unused by the generator)
-  c.rep.kind = "lowdim"
-  # No pose-system parameters: no rotation losses.
-  c.loss.n_pairs = 0
-  c.loss.rot_weight = 0.0
-  c.loss.dir_weight = 0.0
-  c.loss.sigma_initial = 2.0
-  c.loss.sigma_final = 0.7
-  c.loss.sigma_anneal_steps = 200_000
-  c.optax.lr_model = 5e-4
-  c.optax.schedule = "linear"
-  c.optax.final_scale = 0.1
-  c.optax.anneal_steps = 1_600_000
-  if arg == "quick":
-    # 2 cores: 4 generation steps and 3 context + 2 query views per scene (configs/gqn.py:quick
-    # has 6 queries), ~6x less generator work than 8 steps x 6 queries, which ran at 0.24 steps/s.
-    c.model.draw_steps = 4
-    c.data.views_per_scene = 5
-    # GQN's schedules compressed into the short run (sigma over the first 10% of it, the learning
-    # rate over 80%); the quick decoder's 10x-paper rate as the starting rate.
-    c.optax.lr_model = 1e-3
-    c.loss.sigma_anneal_steps = c.total_steps // 10
-    c.optax.anneal_steps = (8 * c.total_steps) // 10
-    # The KL weight beta 10 -> 1 over the first half: with the plain ELBO (beta = 1) the short
-    # run keeps the pose information in the posterior's latents and the prior ignores the pose
-    # (18.92 dB, below the context-mean baseline); beta > 1 early pushes it into the
-    # pose-conditioned path (19.72 dB). camrep option; GQN's paper size keeps beta = 1.
-    c.loss.kl_weight_initial = 10.0
-    c.loss.kl_anneal_steps = c.total_steps // 2
-  elif arg == "smoke":
-    c.model.draw_steps = 2
-    c.loss.sigma_anneal_steps = c.total_steps
-    c.optax.anneal_steps = c.total_steps
-  return c
+from camrep.configs.gqn_convdraw import get_config  # noqa: F401

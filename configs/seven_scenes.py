@@ -1,74 +1,8 @@
 """7-Scenes (procedural `scene6dof` family by default): six DOFs x, y, z, theta, phi, psi.
 
-Paper size (digest 3): 100,001 steps of 7 scenes x 16 pairs, 128 px, per-scene unit vectors u (96,
-+1e-6 on the norm) and per-scene instance-norm tables, 2 pose steps per decoder step, lr 1e-4 /
-1e-3, lambda_1 0.009, lambda_2 50, 3000 extra pairs plus image pairs, 4 blocks of 8, 0.1 m and
-10-degree grids over a 4 x 1.5 x 3 m cuboid (theta, psi periodic; phi in [0, pi]).
-
-  python -m camrep.main --config=configs/seven_scenes.py --workdir=/tmp/7s
-    paper size: ~1 day on one Titan RTX; measured on one H100: 6.8 steps/s, ETA 4 h 05 min,
-    ~29 GiB of GPU memory (a GPU job: on a 24 GiB CPU machine the first step runs out of
-    memory). Expected Table 2 medians ~0.21 m, 7.92 degrees.
-  python -m camrep.main --config=configs/seven_scenes.py:quick --workdir=/tmp/7s_quick
-    64 px, the small scene6dof preset, eighth width: ~10 minutes on 2 CPU cores.
-  python -m camrep.main --config=configs/seven_scenes.py:smoke --workdir=/tmp/7s_smoke
+Loaded by path (`--config=configs/seven_scenes.py[:quick|:smoke]`) from a checkout. The config
+itself, with its commands, run times and expected results, is camrep/configs/seven_scenes.py,
+installed with the package and also named by `--config=seven_scenes[:quick|:smoke]`.
 """
 
-from __future__ import annotations
-
-import pathlib
-import sys
-
-# Loaded by path (`--config=configs/x.py`): make `configs.common` importable from any directory.
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-from configs import common  # noqa: E402
-
-SCENES = ("chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs")
-
-
-def get_config(arg: str | None = None):
-  variant = common.parse_arg(arg)
-  c = common.base()
-  c.task = "table"
-  c.data.source = "scene6dof"
-  c.data.mode = "pairs"
-  c.data.scenes_per_device = 7
-  c.data.views_per_scene = 32  # 16 pairs
-  c.model.image_size = 128
-  c.model.scene_dim = 96
-  c.model.per_scene_norm = True
-  c.model.norm_eps = 1e-6
-  c.rep.n_blocks = 4
-  c.rep.block_size = 8
-  c.rep.position_spacing = 0.1
-  c.loss.rec_weight = 0.009
-  c.loss.rot_weight = 50.0
-  c.loss.dir_weight = 0.0
-  c.loss.n_pairs = 3000
-  c.loss.data_pairs = True
-  c.optax.lr_model = 1e-4
-  c.optax.lr_rep = 1e-3
-  c.optax.pose_steps = 2
-  c.total_steps = 100_001
-  c.ckpt_every_steps = 4000
-  c.eval_every_steps = 4000
-  if variant in ("quick", "medium"):
-    common.quick(c)
-    c.data.family.train_stride = 20
-    c.data.family.test_stride = 100
-    c.data.scenes_per_device = 2
-    c.data.views_per_scene = 16
-    c.model.image_size = 64
-    c.loss.n_pairs = 1000
-    c.optax.pose_steps = 1
-    c.evals.num_scenes = 2
-    c.evals.batch_scenes = 2
-    if variant == "medium":
-      common.medium(c)
-      c.data.family.scenes = SCENES  # all seven (the small preset has chess and heads)
-      c.data.family.train_stride = 10
-      c.data.scenes_per_device = 7
-  elif variant == "smoke":
-    common.smoke(c)
-    c.model.scene_dim = 16
-  return c
+from camrep.configs.seven_scenes import get_config  # noqa: F401

@@ -115,8 +115,7 @@ def gqn_config(
   width: float, scenes: int, *, image_size: int = 64, setting: str = "gqn", devices: int = 1
 ):
   """The paper's config of `setting` at `width`, `scenes` per device, procedural data in memory."""
-  sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
-  from configs import gqn, shapenet_car
+  from camrep.configs import gqn, shapenet_car
 
   c = (gqn if setting == "gqn" else shapenet_car).get_config()
   c.model.width = width
@@ -425,8 +424,7 @@ def main(argv=None) -> None:
   print(f"peak RSS {peak_rss_mb():.0f} MiB", flush=True)
   print(f"mfu={main_r['flops_per_s'] / peak:.4f} images_per_s={main_r['images_per_s']:.2f}")
   if args.end_to_end:
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    import bench_pipeline
+    import bench_pipeline  # a sibling script: experiments/ is sys.path[0]
 
     print(f"\ninput pipelines and end-to-end loop of {args.end_to_end} at width {width}:")
     config = bench_pipeline.load_config(args.end_to_end)

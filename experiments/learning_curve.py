@@ -3,14 +3,20 @@
 Works for any camrep workdir (regression or view synthesis): a regression run logs its
 evaluation errors every `eval_every_steps` (validation only, or every split with
 `--config.evals.periodic_all_splits=True`), a view-synthesis run logs eval/psnr. Each metric
-given becomes one table (a column per run) and one panel of the PNG. Issue 16 part 2: the rooms
-regression's curve for "ours" and the quaternion,
+given becomes one table (a column per run) and one panel of the figure (PNG and a PDF twin);
+runs with the same label (the same representation and lr: seeds) are drawn as their mean with a
+band from their minimum to their maximum. Issue 16 part 2: the rooms regression's curve for
+"ours" and the quaternion,
 
   .venv/bin/python experiments/learning_curve.py --runs /tmp/curve/ours /tmp/curve/quat \\
       --metrics eval/test_scenes/yaw_error_deg_mean,eval/test_scenes/x_error_mean \\
       --png /tmp/curve/rooms.png --md /tmp/curve/rooms.md
 
-Reads workdirs only (config.json, metrics.jsonl); seconds.
+Reads workdirs only (config.json, metrics.jsonl); seconds. `--from_md` redraws the figure from
+tables this script wrote, when the workdirs are gone (how results/curve_rooms.png was redrawn):
+
+  .venv/bin/python experiments/learning_curve.py --from_md results/curve_rooms.md \\
+      --png results/curve_rooms.png
 """
 
 from __future__ import annotations
@@ -20,7 +26,6 @@ import os
 import sys
 from collections.abc import Sequence
 
-import cv2
 import numpy as np
 
 from camrep.runtime import plots, writers
@@ -59,22 +64,70 @@ def markdown(labels: Sequence[str], metric: str, curves: Sequence[dict[int, floa
   return "\n".join(lines) + "\n"
 
 
-def figure(labels: Sequence[str], metric: str, curves: Sequence[dict[int, float]]) -> np.ndarray:
-  steps = sorted(set().union(*curves))
-  series = {
-    label: [c.get(s, float("nan")) for s in steps] for label, c in zip(labels, curves, strict=True)
-  }
-  return plots.line_plot(steps, series, title=metric, xlabel="step", ylabel=metric.split("/")[-1])
+def figure(
+  labels: Sequence[str], metrics: Sequence[str], curves: Sequence[Sequence[dict[int, float]]]
+) -> plots.Figure:
+  """One panel per metric (curves[i]: that metric's {step: value} per run); runs sharing a
+  label are stacked as seeds."""
+  steps = sorted(set().union(*(c for per_metric in curves for c in per_metric)))
+  panels = []
+  for metric, per_run in zip(metrics, curves, strict=True):
+    series: dict[str, list] = {}
+    for label, c in zip(labels, per_run, strict=True):
+      series.setdefault(label, []).append([c.get(s, float("nan")) for s in steps])
+    panels.append(
+      plots.Panel(
+        metric,
+        metric.split("/")[-1],
+        {k: np.asarray(v, np.float64) for k, v in series.items()},
+        xlabel="step",
+      )
+    )
+  return plots.curves_figure(steps, panels)
+
+
+def from_markdown(text: str) -> tuple[list[str], list[str], list[list[dict[int, float]]]]:
+  """(labels, metrics, curves) of the tables `markdown` wrote (one table per metric)."""
+  metrics, curves, labels = [], [], []
+  lines = text.splitlines()
+  for i, line in enumerate(lines):
+    if not (line.startswith("`") and line.endswith("`")):
+      continue
+    metrics.append(line.strip("`"))
+    rows = []
+    for row in lines[i + 2 :]:
+      if not row.startswith("|"):
+        break
+      rows.append([c.strip() for c in row.strip("|").split("|")])
+    labels = rows[0][1:]
+    per_run = [{} for _ in labels]
+    for cells in rows[2:]:
+      for j, cell in enumerate(cells[1:]):
+        if cell:
+          per_run[j][int(cells[0])] = float(cell)
+    curves.append(per_run)
+  return labels, metrics, curves
 
 
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-  p.add_argument("--runs", nargs="+", required=True, help="workdirs")
-  p.add_argument("--metrics", required=True, help="comma-separated metrics.jsonl keys")
+  p.add_argument("--runs", nargs="+", default=[], help="workdirs")
+  p.add_argument("--metrics", default="", help="comma-separated metrics.jsonl keys")
+  p.add_argument("--from_md", default="", help="redraw --png from these tables instead of --runs")
   p.add_argument("--labels", default="", help="comma-separated labels (default: from config)")
   p.add_argument("--png", default="", help="output figure (one panel per metric)")
   p.add_argument("--md", default="", help="output Markdown tables")
   args = p.parse_args(argv)
+  if args.from_md:
+    if args.runs or not args.png:
+      p.error("--from_md takes --png and no --runs")
+    with open(args.from_md, encoding="utf-8") as f:
+      labels, metrics, curves = from_markdown(f.read())
+    os.makedirs(os.path.dirname(os.path.abspath(args.png)), exist_ok=True)
+    print("wrote", ", ".join(plots.save(figure(labels, metrics, curves), args.png)))
+    return 0
+  if not (args.runs and args.metrics):
+    p.error("give --runs and --metrics (or --from_md)")
   metrics = [m.strip() for m in args.metrics.split(",") if m.strip()]
   labels = [x.strip() for x in args.labels.split(",")] if args.labels else []
   if labels and len(labels) != len(args.runs):
@@ -85,7 +138,7 @@ def main(argv=None) -> int:
       print(f"error: {w} has no metrics.jsonl", file=sys.stderr)
       return 2
   labels = labels or [label_of(w) for w in args.runs]
-  tables, panels = [], []
+  tables, all_curves = [], []
   for metric in metrics:
     curves = [curve(w, metric) for w in args.runs]
     missing = [w for w, c in zip(args.runs, curves, strict=True) if not c]
@@ -93,7 +146,7 @@ def main(argv=None) -> int:
       print(f"error: {metric} is not logged in {', '.join(missing)}", file=sys.stderr)
       return 2
     tables.append(markdown(labels, metric, curves))
-    panels.append(figure(labels, metric, curves))
+    all_curves.append(curves)
   text = "\n".join(tables)
   text += (
     "\nRuns: " + "; ".join(f"{lab}: `{w}`" for lab, w in zip(labels, args.runs, strict=True)) + "\n"
@@ -105,8 +158,7 @@ def main(argv=None) -> int:
       f.write(text)
   if args.png:
     os.makedirs(os.path.dirname(os.path.abspath(args.png)), exist_ok=True)
-    cv2.imwrite(args.png, cv2.cvtColor(np.concatenate(panels, axis=1), cv2.COLOR_RGB2BGR))
-    print(f"wrote {args.png}")
+    print("wrote", ", ".join(plots.save(figure(labels, metrics, all_curves), args.png)))
   return 0
 
 

@@ -8,13 +8,19 @@ is added to every element of the query pose input, beta_i being the element's st
 grid (camrep.synthesis.evaluate.grid_betas), alpha = 0 .. 0.3. A run of configs/gqn_convdraw.py
 (GQN's own generator, noised on its 7-D pose vector) is drawn as a fourth kind, "convdraw".
 
-Writes a PNG (PSNR and SSIM against alpha, one curve per run) and a Markdown table:
+Writes the figure (PSNR and SSIM against alpha, one curve per kind of pose input; runs of the
+same kind, e.g. several seeds, are drawn as their mean with a band from their minimum to their
+maximum) as a PNG and a PDF twin, and a Markdown table (one column per run):
 
   .venv/bin/python experiments/noise_figure.py --runs /tmp/cmp/synthesis/gqn_grid \\
       /tmp/cmp/synthesis/gqn_lowdim /tmp/cmp/synthesis/gqn_mlp \\
       --png results/noise_gqn.png --md results/noise_gqn.md
 
-Reads workdirs only (config.json, eval/noise.json); seconds.
+Reads workdirs only (config.json, eval/noise.json); seconds. `--from_md` redraws a figure from a
+table this script wrote, when the workdirs are gone (how results/noise_*.png were redrawn):
+
+  .venv/bin/python experiments/noise_figure.py --from_md results/noise_gqn.md \\
+      --png results/noise_gqn.png --setting gqn
 """
 
 from __future__ import annotations
@@ -24,7 +30,6 @@ import json
 import os
 import sys
 
-import cv2
 import numpy as np
 
 from camrep.runtime import plots
@@ -84,32 +89,63 @@ def markdown(runs: list[dict]) -> str:
   return "\n".join(lines) + "\n"
 
 
-def figure(runs: list[dict]) -> np.ndarray:
-  alphas = runs[0]["alphas"]
+def from_markdown(text: str, setting: str = "") -> list[dict]:
+  """The runs of a table `markdown` wrote: [{label, alphas, psnr, ssim, setting}] per column."""
+  rows = [line for line in text.splitlines() if line.startswith("|")]
+  head = [c.strip() for c in rows[0].strip("|").split("|")]
+  labels = [h.removesuffix(" PSNR / SSIM") for h in head[1:]]
+  alphas, cells = [], []
+  for line in rows[2:]:
+    parts = [c.strip() for c in line.strip("|").split("|")]
+    alphas.append(float(parts[0]))
+    cells.append([tuple(float(v) for v in c.split(" / ")) for c in parts[1:]])
+  return [
+    {
+      "label": label,
+      "setting": setting,
+      "alphas": alphas,
+      "psnr": [row[i][0] for row in cells],
+      "ssim": [row[i][1] for row in cells],
+    }
+    for i, label in enumerate(labels)
+  ]
+
+
+def by_label(runs: list[dict], key: str) -> dict[str, np.ndarray]:
+  """{label: (seeds, n) values of `key`}: runs that share a label (seeds) are stacked."""
+  out: dict[str, list] = {}
+  for r in runs:
+    out.setdefault(r["label"], []).append(r[key])
+  return {label: np.asarray(v, np.float64) for label, v in out.items()}
+
+
+def figure(runs: list[dict]) -> plots.Figure:
+  """PSNR and SSIM against alpha, one curve (and seed band) per label."""
   setting = runs[0]["setting"]
-  left = plots.line_plot(
-    alphas,
-    {r["label"]: r["psnr"] for r in runs},
-    title=f"PSNR vs pose noise ({setting})",
-    xlabel="alpha",
-    ylabel="PSNR (dB)",
-  )
-  right = plots.line_plot(
-    alphas,
-    {r["label"]: r["ssim"] for r in runs},
-    title=f"SSIM vs pose noise ({setting})",
-    xlabel="alpha",
-    ylabel="SSIM",
-  )
-  return np.concatenate([left, right], axis=1)
+  suffix = f" ({setting})" if setting else ""
+  panels = [
+    plots.Panel(f"PSNR vs pose noise{suffix}", "PSNR (dB)", by_label(runs, "psnr"), "alpha"),
+    plots.Panel(f"SSIM vs pose noise{suffix}", "SSIM", by_label(runs, "ssim"), "alpha"),
+  ]
+  return plots.curves_figure(runs[0]["alphas"], panels)
 
 
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-  p.add_argument("--runs", nargs="+", required=True, help="view-synthesis workdirs")
-  p.add_argument("--png", required=True, help="output figure")
-  p.add_argument("--md", required=True, help="output Markdown table")
+  p.add_argument("--runs", nargs="+", default=[], help="view-synthesis workdirs")
+  p.add_argument("--png", required=True, help="output figure (and its .pdf twin)")
+  p.add_argument("--md", default="", help="output Markdown table (required with --runs)")
+  p.add_argument("--from_md", default="", help="redraw from this table instead of --runs")
+  p.add_argument("--setting", default="", help="with --from_md: the setting, for the titles")
   args = p.parse_args(argv)
+  if bool(args.runs) == bool(args.from_md) or (args.runs and not args.md):
+    p.error("give --runs and --md, or --from_md")
+  if args.from_md:
+    with open(args.from_md, encoding="utf-8") as f:
+      runs = from_markdown(f.read(), args.setting)
+    os.makedirs(os.path.dirname(os.path.abspath(args.png)), exist_ok=True)
+    print("wrote", ", ".join(plots.save(figure(runs), args.png)))
+    return 0
   try:
     runs = [load(w) for w in args.runs]
   except FileNotFoundError as e:
@@ -126,9 +162,9 @@ def main(argv=None) -> int:
   table = markdown(runs)
   with open(args.md, "w", encoding="utf-8") as f:
     f.write(table)
-  cv2.imwrite(args.png, cv2.cvtColor(figure(runs), cv2.COLOR_RGB2BGR))
+  figures = plots.save(figure(runs), args.png)
   print(table)
-  print(f"wrote {args.png} and {args.md}")
+  print(f"wrote {', '.join(figures)} and {args.md}")
   return 0
 
 

@@ -14,17 +14,14 @@ in_noctx / none_noctx: no context at all).
 from __future__ import annotations
 
 import argparse
-import os
-import sys
 import time
 
 import jax
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-import configs.regression as regression_config  # noqa: E402
-from camrep.models import layers  # noqa: E402
-from camrep.regression import driver, learner, scoring, views  # noqa: E402
+from camrep.configs import regression as regression_config
+from camrep.models import layers
+from camrep.regression import driver, learner, scoring, views
 
 
 def _adain_variant(name):

@@ -183,8 +183,7 @@ class Job:
 
 def mlp_synthesis_supported() -> bool:
   """Whether the view-synthesis trainer has config.rep.kind (the MLP pose input)."""
-  sys.path.insert(0, ROOT)
-  from configs import common
+  from camrep.configs import common
 
   return "kind" in common.base().rep
 

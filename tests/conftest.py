@@ -62,8 +62,8 @@ def gqn_smoke_run(tmp_path_factory):
   import fcntl
   import os
 
+  from camrep.configs import gqn
   from camrep.synthesis import train
-  from configs import gqn
 
   base = tmp_path_factory.getbasetemp()
   if os.environ.get("PYTEST_XDIST_WORKER"):

@@ -3,22 +3,21 @@
 Two forced host devices; device p gets the batch that process p of a 2-process run reads (its
 shard of the scenes), and the loop repeats `train_and_evaluate`'s keys and order.
 
-Usage: python tests/multiprocess_reference.py STEPS OUT.npz [--config.key=value ...]
+Usage (from the repository root):
+  python -m tests.multiprocess_reference STEPS OUT.npz [--config.key=value ...]
 """
 
 import os
-import pathlib
 import sys
 
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
+from camrep.configs import gqn  # noqa: E402
 from camrep.synthesis import components  # noqa: E402
 from camrep.synthesis import step as step_lib  # noqa: E402
-from configs import gqn  # noqa: E402
 
 steps, out = int(sys.argv[1]), sys.argv[2]
 config = gqn.get_config("smoke")

@@ -1,6 +1,6 @@
 """Helper for tests/test_resume.py: `python -m camrep.main FLAGS` with a fault injected.
 
-Usage: python tests/resume_script.py KILL_IN_SAVE FLAGS...
+Usage (from the repository root): python -m tests.resume_script KILL_IN_SAVE FLAGS...
 
 KILL_IN_SAVE: SIGKILL this process in the middle of saving checkpoint KILL_IN_SAVE: after every
 file of it is written into Orbax's temporary directory, just before the rename that commits it
@@ -8,11 +8,8 @@ file of it is written into Orbax's temporary directory, just before the rename t
 """
 
 import os
-import pathlib
 import signal
 import sys
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 kill_step = int(sys.argv.pop(1))
 

@@ -552,10 +552,10 @@ def test_shared_captures_are_object_centric(fmt, name):
 @needs_captures
 def test_shared_capture_end_to_end(tmp_path):
   """prepare -> camrep.main (car, smoke) -> camrep.regression (ours, quat) -> table1."""
+  from camrep.configs import regression as regression_config
+  from camrep.configs import shapenet_car
   from camrep.regression import driver
   from camrep.synthesis import train as synthesis_train
-  from configs import regression as regression_config
-  from configs import shapenet_car
 
   data = tmp_path / "data"
   argv = ["--source", "llff", "--input", str(CAPTURES / "ethiopianHead"), "--data_dir",
@@ -587,8 +587,8 @@ def test_shared_capture_end_to_end(tmp_path):
 def test_readme_seven_scenes_command_prepares_the_stairs_sample(tmp_path):
   """The README's 7-Scenes prepare command with its defaults (margin included), then a regression
   smoke run on it."""
+  from camrep.configs import regression as regression_config
   from camrep.regression import driver
-  from configs import regression as regression_config
 
   assert prepare.main(["--source", "seven_scenes", "--input", str(STAIRS), "--data_dir",
                        str(tmp_path / "tfds"), "--no_progress"]) == 0  # fmt: skip

@@ -11,10 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from camrep.configs import gqn_convdraw
 from camrep.models import convdraw
 from camrep.runtime import runconfig
 from camrep.synthesis import components, noise, restore, train
-from configs import gqn_convdraw
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 

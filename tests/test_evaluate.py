@@ -15,13 +15,13 @@ import pytest
 
 from camrep import pose as P
 from camrep import pose_inputs
+from camrep.configs import gibson, gqn, seven_scenes, shapenet_car
 from camrep.runtime import checkpoint as ckpt_lib
 from camrep.runtime import writers
 from camrep.synthesis import components, heldout, restore, train
 from camrep.synthesis import evaluate as ev
 from camrep.synthesis import gram as gram_lib
 from camrep.synthesis import noise as noise_lib
-from configs import gibson, gqn, seven_scenes, shapenet_car
 from tests.utils import load_experiment
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
@@ -147,6 +147,7 @@ def test_cli_writes_all_files(workdir, tmp_path, capsys):
   text = capsys.readouterr().out
   assert "alpha" in text and "PSNR" in text and "wrote" in text and out in text
   names = {"noise.json", "noise.png", "gram_xy.png", "gram_yaw.png", "gram.npz"}
+  names |= {"noise.pdf", "gram_xy.pdf", "gram_yaw.pdf"}  # vector twins for a paper
   assert names <= set(os.listdir(out))
   record = json.load(open(os.path.join(out, "noise.json")))
   assert record["alphas"] == [0.0, 0.025] and record["step"] == 4
@@ -221,10 +222,21 @@ def test_noise_figure_script(tmp_path):
   png, md = tmp_path / "out" / "noise.png", tmp_path / "out" / "noise.md"
   assert nf.main(["--runs", *runs, "--png", str(png), "--md", str(md)]) == 0
   img = cv2.imread(str(png))
-  assert img is not None and img.shape == (420, 1120, 3)
+  assert img is not None and img.shape[1] > 2 * img.shape[0] > 600  # two panels side by side
+  assert (tmp_path / "out" / "noise.pdf").read_bytes().startswith(b"%PDF")
   text = md.read_text()
   assert "| 0.300 | 19.00 / 0.300 | 14.00 / 0.300 |" in text
   assert "ours (learned) 1.00 dB, GQN low-dim pose 6.50 dB" in text
+  # The table gives the runs back (how results/noise_*.png are redrawn without the workdirs).
+  back = nf.from_markdown(text, "gqn")
+  assert [r["label"] for r in back] == ["ours (learned)", "GQN low-dim pose"]
+  assert back[1]["psnr"] == [20.5, 17.0, 14.0] and back[0]["alphas"] == alphas
+  redrawn = tmp_path / "redrawn.png"
+  assert nf.main(["--from_md", str(md), "--png", str(redrawn), "--setting", "gqn"]) == 0
+  assert cv2.imread(str(redrawn)).shape == img.shape
+  # Runs of the same kind (seeds) become one curve: their mean, with a band.
+  seeds = nf.by_label([*nf.from_markdown(text), {**back[0], "psnr": [22.0, 21.5, 21.0]}], "psnr")
+  np.testing.assert_allclose(seeds["ours (learned)"], [[20.0, 19.5, 19.0], [22.0, 21.5, 21.0]])
   # A run without its noise curve is a clear error.
   (tmp_path / "grid" / "eval" / "noise.json").unlink()
   assert nf.main(["--runs", *runs, "--png", str(png), "--md", str(md)]) == 2

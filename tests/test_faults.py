@@ -25,6 +25,7 @@ import pytest
 from absl import flags
 from ml_collections import config_flags
 
+from camrep.configs import gqn, shapenet_car
 from camrep.data import prepare
 from camrep.regression import config_schema as regression_schema
 from camrep.runtime import checkpoint as ckpt_lib
@@ -34,7 +35,6 @@ from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import config_schema as synthesis_schema
 from camrep.synthesis import evaluate as ev
 from camrep.synthesis import train
-from configs import gqn, shapenet_car
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 

@@ -2,7 +2,8 @@
 
 Layers, lowest first (a module may import its own layer and those below):
 
-  0  camrep.lie, .metrics, .rotations           Lie operators, image metrics, rotations of 3-space
+  0  camrep.lie, .metrics, .rotations,      Lie operators, image metrics, rotations of 3-space,
+     camrep.configs                           experiment configs
   1  camrep.pose, camrep.data, camrep.runtime   the pose system; data; checkpoints, writers, plots
   2  camrep.pose_inputs                         every pose input a decoder can take
   3  camrep.models                              Flax modules
@@ -25,6 +26,7 @@ LAYERS = {
   "camrep.lie": 0,
   "camrep.metrics": 0,
   "camrep.rotations": 0,
+  "camrep.configs": 0,
   "camrep.pose": 1,
   "camrep.data": 1,
   "camrep.runtime": 1,

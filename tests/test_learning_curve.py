@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 
 import cv2
+import numpy as np
 
 from tests.utils import load_experiment
 
@@ -37,7 +38,27 @@ def test_tables_and_figure_from_metrics(tmp_path, capsys):
   assert "train/loss" not in text
   img = cv2.imread(str(png))
   assert img is not None and img.shape[0] > 100
+  assert (tmp_path / "out" / "c.pdf").read_bytes().startswith(b"%PDF")
+  # The tables give the curves back (how results/curve_rooms.png is redrawn).
+  labels, metrics, curves = lc.from_markdown(text)
+  assert labels == ["ours (lr 0.001)", "quat (lr 0.001)"] and metrics == [key]
+  assert curves[0][0] == {100: 80.0, 200: 20.5} and curves[0][1][100] == 85.0
+  assert lc.main(["--from_md", str(md), "--png", str(tmp_path / "re.png")]) == 0
+  assert cv2.imread(str(tmp_path / "re.png")).shape == img.shape
   capsys.readouterr()
+
+
+def test_runs_with_one_label_are_seeds_of_one_curve(tmp_path):
+  lc = load_experiment("learning_curve")
+  key = "eval/psnr"
+  a = _workdir(tmp_path, "s0", "ours", [{"step": 1, key: 10.0}, {"step": 2, key: 12.0}])
+  b = _workdir(tmp_path, "s1", "ours", [{"step": 1, key: 14.0}, {"step": 2, key: 16.0}])
+  labels = [lc.label_of(a), lc.label_of(b)]
+  fig = lc.figure(labels, [key], [[lc.curve(a, key), lc.curve(b, key)]])
+  (ax,) = fig.axes
+  (line,) = ax.get_lines()  # one curve: the mean of the two seeds
+  np.testing.assert_allclose(line.get_ydata(), [12.0, 14.0])
+  assert "2 seeds" in line.get_label() and len(ax.collections) == 1  # and its band
 
 
 def test_refusals(tmp_path, capsys):

@@ -14,12 +14,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from camrep.configs import gqn, shapenet_car
 from camrep.models import fastconv
 from camrep.models.composite import GQNSynthesis, TableSynthesis
 from camrep.runtime import runconfig
 from camrep.synthesis import components, synthesizers
 from camrep.synthesis import step as step_lib
-from configs import gqn, shapenet_car
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
 

@@ -70,7 +70,7 @@ def test_two_processes_train_as_one(tmp_path):
   )
   ref = tmp_path / "ref.npz"
   r = subprocess.run(
-    [sys.executable, "tests/multiprocess_reference.py", str(STEPS), str(ref)],
+    [sys.executable, "-m", "tests.multiprocess_reference", str(STEPS), str(ref)],
     cwd=ROOT,
     env=_env(),
     capture_output=True,

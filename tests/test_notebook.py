@@ -1,24 +1,27 @@
-"""experiments/quickstart.ipynb is a well-formed notebook and its code cells run, in order.
-
-nbformat/nbclient are not dependencies: the JSON is checked by hand and the code cells are
-exec'd in one namespace, from a temporary working directory. Without IPython, a stub
-`IPython.display` records what the notebook displays.
+"""experiments/quickstart.ipynb: well formed, committed with its outputs, and those outputs are
+not stale in kind: a fresh run (experiments/run_notebook.py, no Jupyter needed) must produce the
+same kinds of output per code cell (text, images) and no exception. Pixels, timings and printed
+numbers may differ; the numbers the notebook is about are checked on the fresh run's namespace.
 """
 
 from __future__ import annotations
 
-import importlib.util
+import base64
 import json
 import pathlib
-import sys
-import types
 
 import cv2
 import jax
 import numpy as np
+import pytest
+
+from tests.utils import load_experiment
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 NOTEBOOK = ROOT / "experiments" / "quickstart.ipynb"
+# Committed with its outputs (PNG images in base64): small enough to review on the web page.
+MAX_BYTES = 200 * 1024
+run_notebook = load_experiment("run_notebook")
 
 
 def _load() -> dict:
@@ -33,64 +36,73 @@ def _load() -> dict:
     assert isinstance(cell["metadata"], dict)
     assert isinstance(cell["source"], list) and all(isinstance(s, str) for s in cell["source"])
     assert all(s.endswith("\n") for s in cell["source"][:-1]), "source lines keep their newlines"
-    if cell["cell_type"] == "code":
-      assert cell["outputs"] == [] and cell["execution_count"] is None, "commit it unexecuted"
   return nb
 
 
-def _stub_ipython(monkeypatch) -> list:
-  """Stubs IPython.display when IPython is not installed; returns the list of displayed PNGs."""
-  shown: list[bytes] = []
-  if importlib.util.find_spec("IPython") is not None:
-    import IPython.display
-
-    real = IPython.display.display
-
-    def display(obj, *args, **kw):
-      if isinstance(obj, IPython.display.Image):
-        shown.append(obj.data)
-      return real(obj, *args, **kw)
-
-    monkeypatch.setattr(IPython.display, "display", display)
-    return shown
-
-  class Image:
-    def __init__(self, data):
-      self.data = data
-
-  def display(obj):
-    if isinstance(obj, Image):
-      shown.append(obj.data)
-
-  ipython = types.ModuleType("IPython")
-  module = types.ModuleType("IPython.display")
-  module.Image, module.display = Image, display
-  ipython.display = module
-  monkeypatch.setitem(sys.modules, "IPython", ipython)
-  monkeypatch.setitem(sys.modules, "IPython.display", module)
-  return shown
+def _images(nb: dict) -> list[np.ndarray]:
+  out = []
+  for cell in nb["cells"]:
+    for o in cell.get("outputs", []):
+      if o["output_type"] == "display_data" and "image/png" in o["data"]:
+        png = np.frombuffer(base64.b64decode(o["data"]["image/png"]), np.uint8)
+        out.append(cv2.imdecode(png, cv2.IMREAD_COLOR))
+  return out
 
 
-def test_quickstart_notebook_runs(tmp_path, monkeypatch):
+def test_committed_with_outputs_small_enough_to_review():
+  nb = _load()
+  assert NOTEBOOK.stat().st_size < MAX_BYTES, f"{NOTEBOOK.stat().st_size} bytes"
+  code = [c for c in nb["cells"] if c["cell_type"] == "code"]
+  assert [c["execution_count"] for c in code] == list(range(1, len(code) + 1)), "run in order"
+  for c in code:
+    assert c["outputs"], f"code cell {c['id']} has no committed output"
+    assert all(o["output_type"] != "error" for o in c["outputs"]), f"{c['id']} raised"
+  # The pose-system residuals, a rendered scene, the training's image grid and a Gram map.
+  text = "".join("".join(o.get("text", [])) for c in code for o in c["outputs"])
+  assert "|exp(B d) v(l) - v(l+d)|" in text and "eval/psnr" in text
+  images = _images(nb)
+  assert len(images) >= 3
+  assert all(im is not None and im.ndim == 3 and im.std() > 1.0 for im in images)
+  # No local paths of the machine that ran it.
+  assert "/tmp/" not in text and "/work/" not in text and "/home/" not in text
+
+
+def test_install_cell_comes_first_and_finds_its_source(tmp_path, monkeypatch):
   nb = _load()
   kinds = [c["cell_type"] for c in nb["cells"]]
-  assert kinds[0] == "markdown" and kinds.count("code") >= 5
+  assert kinds[0] == "markdown" and kinds[1] == "code"
   intro = "".join(nb["cells"][0]["source"])
-  assert "pip install -e ." in intro and "CVPR 2021" in intro
-  shown = _stub_ipython(monkeypatch)
+  assert "CAMREP_SOURCE" in intro and "CVPR 2021" in intro and "GPU" in intro
+  install = "".join(nb["cells"][1]["source"])
+  assert 'find_spec("camrep") is None' in install and "pip" in install
+  ns: dict = {}
+  # The cell with camrep present: no install, just the report.
   monkeypatch.chdir(tmp_path)
-  monkeypatch.setattr(sys, "path", list(sys.path))  # the notebook may add the repository root
+  monkeypatch.delenv("CAMREP_SOURCE", raising=False)
+  executed, ns = run_notebook.execute({"cells": [nb["cells"][1]]})
+  out = "".join(executed["cells"][0]["outputs"][0]["text"])
+  assert out.startswith("camrep ") and "installing" not in out
+  # Where it would install from: the variable, else the clone around the working directory.
+  with pytest.raises(RuntimeError, match="CAMREP_SOURCE"):
+    ns["camrep_source"]()
+  monkeypatch.chdir(ROOT / "experiments")
+  assert ns["camrep_source"]() == str(ROOT)
+  monkeypatch.setenv("CAMREP_SOURCE", "git+https://example.org/camrep")
+  assert ns["camrep_source"]() == "git+https://example.org/camrep"
+
+
+def test_quickstart_runs_and_its_outputs_are_not_stale(tmp_path):
+  committed = _load()
   old_flag = jax.config.read("jax_disable_most_optimizations")
-  ns: dict = {"__name__": "__main__"}
   try:
-    for i, cell in enumerate(nb["cells"]):
-      if cell["cell_type"] == "code":
-        code = "".join(cell["source"])
-        exec(compile(code, f"{NOTEBOOK.name}[cell {i}, {cell['id']}]", "exec"), ns)
+    fresh, ns = run_notebook.execute(committed, cwd=str(tmp_path))
   finally:
     jax.config.update("jax_disable_most_optimizations", old_flag)
+  assert run_notebook.output_kinds(fresh) == run_notebook.output_kinds(committed), (
+    "the committed outputs are stale: refresh them with "
+    "`python experiments/run_notebook.py experiments/quickstart.ipynb --write`"
+  )
 
-  assert ns["ROOT"] == ROOT
   # Section 1: the fitted rotation law holds better than at initialisation, decoding inverts
   # embedding, and decoding rotated vectors finds the shifted poses.
   for name in ("xy", "yaw"):
@@ -105,8 +117,24 @@ def test_quickstart_notebook_runs(tmp_path, monkeypatch):
   assert np.isfinite(evals[-1]["eval/psnr"]) and np.isfinite(evals[-1]["eval/psnr_baseline"])
   assert ns["last"]["eval/psnr"] == evals[-1]["eval/psnr"]
   # Sections 2-4: rendered views, the training grid and the Gram map are displayed as PNGs.
-  assert len(shown) >= 3
-  images = [cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR) for png in shown]
+  images = _images(fresh)
+  assert len(images) >= 3
   assert all(im is not None and im.ndim == 3 and im.std() > 1.0 for im in images)
   assert ns["gram"].shape == (360, 360)
   np.testing.assert_allclose(np.diag(ns["gram"]), 1.0, atol=1e-4)
+
+
+def test_output_kinds_see_a_missing_output_and_an_exception():
+  """The staleness check itself: what output_kinds compares."""
+  nb = {
+    "cells": [
+      {"cell_type": "markdown", "source": ["# t"]},
+      {"cell_type": "code", "source": ["print(1)\n", "raise ValueError('boom')"]},
+    ]
+  }
+  with pytest.raises(ValueError, match="boom") as e:
+    run_notebook.execute(nb)
+  assert run_notebook.output_kinds(e.value.notebook) == [["stream:stdout", "error"]]
+  ok = {"cells": [{"cell_type": "code", "source": ["print(1)"]}]}
+  assert run_notebook.output_kinds(run_notebook.execute(ok)[0]) == [["stream:stdout"]]
+  assert run_notebook.output_kinds({"cells": [{"cell_type": "code", "outputs": []}]}) == [[]]

@@ -137,9 +137,9 @@ def test_worker_processes_give_the_same_stream_and_resume(data_dir):
 
 
 def test_num_workers_config():
+  from camrep.configs import gqn
   from camrep.runtime.runconfig import ConfigError
   from camrep.synthesis import components
-  from configs import gqn
 
   c = gqn.get_config("smoke")
   assert c.data.num_workers == -1

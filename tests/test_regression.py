@@ -16,14 +16,14 @@ import sys
 import numpy as np
 import pytest
 
+from camrep.configs import regression as regression_config
+from camrep.configs import shapenet_car
 from camrep.regression import driver as R
 from camrep.regression import tables as C
 from camrep.regression import views as views_lib
 from camrep.runtime import runconfig
 from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import components, train
-from configs import regression as regression_config
-from configs import shapenet_car
 from tests.utils import load_experiment, snapshot
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -23,10 +23,10 @@ import pathlib
 
 import pytest
 
+from camrep.configs import regression as regression_config
 from camrep.regression import driver, learner
 from camrep.regression import targets as T
 from camrep.runtime.runconfig import ConfigError
-from configs import regression as regression_config
 
 REFERENCE = pathlib.Path(__file__).parent / "data" / "regression_configs.json"
 VARIANTS = ("smoke", "quick", "medium", "paper")

@@ -22,6 +22,11 @@ import sys
 import numpy as np
 import pytest
 
+from camrep.configs import gibson as gibson_config
+from camrep.configs import gqn as gqn_config
+from camrep.configs import regression as regression_config
+from camrep.configs import seven_scenes as seven_scenes_config
+from camrep.configs import shapenet_car
 from camrep.data import prepare
 from camrep.models import pose_regressor
 from camrep.regression import driver as R
@@ -29,11 +34,6 @@ from camrep.regression import learner
 from camrep.regression import views as views_lib
 from camrep.runtime import runconfig
 from camrep.synthesis import train as synthesis_train
-from configs import gibson as gibson_config
-from configs import gqn as gqn_config
-from configs import regression as regression_config
-from configs import seven_scenes as seven_scenes_config
-from configs import shapenet_car
 from tests import readers_fixtures as fx
 from tests.utils import load_experiment
 

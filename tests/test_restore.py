@@ -82,7 +82,7 @@ def test_restore_or_init_and_pose_system_render_nothing(gqn_smoke_run, tmp_path,
 
 
 def test_dummy_batch_has_the_pipeline_layout_and_gives_the_same_init():
-  from configs import gqn, shapenet_car
+  from camrep.configs import gqn, shapenet_car
 
   for config in (gqn.get_config("smoke"), shapenet_car.get_config("smoke")):
     pipe = components.make_pipeline(config, "train", num_devices=1)

@@ -20,16 +20,17 @@ import jax
 import numpy as np
 import pytest
 
+from camrep.configs import gqn
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime import writers
 from camrep.synthesis import restore, train
-from configs import gqn
 
 # One xdist worker runs the module, so the reference run is made once.
 pytestmark = pytest.mark.xdist_group("resume")
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "tests" / "resume_script.py"
+# Run as a module from ROOT, where camrep and tests import (`python -m tests.resume_script`).
+SCRIPT = "tests.resume_script"
 TOTAL, EVERY = 60, 10
 # Wall-clock figures differ between any two runs; everything else must be equal.
 TIMING_KEYS = ("train/steps_per_sec",)
@@ -54,7 +55,7 @@ def _env():
 
 def _run(workdir, kill_in_save: int = 0) -> subprocess.CompletedProcess:
   return subprocess.run(
-    [sys.executable, str(SCRIPT), str(kill_in_save), *_flags(workdir)],
+    [sys.executable, "-m", SCRIPT, str(kill_in_save), *_flags(workdir)],
     cwd=ROOT,
     env=_env(),
     capture_output=True,
@@ -65,7 +66,7 @@ def _run(workdir, kill_in_save: int = 0) -> subprocess.CompletedProcess:
 
 def _start(workdir) -> subprocess.Popen:
   return subprocess.Popen(
-    [sys.executable, str(SCRIPT), "0", *_flags(workdir)],
+    [sys.executable, "-m", SCRIPT, "0", *_flags(workdir)],
     cwd=ROOT,
     env=_env(),
     stdout=subprocess.PIPE,

@@ -17,9 +17,9 @@ import jax
 import numpy as np
 import pytest
 
+from camrep.configs import regression as regression_config
 from camrep.regression import driver, learner, scoring
 from camrep.regression import views as views_lib
-from configs import regression as regression_config
 
 
 def _small_quick_config(**family):

@@ -12,11 +12,11 @@ import shutil
 
 import pytest
 
+from camrep.configs import gqn
 from camrep.runtime import runconfig, session, writers
 from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import step as step_lib
 from camrep.synthesis import train
-from configs import gqn
 from tests.utils import load_experiment
 
 pytestmark = pytest.mark.usefixtures("fast_compile")

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 from camrep import pose as P
+from camrep.configs import gibson, gqn, gqn_convdraw, seven_scenes, shapenet_car
+from camrep.configs import regression as regression_config
 from camrep.models.composite import GQNSynthesis, TableSynthesis
 from camrep.runtime import runconfig, writers
 from camrep.synthesis import components, train
 from camrep.synthesis import step as step_lib
-from configs import gibson, gqn, gqn_convdraw, seven_scenes, shapenet_car
-from configs import regression as regression_config
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 CONFIGS = {"gqn": gqn, "shapenet_car": shapenet_car, "gibson": gibson, "seven_scenes": seven_scenes}
@@ -180,7 +180,7 @@ def test_two_host_devices_match_one(tmp_path):
   for n in (1, 2):
     path = tmp_path / f"d{n}.npz"
     r = subprocess.run(
-      [sys.executable, str(ROOT / "tests" / "two_devices_script.py"), str(n), "2", str(path)],
+      [sys.executable, "-m", "tests.two_devices_script", str(n), "2", str(path)],
       capture_output=True,
       text=True,
       cwd=ROOT,

@@ -15,12 +15,12 @@ import sys
 
 import pytest
 
+from camrep.configs import gqn, regression, shapenet_car
 from camrep.runtime import runconfig, writers
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime.checkpoint import CheckpointError
 from camrep.synthesis import evaluate as ev
 from camrep.synthesis import train
-from configs import gqn, regression, shapenet_car
 from tests.utils import snapshot
 
 pytestmark = pytest.mark.usefixtures("fast_compile")

@@ -1,13 +1,10 @@
 """Helper for tests/test_train.py: train N steps on D forced host devices, save the parameters.
 
-Usage: python tests/two_devices_script.py DEVICES STEPS OUT.npz
+Usage (from the repository root): python -m tests.two_devices_script DEVICES STEPS OUT.npz
 """
 
 import os
-import pathlib
 import sys
-
-sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
 
 n_dev, steps, out = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
 os.environ["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={n_dev}"
@@ -17,9 +14,9 @@ import numpy as np  # noqa: E402
 
 jax.config.update("jax_disable_most_optimizations", True)
 
+from camrep.configs import gqn  # noqa: E402
 from camrep.synthesis import components  # noqa: E402
 from camrep.synthesis import step as step_lib  # noqa: E402
-from configs import gqn  # noqa: E402
 
 assert jax.local_device_count() == n_dev, jax.devices()
 config = gqn.get_config("smoke")

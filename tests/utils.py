@@ -101,8 +101,8 @@ def load_experiment(name: str):
 
 def regression_hparams(setting: str, representation: str):
   """The `learner.HyperParams` that configs/regression.py gives (setting, representation)."""
+  from camrep.configs import regression as regression_config
   from camrep.regression import learner
-  from configs import regression as regression_config
 
   c = regression_config.get_config("smoke")
   c.setting, c.representation = setting, representation

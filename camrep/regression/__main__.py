@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import jax
 from absl import flags, logging
-from ml_collections import config_flags
 
+from camrep import configs
 from camrep.regression import config_schema, driver
 from camrep.runtime import cli
 
-_CONFIG = config_flags.DEFINE_config_file(
-  "config", None, "Path to configs/regression.py[:quick|:smoke].", lock_config=True
+_CONFIG = configs.define_config_flag(
+  "config", "configs/regression.py[:quick|:smoke], or the installed regression[:quick|:smoke]."
 )
 _WORKDIR = flags.DEFINE_string("workdir", None, "Output directory (results.json, metrics).")
 flags.mark_flags_as_required(["config", "workdir"])

@@ -1,191 +1,186 @@
-"""Plots drawn with OpenCV alone (no matplotlib): line plots with axes and legends, heat maps,
-PNG output. Used by the noise-robustness figure, Gram maps and the experiments.
+"""Figures drawn with matplotlib: curves with a band over seeds, and Gram maps with pose ticks,
+written as PNG and PDF twins. Used by the noise-robustness figure, learning curves and Gram maps
+(`camrep.synthesis.evaluate`, experiments/noise_figure.py, experiments/learning_curve.py).
+
+matplotlib's object interface only (no pyplot, no global backend): `Figure` renders through Agg
+for PNG and its PDF backend for PDF, in any process and thread. The training loop's image grids
+stay OpenCV (`camrep.runtime.grids`).
 """
 
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
-import cv2
-import jax
 import numpy as np
+from matplotlib.figure import Figure
+from matplotlib.ticker import MaxNLocator
 
-Array = jax.Array
-
-
-_FONT = cv2.FONT_HERSHEY_SIMPLEX
-
-
-_BLACK = (0, 0, 0)
-
-
-def _text(img, text, org, *, scale=0.45, color=_BLACK, thickness=1, anchor="left"):
-  """Draws text with its baseline at org[1]; anchor "left", "center" or "right" in x."""
-  (w, _), _ = cv2.getTextSize(text, _FONT, scale, thickness)
-  x, y = org
-  if anchor == "center":
-    x -= w // 2
-  elif anchor == "right":
-    x -= w
-  cv2.putText(img, text, (int(x), int(y)), _FONT, scale, color, thickness, cv2.LINE_AA)
+# Colours of successive series (matplotlib's tab10, so a label keeps its colour across panels).
+COLORS = ("tab:blue", "tab:red", "tab:green", "tab:purple", "tab:orange", "tab:brown", "tab:gray")
+PANEL_SIZE = (4.6, 3.4)  # inches, one panel; PNGs at DPI dots per inch
+DPI = 120
 
 
-def _nice_ticks(lo: float, hi: float, n: int = 6) -> np.ndarray:
-  """About n round tick values; the first <= lo, the last >= hi."""
-  if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
-    hi = lo + 1.0
-  raw = (hi - lo) / max(n - 1, 1)
-  mag = 10 ** math.floor(math.log10(raw))
-  step = next(m * mag for m in (1, 2, 2.5, 5, 10) if m * mag >= raw)
-  first, last = math.floor(lo / step + 1e-9), math.ceil(hi / step - 1e-9)
-  return step * np.arange(first, last + 1)
+@dataclass(frozen=True)
+class Panel:
+  """One panel of curves against a shared x.
+
+  series: {label: (n,) values, or (seeds, n) values of several seeds}; several seeds are drawn
+    as their mean with a band from their minimum to their maximum. Points where no seed is
+    finite are left out (the line joins their neighbours).
+  """
+
+  title: str
+  ylabel: str
+  series: Mapping[str, np.ndarray]
+  xlabel: str = ""
 
 
-def _fmt(v: float, step: float) -> str:
-  decimals = max(0, -math.floor(math.log10(step) + 1e-9)) if step > 0 else 0
-  decimals += 1 if abs(round(step * 10**decimals) - step * 10**decimals) > 1e-6 else 0
-  return f"{v:.{decimals}f}"
+def _as_seeds(values) -> np.ndarray:
+  """(seeds, n) float64 from (n,) or (seeds, n) values."""
+  a = np.asarray(values, np.float64)
+  return a[None] if a.ndim == 1 else a
 
 
-SERIES_COLORS = ((31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14))
-
-
-def line_plot(
-  x: Sequence[float] | np.ndarray,
-  y: Sequence[float] | np.ndarray | Mapping[str, Sequence[float]],
-  *,
-  title: str,
-  xlabel: str,
-  ylabel: str,
-  size: tuple[int, int] = (560, 420),
-  color: tuple[int, int, int] = (31, 119, 180),
-) -> np.ndarray:
-  """A line plot with markers, axes, ticks, grid, labels and a title.
+def mean_and_band(values) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+  """(mean, low, high, seeds) over the seeds axis, ignoring non-finite seeds per point.
 
   Args:
-    x: (n,) values.
-    y: (n,) values, or {label: (n,) values} for several series with a legend (colours from
-      `SERIES_COLORS`); non-finite values are left out.
-    size: (width, height) in pixels.
-    color: RGB line colour of a single series.
+    values: (n,) or (seeds, n).
 
   Returns:
-    (height, width, 3) uint8 RGB image.
+    mean, low (min over seeds), high (max over seeds), each (n,) (NaN where no seed is finite),
+    and the number of seeds.
   """
+  a = _as_seeds(values)
+  ok = np.isfinite(a)
+  count = ok.sum(axis=0)
+  filled = np.where(ok, a, 0.0)
+  with np.errstate(invalid="ignore", divide="ignore"):
+    mean = np.where(count > 0, filled.sum(axis=0) / np.maximum(count, 1), np.nan)
+  low = np.where(count > 0, np.where(ok, a, np.inf).min(axis=0), np.nan)
+  high = np.where(count > 0, np.where(ok, a, -np.inf).max(axis=0), np.nan)
+  return mean, low, high, a.shape[0]
+
+
+def curves_figure(x, panels: Sequence[Panel], *, suptitle: str = "") -> Figure:
+  """Panels side by side, one line per series (markers at the points), a band where a series
+  has several seeds, one legend per panel placed where it covers the fewest points."""
   x = np.asarray(x, np.float64)
-  series = (
-    {k: np.asarray(v, np.float64) for k, v in y.items()}
-    if isinstance(y, Mapping)
-    else {"": np.asarray(y, np.float64)}
-  )
-  colors = (
-    dict(zip(series, SERIES_COLORS * 4, strict=False)) if isinstance(y, Mapping) else {"": color}
-  )
-  width, height = size
-  img = np.full((height, width, 3), 255, np.uint8)
-  left, right, top, bottom = 70, 20, 40, 55
-  pw, ph = width - left - right, height - top - bottom
-  every = np.concatenate(list(series.values()))
-  ok = np.isfinite(every)
-  ylo, yhi = (float(every[ok].min()), float(every[ok].max())) if ok.any() else (0.0, 1.0)
-  pad = 0.08 * (yhi - ylo) if yhi > ylo else max(abs(yhi) * 0.05, 0.05)
-  yt = _nice_ticks(ylo - pad, yhi + pad)
-  xt = _nice_ticks(float(x.min()), float(x.max()))
-  x0, x1 = min(xt[0], x.min()), max(xt[-1], x.max())
-  y0, y1 = yt[0], yt[-1]
-  px = lambda v: left + (v - x0) / (x1 - x0 or 1.0) * pw
-  py = lambda v: top + ph - (v - y0) / (y1 - y0 or 1.0) * ph
-  for v in xt:
-    X = round(px(v))
-    cv2.line(img, (X, top), (X, top + ph), (225, 225, 225), 1)
-    cv2.line(img, (X, top + ph), (X, top + ph + 5), _BLACK, 1)
-    _text(img, _fmt(v, xt[1] - xt[0]), (X, top + ph + 20), anchor="center")
-  for v in yt:
-    Y = round(py(v))
-    cv2.line(img, (left, Y), (left + pw, Y), (225, 225, 225), 1)
-    cv2.line(img, (left - 5, Y), (left, Y), _BLACK, 1)
-    _text(img, _fmt(v, yt[1] - yt[0]), (left - 8, Y + 5), anchor="right")
-  cv2.rectangle(img, (left, top), (left + pw, top + ph), _BLACK, 1)
-  for i, (label, yv) in enumerate(series.items()):
-    ok = np.isfinite(yv)
-    c = colors[label]
-    pts = np.array([[px(a), py(b)] for a, b in zip(x[ok], yv[ok], strict=True)])
-    if len(pts):
-      pts_i = np.round(pts).astype(np.int32)
-      cv2.polylines(img, [pts_i.reshape(-1, 1, 2)], False, c, 2, cv2.LINE_AA)
-      for p in pts_i:
-        cv2.circle(img, (int(p[0]), int(p[1])), 4, c, -1, cv2.LINE_AA)
-    if label:  # legend, top right inside the axes
-      ly = top + 18 + 20 * i
-      cv2.line(img, (left + pw - 150, ly - 4), (left + pw - 125, ly - 4), c, 2, cv2.LINE_AA)
-      _text(img, label, (left + pw - 118, ly))
-  _text(img, title, (width // 2, 25), scale=0.6, anchor="center")
-  _text(img, xlabel, (left + pw // 2, height - 12), scale=0.5, anchor="center")
-  # Rotated y label: draw horizontally on a strip, rotate, paste left of the tick labels.
-  (tw, th), _ = cv2.getTextSize(ylabel, _FONT, 0.5, 1)
-  strip = np.full((th + 8, min(tw + 4, ph)), 255, np.uint8)
-  cv2.putText(strip, ylabel, (2, th + 2), _FONT, 0.5, 0, 1, cv2.LINE_AA)
-  strip = cv2.rotate(strip, cv2.ROTATE_90_COUNTERCLOCKWISE)
-  ys = top + (ph - strip.shape[0]) // 2
-  img[ys : ys + strip.shape[0], 4 : 4 + strip.shape[1]] = strip[..., None]
-  return img
+  w, h = PANEL_SIZE
+  fig = Figure(figsize=(w * len(panels), h + (0.3 if suptitle else 0.0)), layout="constrained")
+  axes = fig.subplots(1, len(panels), squeeze=False)[0]
+  for ax, panel in zip(axes, panels, strict=True):
+    for i, (label, values) in enumerate(panel.series.items()):
+      mean, low, high, seeds = mean_and_band(values)
+      color = COLORS[i % len(COLORS)]
+      name = f"{label} (mean of {seeds} seeds)" if seeds > 1 else label
+      ok = np.isfinite(mean)
+      ax.plot(
+        x[ok], mean[ok], marker="o", markersize=3.5, linewidth=1.6, color=color, label=name or None
+      )
+      if seeds > 1:
+        ax.fill_between(x[ok], low[ok], high[ok], color=color, alpha=0.2, linewidth=0)
+    ax.set_title(panel.title, fontsize=10)
+    ax.set_xlabel(panel.xlabel)
+    ax.set_ylabel(panel.ylabel)
+    ax.grid(True, color="0.9")
+    ax.set_axisbelow(True)
+    ax.xaxis.set_major_locator(MaxNLocator(nbins=7, steps=[1, 2, 2.5, 5, 10]))
+    if any(panel.series) and any(panel.series.keys()):
+      ax.legend(loc="best", fontsize=8, framealpha=0.85)
+  if suptitle:
+    fig.suptitle(suptitle, fontsize=11)
+  return fig
 
 
-def heat_map(
-  m: np.ndarray,
-  *,
-  title: str,
-  caption: str = "",
-  min_size: int = 400,
-  max_size: int = 1024,
-  colormap: int = cv2.COLORMAP_VIRIDIS,
-) -> np.ndarray:
-  """A (K, K) matrix as a colour-mapped image with a title, caption and colour bar.
+@dataclass(frozen=True)
+class GramAxis:
+  """How a Gram map's index maps to pose: `values` (K,) in `unit`, or a flat 2-D grid."""
 
-  Small matrices are upscaled by an integer factor (nearest neighbour, so cells stay sharp) to at
-  least `min_size` pixels; larger than `max_size` ones are shrunk (area averaging).
+  label: str
+  values: np.ndarray  # (K,) ticks in the DOF's units, or (K, 2) positions (flat index)
+  unit: str = ""
 
-  Returns:
-    uint8 RGB image.
+
+def gram_axis(values, *, name: str, angular: bool) -> GramAxis:
+  """The axis of a Gram map over a DOF's values: degrees for an angle (values in radians), the
+  DOF's own unit otherwise; (K, 2) positions of a polar DOF keep their (x, y) pairs."""
+  v = np.asarray(values, np.float64)
+  if v.ndim == 2:
+    return GramAxis(f"{name}: (x, y) grid point, x-major", v, "")
+  if angular:
+    return GramAxis(f"{name} (degrees)", np.degrees(v), "deg")
+  return GramAxis(name, v, "")
+
+
+def gram_figure(g, axis: GramAxis, *, title: str, caption: str = "") -> Figure:
+  """A (K, K) Gram matrix as an image with pose ticks on both axes and a colour bar.
+
+  Angles and linear DOFs: ticks at round values of the DOF (degrees, metres...). A polar DOF's
+  flat (x, y) grid: a tick at the start of each x row, labelled with its x, every few rows.
   """
-  m = np.asarray(m, np.float64)
-  lo, hi = float(np.nanmin(m)), float(np.nanmax(m))
-  span = hi - lo if hi > lo else 1.0
-  gray = np.clip(np.round((np.nan_to_num(m, nan=lo) - lo) / span * 255), 0, 255).astype(np.uint8)
-  K = max(m.shape)
-  if K > max_size:
-    side = (max_size * m.shape[1] // K, max_size * m.shape[0] // K)
-    gray = cv2.resize(gray, side, interpolation=cv2.INTER_AREA)
+  g = np.asarray(g, np.float64)
+  k = g.shape[0]
+  fig = Figure(figsize=(5.0, 4.3 + (0.25 if caption else 0.0)), layout="constrained")
+  ax = fig.subplots()
+  im = ax.imshow(g, cmap="viridis", interpolation="nearest", origin="upper")
+  fig.colorbar(im, ax=ax, shrink=0.85, label="inner product")
+  v = axis.values
+  if v.ndim == 2:  # flat grid: x changes every n_side entries
+    n_side = int(round(math.sqrt(k)))
+    starts = np.arange(0, k, n_side)
+    step = max(1, len(starts) // 6)
+    ticks = starts[::step]
+    labels = [f"x={v[t, 0]:.2g}" for t in ticks]
   else:
-    f = max(1, math.ceil(min_size / K))
-    gray = cv2.resize(gray, (m.shape[1] * f, m.shape[0] * f), interpolation=cv2.INTER_NEAREST)
-  body = cv2.applyColorMap(gray, colormap)  # BGR
-  h, w = body.shape[:2]
-  top, bottom, bar_w, right = 40, 40 if caption else 16, 18, 80
-  img = np.full((top + h + bottom, 16 + w + 16 + bar_w + right, 3), 255, np.uint8)
-  img[top : top + h, 16 : 16 + w] = body
-  ramp = np.linspace(255, 0, h).round().astype(np.uint8)[:, None].repeat(bar_w, axis=1)
-  bx = 16 + w + 16
-  img[top : top + h, bx : bx + bar_w] = cv2.applyColorMap(ramp, colormap)
-  cv2.rectangle(img, (bx, top), (bx + bar_w - 1, top + h - 1), _BLACK, 1)
-  ticks = _nice_ticks(lo, hi, 5)
-  ticks = ticks[(ticks >= lo - 1e-9) & (ticks <= hi + 1e-9)]
-  step = ticks[1] - ticks[0] if len(ticks) > 1 else span
-  for v in ticks:
-    Y = round(top + (hi - v) / span * (h - 1))
-    cv2.line(img, (bx + bar_w, Y), (bx + bar_w + 4, Y), _BLACK, 1)
-    _text(img, _fmt(v, step), (bx + bar_w + 7, min(max(Y + 5, top + 10), top + h)))
-  rgb = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-  _text(rgb, title, (16, 27), scale=0.6)
+    lo, hi = float(v[0]), float(v[-1])
+    # Degrees at multiples of 90 / 45 / 30 / 15, other units at 1-2-5 steps.
+    steps = [1, 1.5, 3, 4.5, 9, 10] if axis.unit == "deg" else [1, 2, 2.5, 5, 10]
+    locs = MaxNLocator(nbins=7, steps=steps).tick_values(lo, hi)
+    locs = locs[(locs >= min(lo, hi) - 1e-9) & (locs <= max(lo, hi) + 1e-9)]
+    ticks = (locs - lo) / ((hi - lo) or 1.0) * (k - 1)
+    labels = [f"{t:g}" for t in locs]
+  rotation = 45 if v.ndim == 2 else 0
+  ax.set_xticks(ticks, labels, rotation=rotation, fontsize=8)
+  ax.set_yticks(ticks, labels, fontsize=8)
+  ax.set_xlabel(axis.label)
+  ax.set_ylabel(axis.label)
+  ax.set_title(title, fontsize=10)
   if caption:
-    _text(rgb, caption, (16, top + h + 26), scale=0.45)
-  return rgb
+    fig.text(0.01, 0.005, caption, fontsize=8, color="0.3")
+  return fig
 
 
-def write_png(path: str, rgb: np.ndarray) -> None:
-  ok, png = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-  if not ok:
-    raise RuntimeError(f"PNG encoding of {path} failed")
-  with open(path, "wb") as f:
-    f.write(png.tobytes())
+def save(fig: Figure, path: str, *, formats: Sequence[str] = ("png", "pdf")) -> list[str]:
+  """Writes `fig` as `path` (its extension dropped) in each format: a PNG at DPI and a vector
+  PDF by default. Returns the paths written."""
+  stem = os.path.splitext(path)[0]
+  out = []
+  for fmt in formats:
+    p = f"{stem}.{fmt}"
+    fig.savefig(p, dpi=DPI, format=fmt, metadata=_metadata(fmt))
+    out.append(p)
+  return out
+
+
+def _metadata(fmt: str) -> dict:
+  """No creation dates in the files: the same figure gives the same bytes."""
+  if fmt == "png":
+    return {"Software": None}
+  if fmt == "pdf":
+    return {"CreationDate": None, "Producer": None, "Creator": None}
+  return {}
+
+
+def to_rgb(fig: Figure, dpi: float = DPI) -> np.ndarray:
+  """The figure rendered at `dpi`: (H, W, 3) uint8 RGB (for notebooks and tests)."""
+  from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+  fig.set_dpi(dpi)
+  canvas = FigureCanvasAgg(fig)
+  canvas.draw()
+  return np.asarray(canvas.buffer_rgba())[..., :3].copy()

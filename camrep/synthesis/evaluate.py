@@ -3,7 +3,8 @@
 
 Reads a training workdir (config.json and checkpoints/ written by `camrep.synthesis.train`) back
 with `restore.load_run`, then runs `noise.noise_robustness` and `gram.gram_maps`, and writes
-DIR/eval/noise.json, noise.png (PSNR and SSIM vs alpha), gram_<dof>.png and gram.npz. The output
+DIR/eval/noise.json, noise.png (PSNR and SSIM vs alpha), gram_<dof>.png (each with a PDF
+twin) and gram.npz. The output
 directory is checked for writing before anything is restored, and the files are written into a
 staging directory there and moved in only once all are written: a full disk or a read-only
 workdir ends with one `error:` line (exit 2) and leaves no half-written file. Exit status as

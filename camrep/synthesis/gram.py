@@ -68,18 +68,23 @@ def _gram_caption(spec: P.PoseSystemSpec, name: str, k: int) -> str:
 
 
 def write_grams(out: str, run: Run, grams: Mapping[str, np.ndarray]) -> list[str]:
-  """Writes out/gram_<dof>.png and out/gram.npz ({dof}: Gram, {dof}_values: values)."""
+  """Writes out/gram_<dof>.png (and its PDF twin) and out/gram.npz ({dof}: Gram, {dof}_values:
+  values)."""
   paths = []
   arrays = {}
   for name, g in grams.items():
     arrays[name] = g
-    arrays[f"{name}_values"] = np.asarray(gram_values(run.spec, name))
-    path = os.path.join(out, f"gram_{name}.png")
+    values = np.asarray(gram_values(run.spec, name))
+    arrays[f"{name}_values"] = values
+    angular = isinstance(run.spec.dof(name), P.AngularDof)
     title = f"Gram V V^T of {name} ({g.shape[0]} x {g.shape[1]}), step {run.step}"
-    plots.write_png(
-      path, plots.heat_map(g, title=title, caption=_gram_caption(run.spec, name, g.shape[0]))
+    fig = plots.gram_figure(
+      g,
+      plots.gram_axis(values, name=name, angular=angular),
+      title=title,
+      caption=_gram_caption(run.spec, name, g.shape[0]),
     )
-    paths.append(path)
+    paths += plots.save(fig, os.path.join(out, f"gram_{name}.png"))
   npz = os.path.join(out, "gram.npz")
   np.savez(npz, **arrays)
   return [*paths, npz]

@@ -226,22 +226,13 @@ def noise_robustness(
   }
 
 
-def noise_figure(result: Mapping[str, Any], *, title: str = "") -> np.ndarray:
-  """PSNR and SSIM against alpha, side by side: (420, 1120, 3) uint8 RGB."""
-  a = result["alphas"]
-  suffix = f" ({title})" if title else ""
-  left = plots.line_plot(
-    a, result["psnr"], title=f"PSNR vs noise{suffix}", xlabel="alpha", ylabel="PSNR (dB)"
-  )
-  right = plots.line_plot(
-    a,
-    result["ssim"],
-    title=f"SSIM vs noise{suffix}",
-    xlabel="alpha",
-    ylabel="SSIM",
-    color=(214, 39, 40),
-  )
-  return np.concatenate([left, right], axis=1)
+def noise_figure(result: Mapping[str, Any], *, title: str = "") -> plots.Figure:
+  """PSNR and SSIM against alpha, side by side (a matplotlib Figure)."""
+  panels = [
+    plots.Panel("PSNR vs pose noise", "PSNR (dB)", {"": result["psnr"]}, xlabel="alpha"),
+    plots.Panel("SSIM vs pose noise", "SSIM", {"": result["ssim"]}, xlabel="alpha"),
+  ]
+  return plots.curves_figure(result["alphas"], panels, suptitle=title)
 
 
 def _beta_stats(betas: Mapping[str, np.ndarray]) -> dict[str, dict[str, float]]:
@@ -252,7 +243,7 @@ def _beta_stats(betas: Mapping[str, np.ndarray]) -> dict[str, dict[str, float]]:
 
 
 def write_noise(out: str, run: Run, result: Mapping[str, Any]) -> list[str]:
-  """Writes out/noise.json and out/noise.png; returns their paths."""
+  """Writes out/noise.json and the figure out/noise.png (and its PDF twin); returns the paths."""
   record = {
     "workdir": os.path.abspath(run.workdir),
     "step": int(result["step"]),
@@ -267,9 +258,8 @@ def write_noise(out: str, run: Run, result: Mapping[str, Any]) -> list[str]:
   }
   if run.model.temperature is not None:  # GQN's generator: which latents
     record["draw_temperature"] = run.model.temperature
-  paths = [os.path.join(out, "noise.json"), os.path.join(out, "noise.png")]
-  with open(paths[0], "w", encoding="utf-8") as f:
+  path = os.path.join(out, "noise.json")
+  with open(path, "w", encoding="utf-8") as f:
     json.dump(record, f, indent=1)
   title = f"{components.setting(run.config)}, step {result['step']}, {result['num_images']} images"
-  plots.write_png(paths[1], noise_figure(result, title=title))
-  return paths
+  return [path, *plots.save(noise_figure(result, title=title), os.path.join(out, "noise.png"))]

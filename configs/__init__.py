@@ -1,1 +1,0 @@
-"""Experiment configs (ml_collections), loaded by path: `--config=configs/gqn.py[:quick|:smoke]`."""
