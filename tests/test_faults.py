@@ -381,7 +381,7 @@ def test_resume_on_another_device_count_is_refused_unless_allowed(gqn_smoke_run,
   config = gqn.get_config("smoke")
   config.total_steps, config.allow_changes = 6, "total_steps"
   with pytest.raises(runconfig.ConfigError, match="took 4 scenes per step on 2 device"):
-    train.build_job(config, str(wd))
+    train.train_and_evaluate(config, str(wd), log=lambda s: None)
   assert _snapshot(wd) == before
   now = workdir_lib.topology(processes=1, devices=1, scenes_per_device=2)
   change = workdir_lib.check_topology(str(wd), now, allowed=True)

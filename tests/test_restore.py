@@ -16,8 +16,9 @@ import pytest
 
 from camrep.data import batches, pipeline, render, storage
 from camrep.regression import driver as regression_driver
+from camrep.runtime import checkpoint as ckpt_lib
 from camrep.runtime import workdir as workdir_lib
-from camrep.synthesis import components, restore, train
+from camrep.synthesis import components, restore
 from camrep.synthesis import step as step_lib
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
@@ -66,14 +67,17 @@ def test_restore_or_init_and_pose_system_render_nothing(gqn_smoke_run, tmp_path,
   wd = str(tmp_path / "run")
   shutil.copytree(gqn_smoke_run, wd)
   reference = restore.load_run(wd)
-  job = train.build_job(workdir_lib.read_config(wd), wd)  # in-memory data: renders here
-  try:
-    init_key = jax.random.split(jax.random.key(job.config.seed))[0]
-    _refuse_views(monkeypatch)
-    state, start = train.restore_or_init(job, init_key)
-  finally:
-    job.checkpointer.close()
-    job.lock.release()
+  config = workdir_lib.read_config(wd)
+  # The trainer's restore (train.train_and_evaluate): template from `step.init_fn`, whose batch is
+  # `batches.dummy_batch`; the model's table size from `batches.describe`.
+  model = components.make_model(
+    config, int(batches.describe(config.data, "train").scene_ids.max()) + 1
+  )
+  init = step_lib.init_fn(config, model, step_lib.make_optimizers(config))
+  _refuse_views(monkeypatch)
+  with ckpt_lib.Checkpointer(wd, max_to_keep=config.max_to_keep) as ckpt:
+    state_d, _, start = ckpt.restore_or_init(lambda: step_lib.state_dict(init()))
+  state = step_lib.from_state_dict(init, state_d)
   assert start == 4
   _assert_same_params(state.params, reference.params)
   system = regression_driver.load_pose_system(wd, "gqn")
@@ -94,9 +98,9 @@ def test_dummy_batch_has_the_pipeline_layout_and_gives_the_same_init():
     info = batches.describe(config.data, "train")
     np.testing.assert_array_equal(info.scene_ids, pipe.all_scene_ids)
     # The init reads shapes only: a fresh start from the dummy equals one from batch 0.
-    spec = components.pose_spec(config)
     model = components.make_model(config, components.num_train_scenes(pipe))
     key = jax.random.key(config.seed)
-    from_real = step_lib.init_params(key, config, model, spec, real)
-    from_dummy = step_lib.init_params(key, config, model, spec, dummy)
+    tx = step_lib.make_optimizers(config)
+    from_real = step_lib.create_train_state(key, model, tx, real).params
+    from_dummy = step_lib.create_train_state(key, model, tx, dummy).params
     _assert_same_params(from_real, from_dummy)
