@@ -75,6 +75,14 @@ def _parse(argv=None):
     "--dtype", default="float32", help="compute dtypes (model.dtype) to time, e.g. float32,bfloat16"
   )
   p.add_argument("--bf16", action="store_true", help="also time a conv layer in bfloat16")
+  p.add_argument(
+    "--regression",
+    default="",
+    help="also time the pose-regression step of these settings (e.g. gqn,car), interleaved",
+  )
+  p.add_argument("--regression_variant", default="quick", help="configs/regression.py variant")
+  p.add_argument("--regression_cache", default="/tmp/camrep_bench_regression_cache")
+  p.add_argument("--skip_synthesis", action="store_true", help="time only --regression steps")
   p.add_argument("--tables", action="store_true", help="batch / image size / device tables")
   p.add_argument("--breakdown", action="store_true", help="time encoder, decoder, rotation loss")
   p.add_argument("--devices", default="1,2", help="forced host device counts for the table")
@@ -215,6 +223,64 @@ class StepTimer:
       "compile_s": self.compile_s,
       "finite": self.finite,
     }
+
+
+class RegressionTimer(StepTimer):
+  """The pose-regression train step (`camrep.regression.learner.train_step`, jitted as the driver
+  runs it) of `configs/regression.py:<variant>` for one setting and representation, on the
+  setting's real training batch (rendered once, cached in `cache_dir`). `images` counts every
+  image the step's network sees (GQN: the context and query views of each scene)."""
+
+  def __init__(self, setting: str, *, variant: str = "quick", representation: str = "quat",
+               cache_dir: str = "", log=print):  # fmt: skip
+    self._context = contextlib.nullcontext
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from camrep.regression import driver, learner
+    from camrep.regression import views as views_lib
+
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+    from configs import regression
+
+    config = regression.get_config(variant)
+    config.setting, config.representation = setting, representation
+    config.data.cache_dir = cache_dir
+    config = driver.resolve_config(config)
+    setup = driver.prepare(config, log=log)
+    b0 = views_lib.train_batch_fn(config, setup.data.train)(0)
+    batch = {k: jnp.asarray(v) for k, v in b0.items()}
+    state = learner.init(jax.random.key(0), setup.reg, batch, rep_params=setup.rep_params)
+    self.flops = flops_lib.count_flops(learner.train_step, state, batch)
+    self.xla_flops = float("nan")
+    step = jax.jit(learner.train_step, donate_argnums=0)
+    t = time.perf_counter()
+    compiled = step.lower(state, batch).compile()
+    self.compile_s = time.perf_counter() - t
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, list | tuple) else cost
+    self.xla_flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
+    self.images = sum(
+      int(np.prod(v.shape[: v.ndim - 3])) for k, v in b0.items() if k.endswith("image")
+    )
+    self.config = config
+    state, m = step(state, batch)
+    jax.block_until_ready(m)
+    self.finite = float(np.isfinite(float(m["loss"])))
+    self._state, self._batch = state, batch
+    self._regression_step = step
+
+  def times(self, steps: int) -> list[float]:
+    import jax
+
+    out = []
+    for _ in range(steps):
+      t = time.perf_counter()
+      self._state, m = self._regression_step(self._state, self._batch)
+      jax.block_until_ready((self._state.params, m))
+      out.append(time.perf_counter() - t)
+    return out
 
 
 def time_step(config, *, steps: int, num_devices: int = 1) -> dict:
@@ -448,12 +514,18 @@ def main(argv=None) -> None:
   dtypes = args.dtype.split(",")
   modes = args.grad_modes.split(",")
   timers = {}
-  for dtype in dtypes:
+  for dtype in dtypes if not args.skip_synthesis else []:
     config = gqn_config(width, args.scenes)
     config.model.dtype = dtype
     for mode in modes:
       timer = StepTimer(config, context=lambda m=mode: fastconv.weight_grad(m))
       timers[f"{dtype} weight grad {mode}"] = (timer, dtype)
+  settings = [x for x in args.regression.split(",") if x]
+  for setting in settings:
+    timer = RegressionTimer(
+      setting, variant=args.regression_variant, cache_dir=args.regression_cache
+    )
+    timers[f"regression {setting}"] = (timer, "float32")
   # Peaks and steps timed in turn, --repeats rounds: MFU per round against that round's peak.
   inter = interleaved(timers, rounds=args.repeats, steps=args.steps)
   for dtype in dtypes:
@@ -467,6 +539,18 @@ def main(argv=None) -> None:
     "round's MFU against the same round's peak",
     flush=True,
   )
+  for setting in settings:
+    r = inter[f"regression {setting}"]
+    print(
+      f"  regression step, {setting} ({args.regression_variant}, quat, {r['images']} images/step):"
+      f" s/step {format_spread(r['sec'])}  images/s {format_spread(r['images_per_s'], '.1f')}  "
+      f"{r['flops'] / 1e9:.2f} GFLOP/step (XLA's count {r['xla_flops'] / 1e9:.2f})  GFLOP/s "
+      f"{format_spread(r['flops_per_s'], '.1f', 1e-9)}  MFU {format_spread(r['mfu'])}  compile "
+      f"{r['compile_s']:.1f} s",
+      flush=True,
+    )
+  if args.skip_synthesis:
+    return
   for dtype in dtypes:
     for mode in modes:
       r = inter[f"{dtype} weight grad {mode}"]
