@@ -25,9 +25,10 @@ def test_interleaved_divides_each_round_by_its_own_peak(monkeypatch):
   order = []
   peaks = iter([100.0, 50.0, 20.0])
 
-  def fake_peak(n, reps, dtype):
+  def fake_peak(n, reps, dtype, cpu=False):
     order.append(("peak", dtype))
-    return next(peaks)
+    p = next(peaks)
+    return (p, 2 * p) if cpu else p
 
   monkeypatch.setattr(bts, "matmul_peak", fake_peak)
   # Round k: step of 1 / (peak_k / 10 / mfu) seconds with an MFU of 0.5 against that round's
@@ -41,6 +42,8 @@ def test_interleaved_divides_each_round_by_its_own_peak(monkeypatch):
   assert r["sec"]["max"] == pytest.approx(1.0)
   assert r["images_per_s"]["median"] == pytest.approx(5 / 0.4)
   assert out["peaks"]["float32"]["median"] == 50.0
+  assert out["cpu_peaks"]["float32"]["median"] == 100.0
+  assert 0 < r["cpu_mfu"]["median"]
   assert bts.format_spread(r["sec"]) == "0.400 (0.200-1.000, n=3)"
 
 
