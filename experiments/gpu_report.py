@@ -224,6 +224,7 @@ def phase_e2e(args, config_path: str) -> dict:
     e2e=e2e,
     prepared_scenes=(4 if smoke else 256) if prepared else 0,
     pipeline_steps=2 if smoke else 10,
+    per_scene=False,
   )
   total = int(config.total_steps)
   out = {
