@@ -9,7 +9,8 @@ The lent GPU machines (nvidia-h100-x1, nvidia-h200; /work/.library/device/KINDS.
      (importlib.metadata; markers evaluated for the GPU's Python 3.12 on Linux x86-64), pinning
      each to the version installed here (the project's stack, e.g. /work/main/.venv);
   3. drops what the GPU image already has (and does not walk into it: the image has its
-     requirements);
+     requirements), except protobuf (`ALWAYS_CARRY`: tfds' generated code needs the runtime it
+     was tested with);
   4. downloads the rest as wheels for CPython 3.12 manylinux x86-64 (`pip download --no-deps
      --only-binary=:all:`), or builds a wheel where the index has only a source archive (`pip
      wheel --no-deps`, pure-Python packages), into `--out` (default `.whl/`, git-ignored).
@@ -72,6 +73,10 @@ GPU_IMAGE = frozenset(
   wadler-lindig werkzeug wheel wrapt xarray xxhash yarl zipp""".split()
 )
 
+# Carried even though the image has them: the generated code of tensorflow-metadata and tfds
+# (and grain's protos) must run on the protobuf runtime they were tested with here.
+ALWAYS_CARRY = frozenset({"protobuf"})
+
 # The GPU machine's interpreter and platform (KINDS.md: Python 3.12.3, x86-64 Linux).
 TARGET_PYTHON = "3.12"
 TARGET_ENV = {
@@ -113,7 +118,7 @@ def _applies(req: Requirement, env: dict[str, str]) -> bool:
 def closure(
   requirements: Iterable[str],
   *,
-  exclude: frozenset[str] = GPU_IMAGE,
+  exclude: frozenset[str] = GPU_IMAGE - ALWAYS_CARRY,
   version_of=None,
   requires_of=None,
 ) -> tuple[dict[str, str], list[str]]:
@@ -216,7 +221,8 @@ def main(argv=None) -> int:
   args = p.parse_args(argv)
   pinned, missing = closure(project_dependencies(args.pyproject))
   print(
-    f"camrep's dependencies missing from the GPU image, pinned to this environment "
+    f"camrep's dependencies to carry (missing from the GPU image, and protobuf), pinned to this "
+    f"environment "
     f"({sys.executable}, Python {sys.version.split()[0]}): {len(pinned)}"
   )
   for name, version in pinned.items():
