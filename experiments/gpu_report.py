@@ -11,6 +11,8 @@ commands ("calls"), each a group of phases run as subprocesses under one time bu
                 `camrep.runtime.flops`), fraction of the same dtype's matmul peak measured in the
                 same run (peaks and steps timed in turn, `bench_train_step.interleaved`), peak
                 device memory; goals: float32 <= 10.5 ms, bfloat16 <= 7 ms
+  profile       a jax.profiler trace of 10 float32 paper-size steps, summarised: the ops (device
+                kernels on a GPU, XLA thunks on a CPU) that take the step's time, per step
   e2e           the paper GQN config end to end (`bench_pipeline.input_bound`): the step alone,
                 batches rendered on demand on the device (one renderer call a batch), a prepared
                 dataset of 256 rooms, and the train loop fed by each: steps/s, ratio to the step
@@ -50,7 +52,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-PHASES = ("env", "step", "e2e", "car", "gibson", "seven_scenes", "medium")
+PHASES = ("env", "step", "profile", "e2e", "car", "gibson", "seven_scenes", "medium")
 # Config of each end-to-end phase.
 E2E_CONFIGS = {
   "e2e": "configs/gqn.py",
@@ -61,7 +63,7 @@ E2E_CONFIGS = {
 # The calls a lent GPU runs, each well inside the device tool's 10 minutes, with a guess of its
 # minutes on one H100 (compiles dominate: ~1 min per paper-size step and renderer).
 CALLS = (
-  ("env,step", 5),
+  ("env,step,profile", 7),
   ("e2e", 7),
   ("car,gibson,seven_scenes", 7),
   ("medium", 7),
@@ -202,6 +204,57 @@ def phase_step(args) -> dict:
   res["width"], res["scenes"] = width, scenes
   res["memory"] = _device_memory()
   return res
+
+
+def summarise_trace(folder: str, steps: int, top: int = 25) -> dict:
+  """The largest complete events ("X") of a jax.profiler trace in `folder`, per process (host
+  threads, each device's streams): {process: [[name, ms per step, calls per step], ...]}."""
+  import collections
+  import glob
+  import gzip
+
+  files = sorted(glob.glob(os.path.join(folder, "**", "*.trace.json.gz"), recursive=True))
+  if not files:
+    return {}
+  with gzip.open(files[-1]) as f:
+    events = json.load(f)["traceEvents"]
+  names = {
+    e["pid"]: e["args"]["name"]
+    for e in events
+    if e.get("ph") == "M" and e.get("name") == "process_name" and "args" in e
+  }
+  total: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
+  count: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
+  for e in events:
+    if e.get("ph") == "X" and "dur" in e:
+      proc = names.get(e.get("pid"), str(e.get("pid")))
+      total[proc][e["name"]] += e["dur"]
+      count[proc][e["name"]] += 1
+  return {
+    proc: [[n, us / steps / 1e3, count[proc][n] / steps] for n, us in c.most_common(top)]
+    for proc, c in total.items()
+  }
+
+
+def phase_profile(args) -> dict:
+  """Where the float32 paper-size step's time goes: a jax.profiler trace of 10 steps."""
+  import bench_train_step as bts
+  import jax
+
+  smoke = args.variant == "smoke"
+  config = bts.gqn_config(*((1 / 32, 2) if smoke else (1.0, 30)))
+  timer = bts.StepTimer(config)
+  timer.times(3)
+  steps = 2 if smoke else 10
+  folder = tempfile.mkdtemp(prefix="gpu_report_trace_")
+  with jax.profiler.trace(folder):
+    times = timer.times(steps)
+  return {
+    "steps": steps,
+    "sec_per_step_traced": float(sorted(times)[len(times) // 2]),
+    "flops": timer.flops,
+    "top": summarise_trace(folder, steps),
+  }
 
 
 def phase_e2e(args, config_path: str) -> dict:
@@ -369,6 +422,8 @@ def run_phase(phase: str, args) -> dict:
     return phase_env(args)
   if phase == "step":
     return phase_step(args)
+  if phase == "profile":
+    return phase_profile(args)
   if phase == "medium":
     return phase_medium(args)
   return phase_e2e(args, E2E_CONFIGS[phase])
@@ -431,6 +486,21 @@ def render_markdown(phases: dict[str, dict]) -> str:
     lines += ["", f"Peak memory: {_memory(step['memory'])}.", ""]
   else:
     lines += [f"Not measured{': ' + step['error'] if step else ''}.", ""]
+
+  prof = phases.get("profile")
+  lines += ["## Where the float32 step's time goes (jax.profiler, 10 steps)", ""]
+  if prof and "error" not in prof:
+    lines += [
+      f"Median traced step {prof['sec_per_step_traced'] * 1e3:.2f} ms. Largest events per "
+      "step, by process (a GPU's kernels are under its device's process):",
+      "",
+    ]
+    for proc, rows in prof["top"].items():
+      lines += [f"**{proc}**", "", "| event | ms/step | calls/step |", "|---|---|---|"]
+      lines += [f"| `{n[:90]}` | {ms:.3f} | {c:g} |" for n, ms, c in rows[:15]]
+      lines.append("")
+  else:
+    lines += [f"Not measured{': ' + prof['error'] if prof else ''}.", ""]
 
   lines += [
     "## End to end (batches rendered on the device, and a prepared dataset)",

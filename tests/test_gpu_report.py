@@ -158,3 +158,24 @@ def test_wheelhouse_walk_skips_the_image_and_other_pythons():
 def test_bad_variant_is_refused(bad):
   r = _run("experiments/gpu_report.py", "--phases", "env", bad)
   assert r.returncode == 2 and "--variant" in r.stderr
+
+
+def test_trace_summary_groups_events_by_process(tmp_path):
+  import gzip
+
+  gr = load_experiment("gpu_report")
+  events = [
+    {"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/device:GPU:0"}},
+    {"ph": "M", "name": "process_name", "pid": 2, "args": {"name": "/host:CPU"}},
+    *({"ph": "X", "pid": 1, "name": "conv_kernel", "dur": 3000} for _ in range(4)),
+    *({"ph": "X", "pid": 1, "name": "gemm", "dur": 1000} for _ in range(2)),
+    {"ph": "X", "pid": 2, "name": "PjitFunction", "dur": 500},
+    {"ph": "i", "pid": 1, "name": "marker"},
+  ]
+  (tmp_path / "plugins" / "profile" / "run").mkdir(parents=True)
+  with gzip.open(tmp_path / "plugins" / "profile" / "run" / "h.trace.json.gz", "wt") as f:
+    json.dump({"traceEvents": events}, f)
+  top = gr.summarise_trace(str(tmp_path), steps=2)
+  assert top["/device:GPU:0"] == [["conv_kernel", 6.0, 2.0], ["gemm", 1.0, 1.0]]
+  assert top["/host:CPU"] == [["PjitFunction", 0.25, 0.5]]
+  assert gr.summarise_trace(str(tmp_path / "plugins" / "none"), steps=1) == {}
