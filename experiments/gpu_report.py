@@ -108,6 +108,11 @@ def how_to_run() -> list[str]:
   lines += [f"| {i} | `{p}` | ~{m} |" for i, (p, m) in enumerate(CALLS, 1)]
   lines += [
     "",
+    "The calls are in order of priority (calls 1 and 2 answer the step and end-to-end goals). A "
+    "session has ~30 minutes of device time and a machine goes back after 30 s idle: issue the "
+    "next call as soon as one returns, and stop after call 2 or 3 if less than ~8 minutes are "
+    "left.",
+    "",
     "Each call brings back DIR/gpu_report_<phase>.json, gpu_report.md and gpu_report.json "
     "under the tool's files_at. Then, on the CPU machine, merge them into one report:",
     "",
