@@ -493,8 +493,9 @@ def render_markdown(phases: dict[str, dict]) -> str:
     lines += [f"Not measured{': ' + step['error'] if step else ''}.", ""]
 
   prof = phases.get("profile")
-  lines += ["## Where the float32 step's time goes (jax.profiler, 10 steps)", ""]
+  lines += ["## Where the float32 step's time goes (jax.profiler)", ""]
   if prof and "error" not in prof:
+    lines += [f"{prof['steps']} steps traced.", ""]
     lines += [
       f"Median traced step {prof['sec_per_step_traced'] * 1e3:.2f} ms. Largest events per "
       "step, by process (a GPU's kernels are under its device's process):",
