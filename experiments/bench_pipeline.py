@@ -183,9 +183,11 @@ def input_bound(
   e2e: tuple[str, ...] = ("render",),
   prepared_scenes: int = 64,
   pipeline_steps: int | None = None,
+  per_scene: bool = True,
 ) -> dict[str, float]:
   """Step alone, input pipelines alone and the end-to-end loop for one config (see the module
-  docstring). Prints one line per measurement; returns steps/s (or batches/s) by row name."""
+  docstring). Prints one line per measurement; returns steps/s (or batches/s) by row name.
+  `per_scene=False` leaves out the old per-scene renderer row (a compile and S calls a batch)."""
   import jax
   import jax.numpy as jnp
 
@@ -234,7 +236,8 @@ def input_bound(
     print(f"{label:>22}: {rate:7.3f} batches/s  {rate * images:8.1f} images/s", flush=True)
 
   pipes = {}
-  for label, one_call in (("render, per scene", False), ("render, one call", True)):
+  rows = (("render, per scene", False), ("render, one call", True))
+  for label, one_call in rows if per_scene else rows[1:]:
     pipes[label] = pipeline.render_pipeline(family, "train", pcfg, one_call=one_call)
     show(label, _rate(pipes[label].batch, pipeline_steps))
   pipes["render"] = pipes["render, one call"]

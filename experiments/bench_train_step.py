@@ -66,12 +66,23 @@ def _parse(argv=None):
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
   p.add_argument("--width", default="quick", help="paper | quick | a number (width multiplier)")
   p.add_argument("--scenes", type=int, default=30, help="scenes per step (paper 30)")
-  p.add_argument("--steps", type=int, default=3, help="timed steps (median reported)")
+  p.add_argument("--steps", type=int, default=3, help="timed steps per round (median)")
+  p.add_argument(
+    "--repeats", type=int, default=3, help="rounds of (matmul peak, each step) timed in turn"
+  )
   p.add_argument("--grad_modes", default="matmul,xla", help="conv weight gradients to compare")
   p.add_argument(
     "--dtype", default="float32", help="compute dtypes (model.dtype) to time, e.g. float32,bfloat16"
   )
   p.add_argument("--bf16", action="store_true", help="also time a conv layer in bfloat16")
+  p.add_argument(
+    "--regression",
+    default="",
+    help="also time the pose-regression step of these settings (e.g. gqn,car), interleaved",
+  )
+  p.add_argument("--regression_variant", default="quick", help="configs/regression.py variant")
+  p.add_argument("--regression_cache", default="/tmp/camrep_bench_regression_cache")
+  p.add_argument("--skip_synthesis", action="store_true", help="time only --regression steps")
   p.add_argument("--tables", action="store_true", help="batch / image size / device tables")
   p.add_argument("--breakdown", action="store_true", help="time encoder, decoder, rotation loss")
   p.add_argument("--devices", default="1,2", help="forced host device counts for the table")
@@ -94,8 +105,9 @@ def peak_rss_mb() -> float:
   return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def matmul_peak(n: int = 2048, reps: int = 5, dtype: str = "float32") -> float:
-  """Best FLOP/s of an n x n x n jnp matmul (2 n^3 FLOPs), after one warm-up call."""
+def matmul_peak(n: int = 2048, reps: int = 5, dtype: str = "float32", *, cpu: bool = False):
+  """Best FLOP/s of an n x n x n jnp matmul (2 n^3 FLOPs), after one warm-up call; with `cpu`,
+  (that, FLOPs per second of this process's CPU time over the `reps` calls)."""
   import jax
   import jax.numpy as jnp
 
@@ -104,18 +116,21 @@ def matmul_peak(n: int = 2048, reps: int = 5, dtype: str = "float32") -> float:
   f = jax.jit(jnp.matmul)
   f(a, b).block_until_ready()
   best = float("inf")
+  c0 = time.process_time()
   for _ in range(reps):
     t = time.perf_counter()
     f(a, b).block_until_ready()
     best = min(best, time.perf_counter() - t)
-  return 2 * n**3 / best
+  per_cpu_s = 2 * n**3 * reps / max(time.process_time() - c0, 1e-9)
+  return (2 * n**3 / best, per_cpu_s) if cpu else 2 * n**3 / best
 
 
 def gqn_config(
   width: float, scenes: int, *, image_size: int = 64, setting: str = "gqn", devices: int = 1
 ):
   """The paper's config of `setting` at `width`, `scenes` per device, procedural data in memory."""
-  from camrep.configs import gqn, shapenet_car
+  sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+  from configs import gqn, shapenet_car
 
   c = (gqn if setting == "gqn" else shapenet_car).get_config()
   c.model.width = width
@@ -131,51 +146,221 @@ def gqn_config(
   return c
 
 
+class StepTimer:
+  """The pmapped train step of `config`, built, compiled and warmed up once, timed on demand.
+
+  Attributes:
+    images: images per step; flops: FLOPs per step counted from the jaxpr (`camrep.runtime.flops`:
+      the same on CPU and GPU, where XLA's cost analysis leaves cuDNN convolutions out; issue 14);
+    xla_flops: XLA's count; compile_s: seconds to compile; finite: the warm-up step's finite flag.
+  """
+
+  def __init__(self, config, *, num_devices: int = 1, context=contextlib.nullcontext):
+    """`context()` is entered around building and every timing (e.g. a conv-gradient mode)."""
+    self._context = context
+    with context():
+      self._build(config, num_devices)
+
+  def _build(self, config, num_devices: int) -> None:
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    pipe = components.make_pipeline(config, "train", num_devices=num_devices)
+    model = components.make_model(config, components.num_train_scenes(pipe))
+    tx = step_lib.make_optimizers(config)
+    init_key, keys = jax.random.split(jax.random.key(0))
+    b0 = pipe.batch(0)
+    batch = {k: jnp.asarray(b0[k]) for k in ("image", "pose", "scene")}
+    state = jax.jit(lambda k, b: step_lib.create_train_state(k, model, tx, b))(init_key, batch)
+    pstate = step_lib.replicate(state, num_devices)
+    p_step = step_lib.make_p_train_step(model, tx, pose_steps=config.optax.pose_steps)
+    t = time.perf_counter()
+    compiled = p_step.lower(pstate, batch, keys).compile()
+    self.compile_s = time.perf_counter() - t
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, list | tuple) else cost
+    # cost_analysis() and the jaxpr count of a pmapped step are one device's program.
+    xla = float(cost.get("flops", float("nan"))) if cost else float("nan")
+    self.xla_flops = xla * num_devices
+    self.flops = flops_lib.count_flops(p_step, pstate, batch, keys) * num_devices
+    self.images = int(np.prod(batch["image"].shape[:3]))
+    self._step, self._batch, self._keys = p_step, batch, keys
+    pstate, m = p_step(pstate, batch, keys)  # warm-up
+    jax.block_until_ready(m)
+    self._state = pstate
+    self.finite = float(np.asarray(m["train/finite"])[0])
+
+  def times(self, steps: int) -> list[float]:
+    """Seconds of each of `steps` steps (state carried over, device synchronised each step)."""
+    import jax
+
+    out = []
+    with self._context():
+      for _ in range(steps):
+        t = time.perf_counter()
+        self._state, m = self._step(self._state, self._batch, self._keys)
+        jax.block_until_ready((self._state, m))
+        out.append(time.perf_counter() - t)
+    return out
+
+  def summary(self, times: list[float]) -> dict:
+    """The figures of one timing: median seconds, images/s, FLOPs, FLOP/s, compile time."""
+    import numpy as np
+
+    sec = float(np.median(times))
+    return {
+      "sec": sec,
+      "images": self.images,
+      "images_per_s": self.images / sec,
+      "flops": self.flops,
+      "xla_flops": self.xla_flops,
+      "flops_per_s": self.flops / sec,
+      "compile_s": self.compile_s,
+      "finite": self.finite,
+    }
+
+
+class RegressionTimer(StepTimer):
+  """The pose-regression train step (`camrep.regression.learner.train_step`, jitted as the driver
+  runs it) of `configs/regression.py:<variant>` for one setting and representation, on the
+  setting's real training batch (rendered once, cached in `cache_dir`). `images` counts every
+  image the step's network sees (GQN: the context and query views of each scene)."""
+
+  def __init__(self, setting: str, *, variant: str = "quick", representation: str = "quat",
+               cache_dir: str = "", log=print):  # fmt: skip
+    self._context = contextlib.nullcontext
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from camrep.regression import driver, learner
+    from camrep.regression import views as views_lib
+
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+    from configs import regression
+
+    config = regression.get_config(variant)
+    config.setting, config.representation = setting, representation
+    config.data.cache_dir = cache_dir
+    config = driver.resolve_config(config)
+    setup = driver.prepare(config, log=log)
+    b0 = views_lib.train_batch_fn(config, setup.data.train)(0)
+    batch = {k: jnp.asarray(v) for k, v in b0.items()}
+    state = learner.init(jax.random.key(0), setup.reg, batch, rep_params=setup.rep_params)
+    self.flops = flops_lib.count_flops(learner.train_step, state, batch)
+    self.xla_flops = float("nan")
+    step = jax.jit(learner.train_step, donate_argnums=0)
+    t = time.perf_counter()
+    compiled = step.lower(state, batch).compile()
+    self.compile_s = time.perf_counter() - t
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, list | tuple) else cost
+    self.xla_flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
+    self.images = sum(
+      int(np.prod(v.shape[: v.ndim - 3])) for k, v in b0.items() if k.endswith("image")
+    )
+    self.config = config
+    state, m = step(state, batch)
+    jax.block_until_ready(m)
+    self.finite = float(np.isfinite(float(m["loss"])))
+    self._state, self._batch = state, batch
+    self._regression_step = step
+
+  def times(self, steps: int) -> list[float]:
+    import jax
+
+    out = []
+    for _ in range(steps):
+      t = time.perf_counter()
+      self._state, m = self._regression_step(self._state, self._batch)
+      jax.block_until_ready((self._state.params, m))
+      out.append(time.perf_counter() - t)
+    return out
+
+
 def time_step(config, *, steps: int, num_devices: int = 1) -> dict:
   """Times the pmapped train step of `config`; returns seconds, FLOPs, compile time, images."""
-  import jax
-  import jax.numpy as jnp
+  timer = StepTimer(config, num_devices=num_devices)
+  return timer.summary(timer.times(steps))
+
+
+def spread(values) -> dict:
+  """{"median", "min", "max", "n"} of a list of numbers."""
   import numpy as np
 
-  pipe = components.make_pipeline(config, "train", num_devices=num_devices)
-  model = components.make_model(config, components.num_train_scenes(pipe))
-  tx = step_lib.make_optimizers(config)
-  init_key, keys = jax.random.split(jax.random.key(0))
-  b0 = pipe.batch(0)
-  batch = {k: jnp.asarray(b0[k]) for k in ("image", "pose", "scene")}
-  state = jax.jit(lambda k, b: step_lib.create_train_state(k, model, tx, b))(init_key, batch)
-  pstate = step_lib.replicate(state, num_devices)
-  p_step = step_lib.make_p_train_step(model, tx, pose_steps=config.optax.pose_steps)
-  t = time.perf_counter()
-  compiled = p_step.lower(pstate, batch, keys).compile()
-  compile_s = time.perf_counter() - t
-  cost = compiled.cost_analysis()
-  cost = cost[0] if isinstance(cost, list | tuple) else cost
-  xla_flops = float(cost.get("flops", float("nan"))) if cost else float("nan")
-  # Counted from the jaxpr (matmuls and convolutions): the same on every backend, where XLA's
-  # GPU cost analysis leaves cuDNN convolutions out (issue 14). Both are one device's program.
-  flops = flops_lib.count_flops(p_step, pstate, batch, keys)
-  pstate, m = p_step(pstate, batch, keys)  # warm-up
-  jax.block_until_ready(m)
-  times = []
-  for _ in range(steps):
-    t = time.perf_counter()
-    pstate, m = p_step(pstate, batch, keys)
-    jax.block_until_ready((pstate, m))
-    times.append(time.perf_counter() - t)
-  images = int(np.prod(batch["image"].shape[:3]))
-  sec = float(np.median(times))
-  # cost_analysis() of a pmapped step counts one device's program.
-  return {
-    "sec": sec,
-    "images": images,
-    "images_per_s": images / sec,
-    "flops": flops * num_devices,
-    "xla_flops": xla_flops * num_devices,
-    "flops_per_s": flops * num_devices / sec,
-    "compile_s": compile_s,
-    "finite": float(np.asarray(m["train/finite"])[0]),
+  v = np.asarray(list(values), float)
+  return {"median": float(np.median(v)), "min": float(v.min()), "max": float(v.max()), "n": len(v)}
+
+
+def interleaved(
+  timers: dict, *, rounds: int, steps: int, peak_n: int = 2048, peak_reps: int = 5
+) -> dict:
+  """MFU measured stably: the matmul peak and each step timed in turn, `rounds` times.
+
+  Each round measures the matmul peak of every dtype the timers use (best of `peak_reps`
+  n^3 matmuls), then each timer's step (median of `steps`), so a peak and the steps it divides
+  were measured seconds apart under the same load. Per round, MFU = the step's FLOP/s / the
+  same round's peak in the step's dtype. "cpu_mfu" is the same ratio with both rates per second
+  of this process's CPU time (`time.process_time`, all its threads) instead of wall time: on a
+  shared machine, time spent waiting for a core then counts for neither.
+
+  Args:
+    timers: name -> (StepTimer, compute dtype name).
+    rounds: repeats of the whole cycle.
+    steps: steps per timing.
+    peak_n: matmul size of the peak (2048 on a CPU, 8192 on a GPU).
+
+  Returns:
+    {"peaks", "cpu_peaks": {dtype: spread of FLOP/s}, name: {"sec", "images_per_s",
+    "flops_per_s", "mfu", "cpu_mfu": spread each, "flops", "images", "compile_s", "finite"}}.
+  """
+  import numpy as np
+
+  dtypes = sorted({d for _, d in timers.values()})
+  peaks = {d: [] for d in dtypes}
+  cpu_peaks = {d: [] for d in dtypes}
+  rows = {name: {"sec": [], "mfu": [], "cpu_mfu": []} for name in timers}
+  for _ in range(rounds):
+    for d in dtypes:
+      wall, per_cpu = matmul_peak(n=peak_n, reps=peak_reps, dtype=d, cpu=True)
+      peaks[d].append(wall)
+      cpu_peaks[d].append(per_cpu)
+    for name, (timer, d) in timers.items():
+      c0 = time.process_time()
+      sec = float(np.median(timer.times(steps)))
+      cpu_per_step = (time.process_time() - c0) / steps
+      rows[name]["sec"].append(sec)
+      rows[name]["mfu"].append(timer.flops / sec / peaks[d][-1])
+      rows[name]["cpu_mfu"].append(timer.flops / cpu_per_step / cpu_peaks[d][-1])
+  out = {
+    "peaks": {d: spread(v) for d, v in peaks.items()},
+    "cpu_peaks": {d: spread(v) for d, v in cpu_peaks.items()},
+    "rounds": rounds,
+    "steps": steps,
   }
+  for name, (timer, d) in timers.items():
+    secs = rows[name]["sec"]
+    out[name] = {
+      "dtype": d,
+      "sec": spread(secs),
+      "images_per_s": spread(timer.images / s for s in secs),
+      "flops_per_s": spread(timer.flops / s for s in secs),
+      "mfu": spread(rows[name]["mfu"]),
+      "cpu_mfu": spread(rows[name]["cpu_mfu"]),
+      "flops": timer.flops,
+      "xla_flops": timer.xla_flops,
+      "images": timer.images,
+      "compile_s": timer.compile_s,
+      "finite": timer.finite,
+    }
+  return out
+
+
+def format_spread(s: dict, fmt: str = ".3f", scale: float = 1.0) -> str:
+  """ "median (min-max, n)" of a `spread` dict."""
+  m, lo, hi = (s[k] * scale for k in ("median", "min", "max"))
+  return f"{m:{fmt}} ({lo:{fmt}}-{hi:{fmt}}, n={s['n']})"
 
 
 def decode_throughput(n: int = 4096) -> dict:
@@ -339,26 +524,67 @@ def main(argv=None) -> None:
     flush=True,
   )
   dtypes = args.dtype.split(",")
-  peaks = {}
-  for dtype in dtypes:
-    peaks[dtype] = matmul_peak(dtype=dtype)
-    print(f"{dtype} matmul peak (2048^3): {peaks[dtype] / 1e9:.1f} GFLOP/s", flush=True)
-  peak = peaks[dtypes[0]]
   modes = args.grad_modes.split(",")
-  results = {}
-  for dtype in dtypes:
+  timers = {}
+  for dtype in dtypes if not args.skip_synthesis else []:
     config = gqn_config(width, args.scenes)
     config.model.dtype = dtype
     for mode in modes:
-      with fastconv.weight_grad(mode):
-        r = time_step(config, steps=args.steps)
-      results[dtype, mode] = r
+      timer = StepTimer(config, context=lambda m=mode: fastconv.weight_grad(m))
+      timers[f"{dtype} weight grad {mode}"] = (timer, dtype)
+  settings = [x for x in args.regression.split(",") if x]
+  for setting in settings:
+    timer = RegressionTimer(
+      setting, variant=args.regression_variant, cache_dir=args.regression_cache
+    )
+    timers[f"regression {setting}"] = (timer, "float32")
+  # Peaks and steps timed in turn, --repeats rounds: MFU per round against that round's peak.
+  inter = interleaved(timers, rounds=args.repeats, steps=args.steps)
+  for dtype in dtypes:
+    p = inter["peaks"][dtype]
+    c = inter["cpu_peaks"][dtype]
+    print(
+      f"{dtype} matmul peak (2048^3), GFLOP/s: {format_spread(p, '.1f', 1e-9)}; per CPU second "
+      f"{format_spread(c, '.1f', 1e-9)}",
+      flush=True,
+    )
+  peaks = {d: inter["peaks"][d]["median"] for d in dtypes}
+  peak = peaks[dtypes[0]]
+  results = {}
+  print(
+    f"step figures: median (min-max, n) over {args.repeats} rounds of {args.steps} steps, each "
+    "round's MFU against the same round's peak",
+    flush=True,
+  )
+  for setting in settings:
+    r = inter[f"regression {setting}"]
+    print(
+      f"  regression step, {setting} ({args.regression_variant}, quat, {r['images']} images/step):"
+      f" s/step {format_spread(r['sec'])}  images/s {format_spread(r['images_per_s'], '.1f')}  "
+      f"{r['flops'] / 1e9:.2f} GFLOP/step (XLA's count {r['xla_flops'] / 1e9:.2f})  GFLOP/s "
+      f"{format_spread(r['flops_per_s'], '.1f', 1e-9)}  MFU {format_spread(r['mfu'])} (per CPU "
+      f"second {format_spread(r['cpu_mfu'])})  compile "
+      f"{r['compile_s']:.1f} s",
+      flush=True,
+    )
+  if args.skip_synthesis:
+    return
+  for dtype in dtypes:
+    for mode in modes:
+      r = inter[f"{dtype} weight grad {mode}"]
+      results[dtype, mode] = {
+        "sec": r["sec"]["median"],
+        "images_per_s": r["images_per_s"]["median"],
+        "flops_per_s": r["flops_per_s"]["median"],
+        "mfu": r["mfu"]["median"],
+      }
       print(
-        f"  {dtype} weight grad {mode:6s}: {r['sec']:.3f} s/step  {r['images_per_s']:.1f} "
-        f"images/s  {r['flops'] / 1e9:.1f} GFLOP/step (XLA's count {r['xla_flops'] / 1e9:.1f})  "
-        f"{r['flops_per_s'] / 1e9:.1f} GFLOP/s  "
-        f"MFU {r['flops_per_s'] / peaks[dtype]:.3f} (of the {dtype} peak)  "
-        f"compile {r['compile_s']:.1f} s  finite {r['finite']:.0f}",
+        f"  {dtype} weight grad {mode:6s}: s/step {format_spread(r['sec'])}  images/s "
+        f"{format_spread(r['images_per_s'], '.1f')}  {r['flops'] / 1e9:.1f} GFLOP/step (XLA's "
+        f"count {r['xla_flops'] / 1e9:.1f})  GFLOP/s {format_spread(r['flops_per_s'], '.1f', 1e-9)}"
+        f"  MFU {format_spread(r['mfu'])} (of the {dtype} peak; per CPU second "
+        f"{format_spread(r['cpu_mfu'])})  compile {r['compile_s']:.1f} s"
+        f"  finite {r['finite']:.0f}",
         flush=True,
       )
   if len(modes) == 2:
@@ -422,9 +648,15 @@ def main(argv=None) -> None:
     )
   main_r = results[dtypes[0], modes[0]]
   print(f"peak RSS {peak_rss_mb():.0f} MiB", flush=True)
-  print(f"mfu={main_r['flops_per_s'] / peak:.4f} images_per_s={main_r['images_per_s']:.2f}")
+  mfu = inter[f"{dtypes[0]} weight grad {modes[0]}"]["mfu"]
+  print(
+    f"mfu={main_r['mfu']:.4f} images_per_s={main_r['images_per_s']:.2f} "
+    f"mfu_min={mfu['min']:.4f} mfu_max={mfu['max']:.4f} "
+    f"cpu_mfu={inter[f'{dtypes[0]} weight grad {modes[0]}']['cpu_mfu']['median']:.4f}"
+  )
   if args.end_to_end:
-    import bench_pipeline  # a sibling script: experiments/ is sys.path[0]
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+    import bench_pipeline
 
     print(f"\ninput pipelines and end-to-end loop of {args.end_to_end} at width {width}:")
     config = bench_pipeline.load_config(args.end_to_end)

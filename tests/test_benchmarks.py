@@ -1,0 +1,55 @@
+"""The measuring logic of the benchmark scripts (experiments/bench_*.py), on tiny or fake work."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.utils import load_experiment
+
+
+class _FakeTimer:
+  """A StepTimer stand-in: fixed step times per call, known FLOPs and images."""
+
+  def __init__(self, seconds, flops=10.0, images=5):
+    self._seconds = list(seconds)
+    self.flops, self.images, self.xla_flops = flops, images, flops
+    self.compile_s, self.finite = 1.0, 1.0
+
+  def times(self, steps):
+    return [self._seconds.pop(0)] * steps
+
+
+def test_interleaved_divides_each_round_by_its_own_peak(monkeypatch):
+  bts = load_experiment("bench_train_step")
+  order = []
+  peaks = iter([100.0, 50.0, 20.0])
+
+  def fake_peak(n, reps, dtype, cpu=False):
+    order.append(("peak", dtype))
+    p = next(peaks)
+    return (p, 2 * p) if cpu else p
+
+  monkeypatch.setattr(bts, "matmul_peak", fake_peak)
+  # Round k: step of 1 / (peak_k / 10 / mfu) seconds with an MFU of 0.5 against that round's
+  # peak, so a loaded round (low peak, slow step) gives the same MFU.
+  timer = _FakeTimer([10 / (0.5 * p) for p in (100.0, 50.0, 20.0)])
+  out = bts.interleaved({"f32": (timer, "float32")}, rounds=3, steps=2)
+  assert [o[0] for o in order] == ["peak"] * 3
+  r = out["f32"]
+  np.testing.assert_allclose([r["mfu"][k] for k in ("median", "min", "max")], 0.5)
+  assert r["sec"]["n"] == 3 and r["sec"]["min"] == pytest.approx(0.2)
+  assert r["sec"]["max"] == pytest.approx(1.0)
+  assert r["images_per_s"]["median"] == pytest.approx(5 / 0.4)
+  assert out["peaks"]["float32"]["median"] == 50.0
+  assert out["cpu_peaks"]["float32"]["median"] == 100.0
+  assert 0 < r["cpu_mfu"]["median"]
+  assert bts.format_spread(r["sec"]) == "0.400 (0.200-1.000, n=3)"
+
+
+def test_lie_apply_ratio_is_measured_per_round():
+  bench_lie = load_experiment("bench_lie")
+  r = bench_lie.apply_ratio(pairs=16, n_blocks=2, s=4, rounds=2, calls=1)
+  assert len(r["ratios"]) == len(r["taylor2"]) == len(r["spectral"]) == 2
+  np.testing.assert_allclose(r["ratios"], np.array(r["spectral"]) / np.array(r["taylor2"]))
+  assert min(r["taylor2"]) > 0 and min(r["spectral"]) > 0
