@@ -9,7 +9,7 @@ import os
 import numpy as np
 import pytest
 
-from camrep.regression import stats
+from camrep.regression import stats, tables
 from tests.utils import load_experiment
 
 
@@ -108,3 +108,32 @@ def test_table1_intervals_and_verdicts_from_run_directories(tmp_path):
       C.C.select(C.C.load_results([os.path.join(root, "*", "*", "*")]))["car", "logq"].runs,
       "rotation_error_deg",
     )
+
+
+def test_table2_average_intervals_and_verdicts(tmp_path):
+  root = str(tmp_path / "runs")
+  scenes = np.repeat(np.arange(2, dtype=np.int32), 50)
+  for seed in range(3):
+    pos, rot = _errors(20 + seed, (100,)), _errors(30 + seed, (100,))
+    for rep, f_pos, f_rot in (("quat", 1.0, 1.0), ("logq", 1.2, 1.2), ("ours", 0.5, 1.0)):
+      wd = os.path.join(root, "seven_scenes", rep, f"lr1e-3_seed{seed}")
+      os.makedirs(wd)
+      e = {"position_error": f_pos * pos, "rotation_error_deg": f_rot * rot}
+      np.savez(os.path.join(wd, "errors_test.npz"), scene=scenes, **e)
+      summ = {
+        str(k) if k != "all" else k: {
+          n: {"mean": 0.0, "median": float(np.median(v if k == "all" else v[scenes == k]))}
+          for n, v in e.items()
+        }
+        for k in ("all", 0, 1)
+      }
+      r = dict(setting="seven_scenes", representation=rep, seed=seed, lr=1e-3, variant="quick")
+      r.update(validation=summ, test=summ, data={"test_split": "test"})
+      with open(os.path.join(wd, "results.json"), "w") as f:
+        json.dump(r, f)
+  text = load_experiment("table2").build(tables.load_results([os.path.join(root, "*", "*", "*")]))
+  row = next(x for x in text.splitlines() if x.startswith("| ours / best hand-designed"))
+  # ours halves quat's position errors view by view and equals its rotation errors.
+  assert "position 0.50 [0.50, 0.50] better (vs quat)" in row
+  assert "rotation 1.00 [1.00, 1.00] tie (vs quat)" in row
+  assert "95% bootstrap interval" in text
