@@ -10,6 +10,16 @@ regression's curve for "ours" and the quaternion,
       --metrics eval/test_scenes/yaw_error_deg_mean,eval/test_scenes/x_error_mean \\
       --png /tmp/curve/rooms.png --md /tmp/curve/rooms.md
 
+With --bands (issue 29: a figure per setting, one line per representation, bands over seeds),
+runs are grouped by representation (their config.json): each table cell is "mean [min, max]" over
+the group's runs logged at that step, and the figure draws each group's mean with its min and
+max as thinner companions ("<rep> min", "<rep> max"), e.g. the validation curves
+(`eval/validation/score`, logged by every regression run with eval_every_steps) of a converge
+launch's chosen runs:
+
+  .venv/bin/python experiments/learning_curve.py --bands --metrics eval/validation/score \
+      --runs DIR/regression/car/*/lr1e-3_seed* --png results/curve_car.png --md results/curve_car.md
+
 Reads workdirs only (config.json, metrics.jsonl); seconds.
 """
 
@@ -67,6 +77,46 @@ def figure(labels: Sequence[str], metric: str, curves: Sequence[dict[int, float]
   return plots.line_plot(steps, series, title=metric, xlabel="step", ylabel=metric.split("/")[-1])
 
 
+def group_of(workdir: str) -> str:
+  """A run's group under --bands: its representation, else its label."""
+  config = workdir_lib.read_stored_config(workdir) or {}
+  return config.get("representation") or label_of(workdir)
+
+
+def bands(groups: Sequence[str], curves: Sequence[dict[int, float]]):
+  """{group: {step: (mean, min, max)}} over the curves of each group (per step, over the runs
+  that logged it)."""
+  by: dict[str, dict[int, list[float]]] = {}
+  for g, c in zip(groups, curves, strict=True):
+    for step, v in c.items():
+      by.setdefault(g, {}).setdefault(step, []).append(v)
+  return {
+    g: {s: (float(np.mean(v)), float(np.min(v)), float(np.max(v))) for s, v in sorted(d.items())}
+    for g, d in by.items()
+  }
+
+
+def band_markdown(metric: str, table, counts: dict[str, int]) -> str:
+  names = list(table)
+  steps = sorted(set().union(*(table[g] for g in names)))
+  head = [f"{g} ({counts[g]} runs)" for g in names]
+  lines = [f"`{metric}`: mean [min, max] over runs", "", "| step | " + " | ".join(head) + " |"]
+  lines.append("|---" * (len(names) + 1) + "|")
+  for s in steps:
+    cells = ["{:.4g} [{:.4g}, {:.4g}]".format(*table[g][s]) if s in table[g] else "" for g in names]
+    lines.append(f"| {s} | " + " | ".join(cells) + " |")
+  return "\n".join(lines) + "\n"
+
+
+def band_figure(metric: str, table) -> np.ndarray:
+  steps = sorted(set().union(*table.values()))
+  series = {}
+  for g, d in table.items():
+    for i, suffix in enumerate(("", " min", " max")):
+      series[g + suffix] = [d[s][i] if s in d else float("nan") for s in steps]
+  return plots.line_plot(steps, series, title=metric, xlabel="step", ylabel=metric.split("/")[-1])
+
+
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
   p.add_argument("--runs", nargs="+", required=True, help="workdirs")
@@ -74,6 +124,9 @@ def main(argv=None) -> int:
   p.add_argument("--labels", default="", help="comma-separated labels (default: from config)")
   p.add_argument("--png", default="", help="output figure (one panel per metric)")
   p.add_argument("--md", default="", help="output Markdown tables")
+  p.add_argument(
+    "--bands", action="store_true", help="group runs by representation: mean [min, max]"
+  )
   args = p.parse_args(argv)
   metrics = [m.strip() for m in args.metrics.split(",") if m.strip()]
   labels = [x.strip() for x in args.labels.split(",")] if args.labels else []
@@ -92,6 +145,13 @@ def main(argv=None) -> int:
     if missing:
       print(f"error: {metric} is not logged in {', '.join(missing)}", file=sys.stderr)
       return 2
+    if args.bands:
+      groups = [group_of(w) for w in args.runs]
+      table = bands(groups, curves)
+      counts = {g: groups.count(g) for g in table}
+      tables.append(band_markdown(metric, table, counts))
+      panels.append(band_figure(metric, table))
+      continue
     tables.append(markdown(labels, metric, curves))
     panels.append(figure(labels, metric, curves))
   text = "\n".join(tables)
