@@ -70,6 +70,7 @@ from __future__ import annotations
 import argparse
 import concurrent.futures
 import dataclasses
+import glob
 import math
 import os
 import shlex
@@ -715,6 +716,11 @@ def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -
     est_s = plan.regression_s[setting_of(s)]
     print(f"[~{progress_lib.format_duration(est_s)}, phase 2] {job.command()}")
   print("  (phase 2: <LR> = the lr chosen on seed 0's validation errors)")
+  if plan.regression_flags:
+    print(
+      "[~5s each] experiments/learning_curve.py --bands --metrics eval/validation/score per "
+      f"column, runs at the chosen lr -> {L.out}/curve_<column>.{{png,md}}"
+    )
   for j in L.tables + L.figures:
     print(f"[~{progress_lib.format_duration(j.estimate_s)}] {j.command()}")
 
@@ -752,12 +758,37 @@ def execute(launch: Launch, *, at_once: int = 1, deadline: float | None = None) 
       continue
     later.append(regression_job(L.out, L.plan, s, rep, lr, seed, L.python, L.data))
   failed += run_jobs(later, logs, label="phase 2: ", **kw)
-  failed += run_jobs(L.tables, logs, at_once=1, label="", deadline=deadline)
+  failed += run_jobs(L.tables + curve_jobs(L), logs, at_once=1, label="", deadline=deadline)
   evaluations = [j for j in L.figures if j.name.startswith("evaluate_")]
   failed += run_jobs(evaluations, logs, label="evaluate: ", **kw)
   rest = [j for j in L.figures if j not in evaluations]
   failed += run_jobs(rest, logs, at_once=1, label="", deadline=deadline)
   return failed
+
+
+def curve_jobs(launch: Launch) -> list[Job]:
+  """With a stopping rule (converge): per column, the validation curves of every representation's
+  runs at its chosen lr, bands over seeds (experiments/learning_curve.py --bands) into
+  DIR/curve_<column>.{png,md}."""
+  L = launch
+  if not L.plan.regression_flags:
+    return []
+  jobs = []
+  for col in sorted({c for c, _ in map(_group, L.first)}):
+    runs = []
+    for rep in sorted({r for c, r in map(_group, L.first) if c == col}):
+      lr = chosen_lr(L.out, col, rep, L.plan)
+      if lr is not None:
+        pattern = os.path.join(L.out, "regression", col, rep, f"{lr_tag(lr)}_seed*")
+        runs += sorted(d for d in glob.glob(pattern) if os.path.isdir(d))
+    if not runs:
+      continue
+    argv = [L.python, "experiments/learning_curve.py", "--bands", "--metrics"]
+    argv += ["eval/validation/score", "--runs", *runs]
+    argv += ["--png", os.path.join(L.out, f"curve_{col}.png")]
+    argv += ["--md", os.path.join(L.out, f"curve_{col}.md")]
+    jobs.append(Job(f"curve_{col}", argv, "", 5))
+  return jobs
 
 
 def _group(job: Job) -> tuple[str, str]:

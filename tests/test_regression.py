@@ -401,12 +401,22 @@ def test_run_comparison_converge_plan(tmp_path, capsys):
   assert any("table1_car_chair.md" in " ".join(j.argv) for j in launch.tables)
   # The grid extends: car quat chose the highest lr of (3e-4, 1e-3, 3e-3) -> 1e-2 next.
   reg = os.path.join(out, "regression")
-  for lr, val in ((3e-4, 3.0), (1e-3, 2.0), (3e-3, 1.0)):
+
+  def write(lr, val):  # named as the launcher names its workdirs (lr3e-3_seed0)
     _write(reg, "car", "quat", lr, 0, _summary("car", val), _summary("car", 1.0))
+    wd = os.path.join(reg, "car", "quat", f"lr{lr:g}_seed0")
+    os.rename(wd, os.path.join(reg, "car", "quat", f"{rc.lr_tag(lr)}_seed0"))
+
+  for lr, val in ((3e-4, 3.0), (1e-3, 2.0), (3e-3, 1.0)):
+    write(lr, val)
   assert rc.extension_lr(out, "car", "quat", plan) == 1e-2
-  _write(reg, "car", "quat", 1e-2, 0, _summary("car", 2.0), _summary("car", 1.0))
+  write(1e-2, 2.0)
   assert rc.extension_lr(out, "car", "quat", plan) is None  # 3e-3 now inside the grid
   assert rc.chosen_lr(out, "car", "quat", plan) == 3e-3
+  curves = [j for j in rc.curve_jobs(launch) if j.name == "curve_car"]
+  assert len(curves) == 1 and "--bands" in curves[0].argv
+  assert os.path.join(reg, "car", "quat", "lr3e-3_seed0") in curves[0].argv
+  assert os.path.join(reg, "car", "quat", "lr1e-3_seed0") not in curves[0].argv
   assert [rc.half_decade(x, up=u) for x, u in ((1e-3, True), (3e-4, False), (1e-4, False))] == [
     3e-3,
     1e-4,
