@@ -130,17 +130,18 @@ class Plan:
   extend_grid: int = 0
 
 
-# Measured per-step times at quick size on this 2-core CPU, shared (load average ~18 from
-# seven other jobs): a car quat regression of 100 and of 400 steps (train_seconds 22.8 / 49.5 s:
-# 89 ms a step, ~14 s of compilation and first step) and a car view-synthesis run of 120 steps
-# (CONVERGE_SYNTHESIS_*); the other settings scaled from the car by the quick estimates
-# above (regression_s / total_steps: gqn 5x the car's per step, gibson 1.3x, seven_scenes 1.1x).
-# Start-up, data loading and final evaluation per regression run: ~105 s measured (155 s wall
-# of the 400-step run minus its training) under that load. Notes: /work/wt/notes/stats.md.
-CONVERGE_REG_STEP_S = {"car": 0.089, "gqn": 0.45, "gibson": 0.115, "seven_scenes": 0.098}
-CONVERGE_REG_OVERHEAD_S = 105.0
-CONVERGE_SYNTHESIS_STEP_S = 1.25  # 0.80 steps/s at steps 100-120 of the measured run
-CONVERGE_SYNTHESIS_OVERHEAD_S = 130.0  # 283 s wall for 120 steps: start-up, data, evaluations
+# Measured per-step times at quick size on this 2-core CPU, shared with other jobs (load average
+# 3-9 at the time; at load ~18 the same steps took 3-9x longer), /work/wt/notes/stats.md:
+# regressions of quat, 100 and 400 steps (car) / 50 and 250 steps (gqn), data cached: car
+# train_seconds 9.2 / 12.1 s -> 9.7 ms a step, gqn 30.4 / 55.3 s -> 125 ms a step (4 rooms x 10
+# views and the context encoder); gibson and seven_scenes scaled from the car by the older quick
+# estimates (regression_s / total_steps: 1.3x and 1.1x the car's), not measured. ~30 s a run of
+# start-up, compilation and evaluation. A car view-synthesis run of 120 steps: 0.38 s a step
+# (steps 20-120), 91 s wall (~45 s start-up, data, evaluations).
+CONVERGE_REG_STEP_S = {"car": 0.0097, "gqn": 0.125, "gibson": 0.0126, "seven_scenes": 0.0107}
+CONVERGE_REG_OVERHEAD_S = 30.0
+CONVERGE_SYNTHESIS_STEP_S = 0.38
+CONVERGE_SYNTHESIS_OVERHEAD_S = 45.0
 CONVERGE_SYNTHESIS_STEPS = 600  # the :quick view-synthesis runs' own total_steps
 # Regression caps (steps) and the stopping rule (camrep/regression/stopping.py) at converge size:
 # rooms to 8,000 steps (results/curve_rooms.md: ours still improving at 8,000), the others 6,000
@@ -679,7 +680,7 @@ def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -
   where = {
     "quick": " (on 2 CPU cores)",
     "medium": " (one H100; derived, not measured)",
-    "converge": " (on 2 CPU cores, from per-step times measured under load ~18 from other jobs; "
+    "converge": " (on 2 CPU cores, from per-step times measured while shared, load 3-9; "
     f"regressions at {CONVERGE_EXPECTED_SHARE:g} of their step caps)",
   }
   at = f", {at_once} jobs at a time at best" if at_once > 1 else ""
