@@ -12,6 +12,16 @@ band from their minimum to their maximum. Issue 16 part 2: the rooms regression'
       --metrics eval/test_scenes/yaw_error_deg_mean,eval/test_scenes/x_error_mean \\
       --png /tmp/curve/rooms.png --md /tmp/curve/rooms.md
 
+With --bands (issue 29: a figure per setting, one line per representation, bands over seeds),
+runs are grouped by representation (their config.json): each table cell is "mean [min, max]" over
+the group's runs logged at that step, and the figure draws each group's mean with its min and
+max as a band, e.g. the validation curves
+(`eval/validation/score`, logged by every regression run with eval_every_steps) of a converge
+launch's chosen runs:
+
+  .venv/bin/python experiments/learning_curve.py --bands --metrics eval/validation/score \
+      --runs DIR/regression/car/*/lr1e-3_seed* --png results/curve_car.png --md results/curve_car.md
+
 Reads workdirs only (config.json, metrics.jsonl); seconds. `--from_md` redraws the figure from
 tables this script wrote, when the workdirs are gone (how results/curve_rooms.png was redrawn):
 
@@ -109,6 +119,37 @@ def from_markdown(text: str) -> tuple[list[str], list[str], list[list[dict[int, 
   return labels, metrics, curves
 
 
+def group_of(workdir: str) -> str:
+  """A run's group under --bands: its representation, else its label."""
+  config = workdir_lib.read_stored_config(workdir) or {}
+  return config.get("representation") or label_of(workdir)
+
+
+def bands(groups: Sequence[str], curves: Sequence[dict[int, float]]):
+  """{group: {step: (mean, min, max)}} over the curves of each group (per step, over the runs
+  that logged it)."""
+  by: dict[str, dict[int, list[float]]] = {}
+  for g, c in zip(groups, curves, strict=True):
+    for step, v in c.items():
+      by.setdefault(g, {}).setdefault(step, []).append(v)
+  return {
+    g: {s: (float(np.mean(v)), float(np.min(v)), float(np.max(v))) for s, v in sorted(d.items())}
+    for g, d in by.items()
+  }
+
+
+def band_markdown(metric: str, table, counts: dict[str, int]) -> str:
+  names = list(table)
+  steps = sorted(set().union(*(table[g] for g in names)))
+  head = [f"{g} ({counts[g]} runs)" for g in names]
+  lines = [f"`{metric}`: mean [min, max] over runs", "", "| step | " + " | ".join(head) + " |"]
+  lines.append("|---" * (len(names) + 1) + "|")
+  for s in steps:
+    cells = ["{:.4g} [{:.4g}, {:.4g}]".format(*table[g][s]) if s in table[g] else "" for g in names]
+    lines.append(f"| {s} | " + " | ".join(cells) + " |")
+  return "\n".join(lines) + "\n"
+
+
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
   p.add_argument("--runs", nargs="+", default=[], help="workdirs")
@@ -117,6 +158,9 @@ def main(argv=None) -> int:
   p.add_argument("--labels", default="", help="comma-separated labels (default: from config)")
   p.add_argument("--png", default="", help="output figure (one panel per metric)")
   p.add_argument("--md", default="", help="output Markdown tables")
+  p.add_argument(
+    "--bands", action="store_true", help="group runs by representation: mean [min, max]"
+  )
   args = p.parse_args(argv)
   if args.from_md:
     if args.runs or not args.png:
@@ -138,6 +182,8 @@ def main(argv=None) -> int:
       print(f"error: {w} has no metrics.jsonl", file=sys.stderr)
       return 2
   labels = labels or [label_of(w) for w in args.runs]
+  # --bands: runs of one representation are one line (their mean, a band from min to max).
+  groups = [group_of(w) for w in args.runs] if args.bands else labels
   tables, all_curves = [], []
   for metric in metrics:
     curves = [curve(w, metric) for w in args.runs]
@@ -145,7 +191,12 @@ def main(argv=None) -> int:
     if missing:
       print(f"error: {metric} is not logged in {', '.join(missing)}", file=sys.stderr)
       return 2
-    tables.append(markdown(labels, metric, curves))
+    if args.bands:
+      table = bands(groups, curves)
+      counts = {g: groups.count(g) for g in table}
+      tables.append(band_markdown(metric, table, counts))
+    else:
+      tables.append(markdown(labels, metric, curves))
     all_curves.append(curves)
   text = "\n".join(tables)
   text += (
@@ -158,7 +209,7 @@ def main(argv=None) -> int:
       f.write(text)
   if args.png:
     os.makedirs(os.path.dirname(os.path.abspath(args.png)), exist_ok=True)
-    print("wrote", ", ".join(plots.save(figure(labels, metrics, all_curves), args.png)))
+    print("wrote", ", ".join(plots.save(figure(groups, metrics, all_curves), args.png)))
   return 0
 
 

@@ -5,6 +5,21 @@
   python experiments/run_comparison.py --size paper --out DIR [--dry_run]   # for a GPU
   python experiments/run_comparison.py --size quick --settings seven_scenes \
       --data seven_scenes=PREPARED_DIR --out DIR     # Table 2 from prepared real 7-Scenes
+  python experiments/run_comparison.py --size converge --out DIR --max_hours 2 \
+      [--data car_chair=nerf:PREPARED_DIR ...] [--noise_runs] [--dry_run]   # issue 29, 2 CPU cores
+
+`--size converge` (issue 29): the quick sizes with 3 seeds per cell; every regression run capped
+(CONVERGE_CAPS) and stopped by the stopping rule (`--config.stop.*`, validation every cap / 20
+steps); lr grids of three values, phase 1 trying up to two more (half a decade beyond the edge)
+while seed 0's choice sits at its grid's edge; one view-synthesis run per seed for "ours" (and
+the MLP embedding, and the GQN noise runs), `synthesis/<name>_seed<k>`, regression seed k of
+"ours" regressing synthesis seed k's pose system. Estimates come from per-step times measured on
+the shared 2-core CPU (CONVERGE_* constants). `--max_hours H` starts no run after H hours (the
+running one finishes); rerunning the same command resumes, skipping finished runs.
+`--data car_NAME=SOURCE:DIR` (repeatable) adds a capture column "car_NAME": a capture prepared
+by `python -m camrep.data.prepare --source SOURCE --input CAPTURE --data_dir DIR --preset small`
+(SOURCE nerf, llff or colmap), regressed in the car setting into regression/car_NAME and tabled
+alone in DIR/table1_car_NAME.md.
 
 `--data SETTING=DIR` (repeatable) runs that setting on real data prepared by
 `python -m camrep.data.prepare --source SOURCE --input RAW --data_dir DIR` (SOURCE: gqn for gqn,
@@ -55,6 +70,8 @@ from __future__ import annotations
 import argparse
 import concurrent.futures
 import dataclasses
+import glob
+import math
 import os
 import shlex
 import subprocess
@@ -105,6 +122,82 @@ class Plan:
   regression_s: dict[str, float]
   data_s: dict[str, float]
   evaluate_s: float
+  # converge (issue 29): --config.* flags of every regression run (cap, periodic validation,
+  # stopping rule), of every synthesis run, one synthesis run per seed paired with "ours"'s
+  # regression seed, and how many times phase 1 may extend an lr grid whose choice is at its edge.
+  regression_flags: tuple[str, ...] = ()
+  synthesis_flags: tuple[str, ...] = ()
+  paired_synthesis: bool = False
+  extend_grid: int = 0
+
+
+# Measured per-step times at quick size on this 2-core CPU, shared with other jobs (load average
+# 3-9 at the time; at load ~18 the same steps took 3-9x longer), /work/wt/notes/stats.md:
+# regressions of quat, 100 and 400 steps (car) / 50 and 250 steps (gqn), data cached: car
+# train_seconds 9.2 / 12.1 s -> 9.7 ms a step, gqn 30.4 / 55.3 s -> 125 ms a step (4 rooms x 10
+# views and the context encoder); gibson and seven_scenes scaled from the car by the older quick
+# estimates (regression_s / total_steps: 1.3x and 1.1x the car's), not measured. ~30 s a run of
+# start-up, compilation and evaluation. A car view-synthesis run of 120 steps: 0.38 s a step
+# (steps 20-120), 91 s wall (~45 s start-up, data, evaluations).
+CONVERGE_REG_STEP_S = {"car": 0.0097, "gqn": 0.125, "gibson": 0.0126, "seven_scenes": 0.0107}
+CONVERGE_REG_OVERHEAD_S = 30.0
+CONVERGE_SYNTHESIS_STEP_S = 0.38
+CONVERGE_SYNTHESIS_OVERHEAD_S = 45.0
+CONVERGE_SYNTHESIS_STEPS = 600  # the :quick view-synthesis runs' own total_steps
+# Regression caps (steps) and the stopping rule (camrep/regression/stopping.py) at converge size:
+# rooms to 8,000 steps (results/curve_rooms.md: ours still improving at 8,000), the others 6,000
+# (4x quick); validation every cap / 20 steps; stop when the best validation score improved by
+# less than 2% over the last quarter of the steps, not before a quarter of the cap.
+CONVERGE_CAPS = {"gqn": 8_000, "car": 6_000, "gibson": 6_000, "seven_scenes": 6_000}
+CONVERGE_MIN_IMPROVEMENT = 0.02
+# Expected steps trained as a share of the cap (for the estimate only; the stopping rule decides).
+CONVERGE_EXPECTED_SHARE = 0.6
+
+
+def _converge_plan() -> Plan:
+  """`--size converge` (issue 29): the quick sizes, 3 seeds, regressions to their plateau (the
+  stopping rule, capped), lr grids of three values around the quick choices, each extended by
+  phase 1 (up to two more lrs) while its choice sits at an edge; one view-synthesis run per seed
+  for "ours" (paired with the regression seed). Estimates from the measured per-step times."""
+  reg_s = {
+    s: CONVERGE_REG_OVERHEAD_S + CONVERGE_EXPECTED_SHARE * CONVERGE_CAPS[s] * t
+    for s, t in CONVERGE_REG_STEP_S.items()
+  }
+  syn = CONVERGE_SYNTHESIS_STEPS * CONVERGE_SYNTHESIS_STEP_S + CONVERGE_SYNTHESIS_OVERHEAD_S
+  return Plan(
+    variant="quick",
+    seeds=(0, 1, 2),
+    lrs={
+      # Rooms chose the top of (3e-4, 1e-3) at quick size: widened upwards.
+      "car": (3e-4, 1e-3, 3e-3),
+      "gqn": (3e-4, 1e-3, 3e-3),
+      "gibson": (1e-3, 3e-3, 1e-2),
+      "seven_scenes": (1e-4, 3e-4, 1e-3),
+    },
+    synthesis_s={s: syn for s in SETTINGS},
+    regression_s=reg_s,
+    data_s={"gqn": 45, "car": 30, "gibson": 30, "seven_scenes": 20},
+    evaluate_s=120,
+    regression_flags=(
+      "--config.stop.min_improvement=" + format(CONVERGE_MIN_IMPROVEMENT, "g"),
+      "--config.stop.window=0.25",
+    ),
+    paired_synthesis=True,
+    extend_grid=2,
+  )
+
+
+def regression_flags(plan: Plan, setting: str) -> list[str]:
+  """The plan's extra flags of a regression run of `setting` (cap, eval period, stop)."""
+  if not plan.regression_flags:
+    return []
+  cap = CONVERGE_CAPS[setting]
+  return [
+    f"--config.total_steps={cap}",
+    f"--config.eval_every_steps={cap // 20}",
+    f"--config.stop.min_steps={cap // 4}",
+    *plan.regression_flags,
+  ]
 
 
 PLANS = {
@@ -156,6 +249,7 @@ PLANS = {
     data_s={"gqn": 1800, "car": 1800, "gibson": 3600, "seven_scenes": 600},
     evaluate_s=600,
   ),
+  "converge": _converge_plan(),
 }
 
 
@@ -188,14 +282,24 @@ def mlp_synthesis_supported() -> bool:
   return "kind" in common.base().rep
 
 
+def setting_of(column: str) -> str:
+  """The setting of a table column: the setting itself, or "car" for a capture column
+  "car_<NAME>" (`--data car_NAME=SOURCE:DIR`)."""
+  return column if column in SETTINGS else column.split("_", 1)[0]
+
+
 def lr_tag(lr: float) -> str:
   return f"lr{lr:.0e}".replace("e-0", "e-")
 
 
-def data_flags(setting: str, data: dict[str, str] | None) -> list[str]:
-  """The config flags that point a run of `setting` at its prepared real data (none without)."""
+def data_flags(setting: str, data: dict | None) -> list[str]:
+  """The config flags that point a run of `setting` (or capture column) at its prepared real data
+  (none without); a capture column's value is (source, dir), prepared with `--preset small`."""
   if not data or setting not in data:
     return []
+  if isinstance(data[setting], tuple):
+    source, path = data[setting]
+    return [f"--config.data.source={source}", f"--config.data.dir={path}"]
   return [
     f"--config.data.source={REAL_SOURCES[setting]}",
     f"--config.data.dir={data[setting]}",
@@ -211,10 +315,14 @@ def synthesis_jobs(
   real data when `data` names it."""
   suffix = f":{plan.variant}" if plan.variant else ""
   jobs = []
-  for name in names:
+  for full in names:
+    name, _, seed = full.partition("_seed")
     setting = next(x for x in SETTINGS if name == x or name.startswith(f"{x}_"))
     kind = name[len(setting) + 1 :]
-    wd = os.path.join(out, "synthesis", name)
+    capture = bool(data) and isinstance(data.get(name), tuple)
+    if capture:  # a capture column: the car setting on the capture, one instance a step
+      kind = ""
+    wd = os.path.join(out, "synthesis", full)
     if kind == "convdraw":  # GQN's own generator: its config, fed GQN's 7-D pose vector
       argv = [py, "-m", "camrep.main", f"--config=configs/gqn_convdraw.py{suffix}"]
     else:
@@ -222,9 +330,14 @@ def synthesis_jobs(
     argv.append(f"--workdir={wd}")
     if kind and kind != "convdraw":
       argv.append(f"--config.rep.kind={kind}")
-    argv += data_flags(setting, data)
+    argv += data_flags(name if capture else setting, data)
+    if capture:
+      argv.append("--config.data.scenes_per_device=1")
+    if seed:
+      argv.append(f"--config.seed={seed}")
+    argv += list(plan.synthesis_flags)
     est = plan.synthesis_s[setting]
-    jobs.append(Job(f"synthesis_{name}", argv, os.path.join(wd, "final_metrics.json"), est))
+    jobs.append(Job(f"synthesis_{full}", argv, os.path.join(wd, "final_metrics.json"), est))
   return jobs
 
 
@@ -242,7 +355,8 @@ def regression_job(
   setting's prepared real data when `data` names it."""
   suffix = f":{plan.variant}" if plan.variant else ""
   tag = "lr<LR>" if lr is None else lr_tag(lr)
-  wd = os.path.join(out, "regression", setting, rep, f"{tag}_seed{seed}")
+  column, setting = setting, setting_of(setting)
+  wd = os.path.join(out, "regression", column, rep, f"{tag}_seed{seed}")
   argv = [
     py,
     "-m",
@@ -254,26 +368,63 @@ def regression_job(
     f"--config.seed={seed}",
     f"--config.optax.lr={'<LR>' if lr is None else format(lr, 'g')}",
     f"--config.data.cache_dir={os.path.join(out, 'cache')}",
-    *data_flags(setting, data),
+    *data_flags(column, data),
+    *regression_flags(plan, setting),
   ]
-  syn = os.path.join(out, "synthesis", setting)
+  syn = os.path.join(out, "synthesis", column)
+  pair = f"_seed{seed}" if plan.paired_synthesis else ""
   if rep == "ours":
-    argv.append(f"--config.synthesis_workdir={syn}")
+    argv.append(f"--config.synthesis_workdir={syn}{pair}")
   elif rep == "mlp" and mlp_synthesis_supported():
-    argv.append(f"--config.synthesis_workdir={syn}_mlp")
-  name = f"regression_{setting}_{rep}_{tag}_seed{seed}"
+    argv.append(f"--config.synthesis_workdir={syn}_mlp{pair}")
+  name = f"regression_{column}_{rep}_{tag}_seed{seed}"
   return Job(name, argv, os.path.join(wd, C.RESULTS_FILE), plan.regression_s[setting])
 
 
+def extension_lr(out: str, column: str, rep: str, plan: Plan) -> float | None:
+  """Phase 1 of a plan with `extend_grid`: the next lr (x3 beyond the edge) to try with seed 0
+  when the lr chosen so far is the lowest or highest of those run, within `extend_grid` lrs
+  beyond the plan's grid; None when the choice is inside or the extension is used up."""
+  pattern = os.path.join(out, "regression", column, rep, f"*_seed{plan.seeds[0]}")
+  sel = C.select(C.load_results([pattern])).get((setting_of(column), rep))
+  if sel is None or not plan.extend_grid:
+    return None
+  grid = plan.lrs[setting_of(column)]
+  extra = [lr for lr in sel.scores if lr not in grid]
+  edge = C.grid_edge(sel)
+  if len(extra) >= plan.extend_grid or edge not in ("lowest", "highest"):
+    return None
+  return half_decade(sel.lr, up=edge == "highest")
+
+
+def half_decade(lr: float, *, up: bool) -> float:
+  """The next value of the 1, 3, 10, ... grid above (or below) `lr`: 1e-3 -> 3e-3 -> 1e-2."""
+  x = math.log10(lr) + (0.5 if up else -0.5)
+  k = math.floor(x)
+  frac = x - k
+  mantissa, k = (1, k) if frac < 0.24 else (3, k) if frac < 0.74 else (1, k + 1)
+  return float(f"{mantissa}e{k}")
+
+
 def table_jobs(out: str, py: str, settings: Sequence[str]) -> list[Job]:
-  runs = os.path.join(out, "regression", "*", "*", "*")
+  """table1 / table2 of the settings (each read from its own regression/<setting> runs, so that
+  capture columns are not pooled with the car's); one table1_<column>.md per capture column."""
   jobs = []
-  if set(settings) & {"car", "gqn", "gibson"}:
-    argv = [py, "experiments/table1.py", "--runs", runs, "--out", os.path.join(out, "table1.md")]
+  t1 = [s for s in ("car", "gqn", "gibson") if s in settings]
+  if t1:
+    runs = [os.path.join(out, "regression", s, "*", "*") for s in t1]
+    argv = [py, "experiments/table1.py", "--runs", *runs, "--out", os.path.join(out, "table1.md")]
     jobs.append(Job("table1", argv, "", 3))
   if "seven_scenes" in settings:
+    runs = os.path.join(out, "regression", "seven_scenes", "*", "*")
     argv = [py, "experiments/table2.py", "--runs", runs, "--out", os.path.join(out, "table2.md")]
     jobs.append(Job("table2", argv, "", 3))
+  for col in [c for c in settings if c not in SETTINGS]:
+    runs = os.path.join(out, "regression", col, "*", "*")
+    md = os.path.join(out, f"table1_{col}.md")
+    jobs.append(
+      Job(f"table1_{col}", [py, "experiments/table1.py", "--runs", runs, "--out", md], "", 3)
+    )
   return jobs
 
 
@@ -290,8 +441,13 @@ def figure_jobs(out: str, plan: Plan, synth: Sequence[Job], py: str) -> list[Job
   script = os.path.join("experiments", "noise_figure.py")
   if os.path.exists(os.path.join(ROOT, script)):
     for setting in SETTINGS:
-      group = [n for n in names if n == setting or n.startswith(f"{setting}_")]
-      if setting not in group or len(group) < 2:
+      # Pose inputs of the setting (with seeds at converge size: every seed's run, for bands).
+      inputs = ("", "_mlp", "_lowdim", "_convdraw")
+      group = [n for n in names if n.partition("_seed")[0] in {setting + k for k in inputs}]
+      if (
+        setting not in {n.partition("_seed")[0] for n in group}
+        or len({n.partition("_seed")[0] for n in group}) < 2
+      ):
         continue
       argv = [py, script, "--runs", *(os.path.join(out, "synthesis", n) for n in group)]
       argv += ["--png", os.path.join(out, f"noise_{setting}.png")]
@@ -333,9 +489,12 @@ def job_env(jobs: int) -> dict[str, str] | None:
   return {**os.environ, "XLA_PYTHON_CLIENT_MEM_FRACTION": f"{0.9 / jobs:.3f}"}
 
 
-def run_jobs(jobs: Sequence[Job], logs: str, *, at_once: int, label: str) -> list[str]:
+def run_jobs(
+  jobs: Sequence[Job], logs: str, *, at_once: int, label: str, deadline: float | None = None
+) -> list[str]:
   """Runs the jobs that are not done, `at_once` subprocesses at a time (they must not depend on
-  each other); returns the names of those that failed."""
+  each other); none is started after `deadline` (time.monotonic(); --max_hours), and those are
+  not failures (a rerun starts them). Returns the names of those that failed."""
   todo = [j for j in jobs if not j.done()]
   for j in jobs:
     if j not in todo:
@@ -344,6 +503,9 @@ def run_jobs(jobs: Sequence[Job], logs: str, *, at_once: int, label: str) -> lis
 
   def one(i_job: tuple[int, Job]) -> str | None:
     i, job = i_job
+    if deadline is not None and time.monotonic() > deadline:
+      print(f"[{label}{i + 1}/{len(todo)}] {job.name}: not started (--max_hours)", flush=True)
+      return None
     ok = run_job(job, logs, index=f"{label}{i + 1}/{len(todo)}", env=env)
     return None if ok else job.name
 
@@ -358,8 +520,9 @@ def run_jobs(jobs: Sequence[Job], logs: str, *, at_once: int, label: str) -> lis
 def chosen_lr(out: str, setting: str, rep: str, plan: Plan) -> float | None:
   """The lr that the phase-1 (seed 0) validation errors choose, or None without results."""
   pattern = os.path.join(out, "regression", setting, rep, f"*_seed{plan.seeds[0]}")
-  results = [r for r in C.load_results([pattern]) if float(r["lr"]) in plan.lrs[setting]]
-  sel = C.select(results).get((setting, rep))
+  grid = plan.lrs[setting_of(setting)]
+  results = [r for r in C.load_results([pattern]) if plan.extend_grid or float(r["lr"]) in grid]
+  sel = C.select(results).get((setting_of(setting), rep))
   return None if sel is None else sel.lr
 
 
@@ -379,7 +542,7 @@ def plan_regression(
   for s in settings:
     for rep in reps[s]:
       for seed in seeds:
-        for lr in plan.lrs[s]:
+        for lr in plan.lrs[setting_of(s)]:
           first.append(regression_job(out, plan, s, rep, lr, seed, py, data))
       if not full_grid:
         later += [(s, rep, seed) for seed in plan.seeds[1:]]
@@ -412,6 +575,12 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     metavar="SETTING=DIR",
     help="run SETTING on real data prepared by camrep.data.prepare in DIR (repeatable)",
   )
+  p.add_argument(
+    "--max_hours",
+    type=float,
+    default=0.0,
+    help="stop launching new runs after this many hours (0: no limit); rerun to resume",
+  )
   p.add_argument("--python", default=sys.executable, help="interpreter of the subprocesses")
   p.add_argument(
     "--jobs", type=int, default=1, help="subprocesses at once within each step (GPU: 4 for medium)"
@@ -439,8 +608,20 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
   data = {}
   for item in args.data:
     setting, sep, path = item.partition("=")
+    if sep and setting.startswith("car_") and setting[4:].isidentifier():
+      # A capture column: car_NAME=SOURCE:DIR (a capture prepared with --preset small).
+      source, colon, path = path.partition(":")
+      if not colon or not source or not path:
+        p.error(f"--data {item}: a capture column expects car_NAME=SOURCE:DIR (e.g. nerf:/data)")
+      if not os.path.isdir(path):
+        p.error(f"--data {item}: {path} is not a directory (prepare it with camrep.data.prepare)")
+      data[setting] = (source, os.path.abspath(path))
+      continue
     if not sep or setting not in SETTINGS or not path:
-      p.error(f"--data expects SETTING=DIR with SETTING one of {SETTINGS}, got {item!r}")
+      p.error(
+        f"--data expects SETTING=DIR with SETTING one of {SETTINGS} (or car_NAME=SOURCE:DIR for "
+        f"a capture column), got {item!r}"
+      )
     if not os.path.isdir(path):
       p.error(f"--data {item}: {path} is not a directory (prepare it with camrep.data.prepare)")
     data[setting] = os.path.abspath(path)
@@ -467,9 +648,12 @@ class Launch:
 
 def make_launch(args: argparse.Namespace) -> Launch:
   plan = PLANS[args.size]
-  settings = args.settings
+  captures = [c for c in getattr(args, "data", {}) if c not in SETTINGS]
+  settings = args.settings + [c for c in captures if setting_of(c) in args.settings]
   only = {r.strip() for r in args.representations.split(",") if r.strip()}
-  reps = {s: tuple(r for r in REPRESENTATIONS[s] if not only or r in only) for s in settings}
+  reps = {
+    s: tuple(r for r in REPRESENTATIONS[setting_of(s)] if not only or r in only) for s in settings
+  }
   out, py = os.path.abspath(args.out), args.python
   kinds = mlp_synthesis_supported()
   names = [s for s in settings if "ours" in reps[s]]
@@ -481,6 +665,8 @@ def make_launch(args: argparse.Namespace) -> Launch:
       kinds = [k for k in kinds if k != "convdraw"]
     extra = ["gqn", *(f"gqn_{k}" for k in kinds)]
     names += [n for n in extra if n not in names]
+  if plan.paired_synthesis:  # one synthesis run per seed, paired with the regression seed
+    names = [f"{n}_seed{k}" for n in names for k in plan.seeds]
   data = {s: d for s, d in getattr(args, "data", {}).items() if s in settings}
   synth = synthesis_jobs(out, plan, names, py, data)
   first, later = plan_regression(out, plan, settings, reps, py, full_grid=args.full_grid, data=data)
@@ -494,12 +680,27 @@ def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -
   time: the best case); with `commands`, every job."""
   L, plan = launch, launch.plan
   todo_first = [j for j in L.synth + L.first if not j.done()]
-  est = sum(j.estimate_s for j in todo_first) + sum(plan.regression_s[s] for s, _, _ in L.later)
-  est += sum(plan.data_s[s] for s in L.settings if not os.path.isdir(os.path.join(L.out, "cache")))
+  est = sum(j.estimate_s for j in todo_first)
+  est += sum(plan.regression_s[setting_of(s)] for s, _, _ in L.later)
+  cached = os.path.isdir(os.path.join(L.out, "cache"))
+  est += sum(plan.data_s[setting_of(s)] for s in L.settings if not cached)
   est += sum(j.estimate_s for j in L.tables + L.figures if not j.done())
   n_runs = len(L.first) + len(L.later)
-  where = {"quick": " (on 2 CPU cores)", "medium": " (one H100; derived, not measured)"}
+  where = {
+    "quick": " (on 2 CPU cores)",
+    "medium": " (one H100; derived, not measured)",
+    "converge": " (on 2 CPU cores, from per-step times measured while shared, load 3-9; "
+    f"regressions at {CONVERGE_EXPECTED_SHARE:g} of their step caps)",
+  }
   at = f", {at_once} jobs at a time at best" if at_once > 1 else ""
+  if plan.extend_grid:
+    groups = {_group(j) for j in L.first}
+    worst = len(groups) * plan.extend_grid
+    worst_s = sum(plan.regression_s[setting_of(c)] for c, _ in groups) * plan.extend_grid
+    at += (
+      f"; plus up to {worst} phase-1 runs (up to {progress_lib.format_duration(worst_s)}) "
+      "extending an lr grid whose choice is at its edge"
+    )
   print(
     f"{size} comparison into {L.out}: {len(L.synth)} view-synthesis runs, {n_runs} regression "
     f"runs ({len(L.first)} in phase 1, {len(L.later)} in phase 2), {len(L.tables)} tables, "
@@ -508,11 +709,12 @@ def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -
     flush=True,
   )
   for s in L.settings:
-    where = (
-      f"prepared {REAL_SOURCES[s]} data in {L.data[s]}"
-      if s in L.data
-      else "its procedural family (configs/regression.py settings)"
-    )
+    if isinstance(L.data.get(s), tuple):
+      where = f"capture prepared as {L.data[s][0]} in {L.data[s][1]} (car setting)"
+    elif s in L.data:
+      where = f"prepared {REAL_SOURCES[s]} data in {L.data[s]}"
+    else:
+      where = "its procedural family (configs/regression.py settings)"
     print(f"  data of {s}: {where}", flush=True)
   if not commands:
     return
@@ -521,23 +723,42 @@ def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -
     print(f"[{state}] {j.command()}")
   for s, rep, seed in L.later:
     job = regression_job(L.out, plan, s, rep, None, seed, L.python, L.data)
-    print(f"[~{progress_lib.format_duration(plan.regression_s[s])}, phase 2] {job.command()}")
+    est_s = plan.regression_s[setting_of(s)]
+    print(f"[~{progress_lib.format_duration(est_s)}, phase 2] {job.command()}")
   print("  (phase 2: <LR> = the lr chosen on seed 0's validation errors)")
+  if plan.regression_flags:
+    print(
+      "[~5s each] experiments/learning_curve.py --bands --metrics eval/validation/score per "
+      f"column, runs at the chosen lr -> {L.out}/curve_<column>.{{png,md}}"
+    )
   for j in L.tables + L.figures:
     print(f"[~{progress_lib.format_duration(j.estimate_s)}] {j.command()}")
 
 
-def execute(launch: Launch, *, at_once: int = 1) -> list[str]:
-  """Runs what is not done yet, in order: view synthesis, phase 1, phase 2 at the chosen lr,
-  tables, figures; `at_once` subprocesses at a time within each of these steps.
+def execute(launch: Launch, *, at_once: int = 1, deadline: float | None = None) -> list[str]:
+  """Runs what is not done yet, in order: view synthesis, phase 1 (extended while a chosen lr
+  sits at its grid's edge, when the plan allows), phase 2 at the chosen lr, tables, figures;
+  `at_once` subprocesses at a time within each of these steps; no run is started after
+  `deadline` (time.monotonic()).
 
   Returns:
     The names of the jobs that failed.
   """
   L = launch
   logs = os.path.join(L.out, "logs")
-  failed = run_jobs(L.synth, logs, at_once=at_once, label="synthesis: ")
-  failed += run_jobs(L.first, logs, at_once=at_once, label="phase 1: ")
+  kw = dict(at_once=at_once, deadline=deadline)
+  failed = run_jobs(L.synth, logs, label="synthesis: ", **kw)
+  failed += run_jobs(L.first, logs, label="phase 1: ", **kw)
+  groups = sorted({(s, rep) for s, rep, _ in L.later} | {_group(j) for j in L.first})
+  for _ in range(L.plan.extend_grid):
+    ext = []
+    for col, rep in groups:
+      lr = extension_lr(L.out, col, rep, L.plan)
+      if lr is not None:
+        ext.append(regression_job(L.out, L.plan, col, rep, lr, L.plan.seeds[0], L.python, L.data))
+    if not ext:
+      break
+    failed += run_jobs(ext, logs, label="phase 1, lr grid extended: ", **kw)
   later = []
   for s, rep, seed in L.later:
     lr = chosen_lr(L.out, s, rep, L.plan)
@@ -546,13 +767,45 @@ def execute(launch: Launch, *, at_once: int = 1) -> list[str]:
       failed.append(f"regression_{s}_{rep}_seed{seed}")
       continue
     later.append(regression_job(L.out, L.plan, s, rep, lr, seed, L.python, L.data))
-  failed += run_jobs(later, logs, at_once=at_once, label="phase 2: ")
-  failed += run_jobs(L.tables, logs, at_once=1, label="")
+  failed += run_jobs(later, logs, label="phase 2: ", **kw)
+  failed += run_jobs(L.tables + curve_jobs(L), logs, at_once=1, label="", deadline=deadline)
   evaluations = [j for j in L.figures if j.name.startswith("evaluate_")]
-  failed += run_jobs(evaluations, logs, at_once=at_once, label="evaluate: ")
+  failed += run_jobs(evaluations, logs, label="evaluate: ", **kw)
   rest = [j for j in L.figures if j not in evaluations]
-  failed += run_jobs(rest, logs, at_once=1, label="")
+  failed += run_jobs(rest, logs, at_once=1, label="", deadline=deadline)
   return failed
+
+
+def curve_jobs(launch: Launch) -> list[Job]:
+  """With a stopping rule (converge): per column, the validation curves of every representation's
+  runs at its chosen lr, bands over seeds (experiments/learning_curve.py --bands) into
+  DIR/curve_<column>.{png,md}."""
+  L = launch
+  if not L.plan.regression_flags:
+    return []
+  jobs = []
+  for col in sorted({c for c, _ in map(_group, L.first)}):
+    runs = []
+    for rep in sorted({r for c, r in map(_group, L.first) if c == col}):
+      lr = chosen_lr(L.out, col, rep, L.plan)
+      if lr is not None:
+        pattern = os.path.join(L.out, "regression", col, rep, f"{lr_tag(lr)}_seed*")
+        runs += sorted(d for d in glob.glob(pattern) if os.path.isdir(d))
+    if not runs:
+      continue
+    argv = [L.python, "experiments/learning_curve.py", "--bands", "--metrics"]
+    argv += ["eval/validation/score", "--runs", *runs]
+    argv += ["--png", os.path.join(L.out, f"curve_{col}.png")]
+    argv += ["--md", os.path.join(L.out, f"curve_{col}.md")]
+    jobs.append(Job(f"curve_{col}", argv, "", 5))
+  return jobs
+
+
+def _group(job: Job) -> tuple[str, str]:
+  """(column, representation) of a regression job, from its workdir flag."""
+  wd = next(a for a in job.argv if a.startswith("--workdir=")).removeprefix("--workdir=")
+  parts = wd.split(os.sep)
+  return parts[-3], parts[-2]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -562,8 +815,16 @@ def main(argv: Sequence[str] | None = None) -> int:
   if args.dry_run:
     return 0
   t0 = time.perf_counter()
-  failed = execute(launch, at_once=args.jobs)
+  deadline = time.monotonic() + 3600 * args.max_hours if args.max_hours > 0 else None
+  failed = execute(launch, at_once=args.jobs, deadline=deadline)
   took = progress_lib.format_duration(time.perf_counter() - t0)
+  if deadline is not None and time.monotonic() > deadline:
+    print(
+      f"--max_hours {args.max_hours:g} reached after {took}: runs not started; run the same "
+      "command again to resume",
+      flush=True,
+    )
+    return 1 if failed else 0
   if failed:
     print(f"finished in {took} with {len(failed)} failures: {', '.join(failed)}", flush=True)
     return 1

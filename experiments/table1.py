@@ -9,7 +9,13 @@ the seeds every lr has), and writes a Markdown file with
 
   1. the measured table in the paper's layout: car mean rotation error (deg); rooms (GQN) mean
      |x|, |y| errors (scene units) and yaw error (deg); area (Gibson) mean |x|, |y| (m) and yaw
-     (deg); each cell the mean ± sample std over seeds of the test means at the chosen lr;
+     (deg); each cell, when every run of it saved its per-view errors (errors_test.npz), the
+     mean over seeds and test views with its 95% bootstrap interval, "mean [lo, hi]"
+     (`camrep.regression.stats`: seeds and views resampled), else the mean ± sample std over
+     seeds of the test means, at the chosen lr; a last row per column: ours / the best
+     hand-designed representation of the column (lowest mean), the ratio of their errors paired
+     on the same seeds and test views with its bootstrap interval and a verdict (better: the
+     interval is below 1; tie: it contains 1; worse: above 1);
   2. the paper's Table 1 (real data, paper-size training) in the same layout, for reference;
   3. the learning-rate selection (grid, scores, chosen lr, seeds, steps, parameter counts).
 
@@ -26,6 +32,7 @@ import os
 import sys
 from collections.abc import Sequence
 
+from camrep.regression import stats
 from camrep.regression import tables as C
 
 SETTINGS = ("car", "gqn", "gibson")
@@ -49,6 +56,24 @@ def procedural_note(selections) -> str:
   return " Procedural columns: " + ", ".join(PROCEDURAL_COLUMNS[s] for s in procedural) + "."
 
 
+def comparison_cells(selections) -> list[str]:
+  """Per Table 1 column: ours against the column's best hand-designed representation (lowest
+  mean test error at its chosen lr), paired on seeds and views (`stats.compare_runs`)."""
+  cells = []
+  for _, _, setting, error in C.TABLE1_COLUMNS:
+    ours = selections.get((setting, "ours"))
+    means = {
+      rep: C.seed_stats(sel.runs, error)[0] for (s, rep), sel in selections.items() if s == setting
+    }
+    best = stats.best_hand_designed(means)
+    if ours is None or best is None:
+      cells.append("–")
+      continue
+    comp = stats.compare_runs(ours.runs, selections[setting, best].runs, error, baseline=best)
+    cells.append(stats.fmt_comparison(comp))
+  return cells
+
+
 def build(results: Sequence[dict]) -> str:
   """The Markdown document of Table 1 from results.json contents."""
   selections = {k: v for k, v in C.select(results).items() if k[0] in SETTINGS}
@@ -56,12 +81,20 @@ def build(results: Sequence[dict]) -> str:
   rows, paper_rows = [], []
   reps = [r for r in C.TABLE1_ROWS if any(k[1] == r for k in selections)]
   reps += sorted({k[1] for k in selections} - set(reps))
+  intervals = 0
   for rep in reps:
     row = [C.ROW_LABELS.get(rep, rep)]
     for _, _, setting, error in C.TABLE1_COLUMNS:
       sel = selections.get((setting, rep))
-      row.append(C.fmt_mean_std(*C.seed_stats(sel.runs, error)[:2]) if sel else "–")
+      iv = stats.cell_interval(sel.runs, error) if sel else None
+      if iv is not None:
+        intervals += 1
+        row.append(stats.fmt_interval(iv, digits=C.digits_for(iv.value)))
+      else:
+        row.append(C.fmt_mean_std(*C.seed_stats(sel.runs, error)[:2]) if sel else "–")
     rows.append(row)
+  if intervals:
+    rows.append(["ours / best hand-designed", *comparison_cells(selections)])
   for rep in C.TABLE1_ROWS:
     if rep not in C.PAPER_TABLE1:  # rot6d, svd9d: newer than the paper
       continue
@@ -79,9 +112,19 @@ def build(results: Sequence[dict]) -> str:
     f"# Table 1: pose regression on {title}",
     "",
     f"Measured on {kind} ({', '.join(variants) or 'no'} size; "
-    f"{len(results)} runs read): mean test errors, mean ± sample std over "
+    f"{len(results)} runs read): mean test errors over "
     f"{'/'.join(map(str, seeds)) or '0'} seeds at the learning rate chosen on the validation "
-    f"split.{procedural_note(selections)}",
+    "split; "
+    + (
+      "each cell the mean over seeds and test views [95% bootstrap interval: seeds and test "
+      f"views resampled, {stats.B} replicates] (cells without per-view errors: mean ± sample "
+      "std over seeds); last row: ours / the column's best hand-designed representation, the "
+      "ratio of mean errors paired on the same seeds and test views [95% bootstrap interval] "
+      "and the verdict (better / tie / worse: interval below / containing / above 1)."
+      if intervals
+      else "each cell the mean ± sample std over seeds."
+    )
+    + procedural_note(selections),
     "",
     C.markdown_table(header, rows),
     "",

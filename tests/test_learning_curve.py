@@ -71,3 +71,20 @@ def test_refusals(tmp_path, capsys):
   assert lc.main(["--runs", a, "--metrics", "eval/psnr", "--labels", "x,y"]) == 2
   assert lc.main(["--runs", a, "--metrics", "eval/psnr", "--labels", "mine"]) == 0
   assert "| step | mine |" in capsys.readouterr().out
+
+
+def test_bands_over_seeds_per_representation(tmp_path, capsys):
+  lc = load_experiment("learning_curve")
+  key = "eval/validation/score"
+  runs = [
+    _workdir(tmp_path, f"{rep}{seed}", rep, [{"step": 100, key: v}, {"step": 200, key: v / 2}])
+    for rep, seed, v in (("ours", 0, 1.0), ("ours", 1, 3.0), ("ours", 2, 2.0), ("quat", 0, 4.0))
+  ]
+  png, md = tmp_path / "b.png", tmp_path / "b.md"
+  args = ["--bands", "--runs", *runs, "--metrics", key, "--png", str(png), "--md", str(md)]
+  assert lc.main(args) == 0
+  text = md.read_text()
+  assert "| step | ours (3 runs) | quat (1 runs) |" in text
+  assert "| 100 | 2 [1, 3] | 4 [4, 4] |" in text and "| 200 | 1 [0.5, 1.5] | 2 [2, 2] |" in text
+  assert cv2.imread(str(png)) is not None
+  capsys.readouterr()

@@ -403,3 +403,70 @@ def test_run_comparison_runs_jobs_at_once(tmp_path, monkeypatch):
   fail = rc.Job("fails", [sys.executable, "-c", "raise SystemExit(3)"], "", 1)
   assert rc.run_jobs(jobs + [fail], str(tmp_path / "logs"), at_once=2, label="") == ["fails"]
   assert sorted(os.listdir(marks)) == ["a", "b"]
+
+
+def test_run_comparison_converge_plan(tmp_path, capsys):
+  """--size converge (issue 29): >= 3 seeds per cell, the stopping rule on every regression, one
+  synthesis run per seed paired with ours' regression seed, capture columns, an estimate; the
+  lr grid extends while a choice is at its edge; --max_hours starts nothing after the deadline."""
+  rc = load_experiment("run_comparison")
+  cap = tmp_path / "chair"
+  cap.mkdir()
+  out = str(tmp_path / "cmp")
+  args = ["--size", "converge", "--out", out, "--dry_run", "--data", f"car_chair=nerf:{cap}"]
+  assert rc.main(args) == 0
+  text = capsys.readouterr().out
+  first = text.splitlines()[0]
+  assert first.startswith("converge comparison") and "estimated" in first
+  assert "phase-1 runs" in first and "edge" in first
+  launch = rc.make_launch(rc._parse_args(args))
+  plan = launch.plan
+  assert len(plan.seeds) >= 3 and all(len(g) >= 3 for g in plan.lrs.values())
+  cells = {}
+  for j in launch.first:
+    cells.setdefault(rc._group(j), set()).add(j.argv[j.argv.index("-m") + 5])
+  for col, rep, seed in launch.later:
+    cells[col, rep].add(f"--config.seed={seed}")
+  assert ("car_chair", "ours") in cells and ("seven_scenes", "ours") in cells
+  assert all(len(seeds) >= 3 for seeds in cells.values())
+  for j in launch.first:
+    assert "--config.stop.min_improvement=0.02" in j.argv and "--config.eval_every_steps=" in (
+      " ".join(j.argv)
+    )
+  ours = [j for j in launch.first if "--config.representation=ours" in j.argv]
+  for j in ours:
+    seed = next(a for a in j.argv if a.startswith("--config.seed=")).split("=")[1]
+    assert any(a.endswith(f"_seed{seed}") for a in j.argv if a.startswith("--config.synthesis_"))
+  syn = {j.name for j in launch.synth}
+  assert {f"synthesis_car_chair_seed{k}" for k in range(3)} <= syn
+  chair = next(j for j in launch.synth if j.name == "synthesis_car_chair_seed1")
+  assert f"--config.data.dir={cap}" in chair.argv and "--config.seed=1" in chair.argv
+  assert any("table1_car_chair.md" in " ".join(j.argv) for j in launch.tables)
+  # The grid extends: car quat chose the highest lr of (3e-4, 1e-3, 3e-3) -> 1e-2 next.
+  reg = os.path.join(out, "regression")
+
+  def write(lr, val):  # named as the launcher names its workdirs (lr3e-3_seed0)
+    _write(reg, "car", "quat", lr, 0, _summary("car", val), _summary("car", 1.0))
+    wd = os.path.join(reg, "car", "quat", f"lr{lr:g}_seed0")
+    os.rename(wd, os.path.join(reg, "car", "quat", f"{rc.lr_tag(lr)}_seed0"))
+
+  for lr, val in ((3e-4, 3.0), (1e-3, 2.0), (3e-3, 1.0)):
+    write(lr, val)
+  assert rc.extension_lr(out, "car", "quat", plan) == 1e-2
+  write(1e-2, 2.0)
+  assert rc.extension_lr(out, "car", "quat", plan) is None  # 3e-3 now inside the grid
+  assert rc.chosen_lr(out, "car", "quat", plan) == 3e-3
+  curves = [j for j in rc.curve_jobs(launch) if j.name == "curve_car"]
+  assert len(curves) == 1 and "--bands" in curves[0].argv
+  assert os.path.join(reg, "car", "quat", "lr3e-3_seed0") in curves[0].argv
+  assert os.path.join(reg, "car", "quat", "lr1e-3_seed0") not in curves[0].argv
+  assert [rc.half_decade(x, up=u) for x, u in ((1e-3, True), (3e-4, False), (1e-4, False))] == [
+    3e-3,
+    1e-4,
+    3e-5,
+  ]
+  # --max_hours: past the deadline nothing starts, and that is not a failure.
+  job = rc.Job("never", [sys.executable, "-c", "raise SystemExit(3)"], "", 1)
+  assert rc.run_jobs([job], str(tmp_path / "logs"), at_once=1, label="", deadline=0.0) == []
+  assert "not started (--max_hours)" in capsys.readouterr().out
+  assert not os.path.exists(tmp_path / "logs" / "never.log")

@@ -96,6 +96,9 @@ def test_configs_resolve_to_the_recorded_runs(reference, variant, setting):
     assert flat.pop("synthesis_workdir") == ("/synthesis" if rep == "ours" else "")
     for key in NEW_FIELDS:
       assert flat.pop(key) is None, (rep, key)
+    # The stopping rule (issue 29), off by default: every run trains to total_steps as before.
+    stop = {k: flat.pop(k) for k in [k for k in flat if k.startswith("stop.")]}
+    assert stop == {"stop.min_improvement": 0.0, "stop.window": 0.25, "stop.min_steps": 0}
     assert flat == cfg_ref, rep
 
 

@@ -6,11 +6,15 @@ pose regressor (`learner`) for one (setting, representation, learning rate, seed
 writes into DIR:
 
   config.json        the resolved config (per-setting sizes filled in)
-  metrics.jsonl      train/* every log_every_steps, eval/validation/* and eval/test/* at the end
-  results.json       setting, representation, seed, lr, steps, parameter count, data sizes and
-                     the error summaries {"validation", "test", "extra"}: per error kind (as
-                     `scoring.pose_errors` names them) the mean and median over all examples
-                     ("all") and per scene id
+  metrics.jsonl      train/* every log_every_steps, eval/validation/* (with the lr-selection
+                     score eval/validation/score: the validation curve) every eval_every_steps,
+                     every split's at the end
+  results.json       setting, representation, seed, lr, steps trained (and total_steps, the
+                     cap), parameter count, data sizes, "stopping" (the stopping rule of
+                     `config.stop`, whether and why it stopped early, and the validation curve
+                     [[step, score], ...]) and the error summaries {"validation", "test",
+                     "extra"}: per error kind (as `scoring.pose_errors` names them) the mean and
+                     median over all examples ("all") and per scene id
   errors_<split>.npz per-example errors, scene ids, true and predicted poses of the test split(s)
 
 Data (`views.make_data`), all from the setting's procedural family
@@ -64,7 +68,8 @@ import numpy as np
 
 from camrep import pose_inputs
 from camrep.data import sources
-from camrep.regression import learner, scoring
+from camrep.regression import learner, scoring, stopping
+from camrep.regression import tables as tables_lib
 from camrep.regression import targets as T
 from camrep.regression import views as views_lib
 from camrep.runtime import progress as progress_lib
@@ -132,6 +137,14 @@ def resolve_config(config: ml_collections.ConfigDict) -> ml_collections.ConfigDi
     raise ConfigError("total_steps, data.batch_size and optax.lr must be positive")
   if not 0 < c.data.validation_fraction < 1:
     raise ConfigError("data.validation_fraction must be in (0, 1)")
+  try:
+    rule = stopping.rule_from_config(c.get("stop"))
+  except ValueError as e:
+    raise ConfigError(str(e)) from None
+  if rule.active and c.eval_every_steps <= 0:
+    raise ConfigError(
+      "stop.min_improvement > 0 checks the periodic validation: set eval_every_steps > 0"
+    )
   weights = c.model.get("resnet_weights", "")
   if weights:
     if c.setting != "seven_scenes":
@@ -411,10 +424,12 @@ def load_resnet_weights(config, state: learner.RegressionState) -> learner.Regre
 
 def train(setup: Setup, writer, eval_sets, *, predict_fn, log=print):
   """Trains the regressor for config.total_steps; validation errors every eval_every_steps (every
-  split's with `evals.periodic_all_splits`).
+  split's with `evals.periodic_all_splits`), where the stopping rule (`config.stop`,
+  `stopping.check`) may end training early.
 
   Returns:
-    (state, the last logged train/* scalars, training seconds).
+    (state, the last logged train/* scalars, training seconds, stopping record: {"rule",
+    "stopped_early", "steps" trained, "reason", "curve": [[step, validation score], ...]}).
   """
   config = setup.config
   train_views = setup.data.train
@@ -429,6 +444,9 @@ def train(setup: Setup, writer, eval_sets, *, predict_fn, log=print):
   progress = progress_lib.Progress(total, every_seconds=20.0)
   t_train = time.perf_counter()
   last: dict[str, float] = {}
+  rule = stopping.rule_from_config(config.get("stop"))
+  curve: list[tuple[int, float]] = []
+  stop, reason = False, "reached total_steps"
   for step in range(1, total + 1):
     state, m = step_fn(state, next(batches))
     if progress_lib.itstime(step, config.log_every_steps, total):
@@ -445,13 +463,33 @@ def train(setup: Setup, writer, eval_sets, *, predict_fn, log=print):
       periodic = eval_sets if config.evals.get("periodic_all_splits") else ["validation"]
       for name in periodic:
         errs = scoring.evaluate_regression(state, eval_sets[name], predict_fn=predict_fn)
-        writer.write_scalars(step, _scalars(f"eval/{name}", scoring.summarise_errors(errs)))
+        summary = scoring.summarise_errors(errs)
+        writer.write_scalars(step, _scalars(f"eval/{name}", summary))
+        if name == "validation":
+          score = tables_lib.validation_score(config.setting, summary)
+          writer.write_scalars(step, {"eval/validation/score": score})
+          curve.append((step, score))
+      stop, why = stopping.check(rule, curve)
+      if stop:
+        reason = why
+        log(f"stopping early: {why}")
+        break
   jax.block_until_ready(state.params)
-  return state, last, time.perf_counter() - t_train
+  record = {
+    "rule": dataclasses.asdict(rule),
+    "stopped_early": stop,
+    "steps": step,
+    "reason": reason,
+    "curve": [[int(s), float(v)] for s, v in curve],
+  }
+  return state, last, time.perf_counter() - t_train, record
 
 
-def evaluate_splits(setup: Setup, state, writer, eval_sets, *, predict_fn, workdir: str):
-  """Errors on every evaluation split; per-example errors saved as errors_<split>.npz.
+def evaluate_splits(
+  setup: Setup, state, writer, eval_sets, *, predict_fn, workdir: str, step: int | None = None
+):
+  """Errors on every evaluation split (logged at `step`, default total_steps); per-example
+  errors saved as errors_<split>.npz.
 
   Returns:
     ({"validation": summary, test_split: summary}, {other split: summary}).
@@ -462,7 +500,11 @@ def evaluate_splits(setup: Setup, state, writer, eval_sets, *, predict_fn, workd
     errs = scoring.evaluate_regression(state, bs, predict_fn=predict_fn)
     summary = scoring.summarise_errors(errs)
     setup.data.info["num_examples"][name] = len(errs["scene"])
-    writer.write_scalars(config.total_steps, _scalars(f"eval/{name}", summary))
+    step = config.total_steps if step is None else step
+    scalars = _scalars(f"eval/{name}", summary)
+    if name == "validation":
+      scalars["eval/validation/score"] = tables_lib.validation_score(config.setting, summary)
+    writer.write_scalars(step, scalars)
     if name != "validation":
       np.savez(os.path.join(workdir, f"errors_{name}.npz"), **errs)
     if name in ("validation", config.evals.test_split):
@@ -479,15 +521,20 @@ def write_results(path: str, results: Mapping[str, Any]) -> None:
   os.replace(path + ".tmp", path)
 
 
-def results_record(setup: Setup, state, last, train_seconds, eval_seconds, summaries, extra):
-  """The content of results.json."""
+def results_record(
+  setup: Setup, state, last, train_seconds, eval_seconds, summaries, extra, stop=None
+):
+  """The content of results.json ("steps": steps trained; "stopping": the stopping record of
+  `train`, its curve with the final validation score appended)."""
   config = setup.config
-  return {
+  steps = int(stop["steps"]) if stop else int(config.total_steps)
+  out = {
     "setting": config.setting,
     "representation": config.representation,
     "seed": int(config.seed),
     "lr": float(config.optax.lr),
-    "steps": int(config.total_steps),
+    "steps": steps,
+    "total_steps": int(config.total_steps),
     "batch_size": int(config.data.batch_size),
     "width": float(config.model.width),
     "variant": config.variant,
@@ -497,12 +544,17 @@ def results_record(setup: Setup, state, last, train_seconds, eval_seconds, summa
     "data": setup.data.info,
     "final_train": last,
     "train_seconds": train_seconds,
-    "steps_per_sec": config.total_steps / max(train_seconds, 1e-9),
+    "steps_per_sec": steps / max(train_seconds, 1e-9),
     "eval_seconds": eval_seconds,
     "validation": summaries["validation"],
     "test": summaries[config.evals.test_split],
     "extra": extra,
   }
+  if stop is not None:
+    final = tables_lib.validation_score(config.setting, summaries["validation"])
+    curve = [c for c in stop["curve"] if c[0] != steps] + [[steps, final]]
+    out["stopping"] = {**stop, "curve": curve}
+  return out
 
 
 def clear_outputs(workdir: str) -> None:
@@ -558,17 +610,19 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
     predict_fn = jax.jit(learner.predict_poses)
     eval_sets = {k: views_lib.eval_batches(config, e) for k, e in setup.data.evals.items()}
     try:
-      state, last, train_seconds = train(setup, writer, eval_sets, predict_fn=predict_fn, log=log)
+      state, last, train_seconds, stop = train(
+        setup, writer, eval_sets, predict_fn=predict_fn, log=log
+      )
       t_eval = time.perf_counter()
       summaries, extra = evaluate_splits(
-        setup, state, writer, eval_sets, predict_fn=predict_fn, workdir=workdir
+        setup, state, writer, eval_sets, predict_fn=predict_fn, workdir=workdir, step=stop["steps"]
       )
     finally:
       writer.close()
   finally:
     lock.release()
   results = results_record(
-    setup, state, last, train_seconds, time.perf_counter() - t_eval, summaries, extra
+    setup, state, last, train_seconds, time.perf_counter() - t_eval, summaries, extra, stop
   )
   write_results(os.path.join(workdir, RESULTS_FILE), results)
   overall = results["test"]["all"]

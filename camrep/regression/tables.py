@@ -6,6 +6,7 @@ Pure Python and NumPy (no JAX), shared by `experiments/table1.py`, `experiments/
   load_results(patterns)      results.json files (or run directories) matching glob patterns
   validation_score(s, summ)   the scalar that picks the learning rate (lower is better)
   select(results)             per (setting, representation): the chosen lr and its runs
+  grid_edge(selection)        whether the chosen lr is the lowest / highest of its grid
   seed_stats(runs, ...)       mean, sample std and count over seeds of one test statistic
   data_label(run)             which data a run used: procedural family or prepared dataset + split
   data_notes(selections, ...) per table column, the data its runs came from
@@ -283,8 +284,22 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
   return "\n".join(lines)
 
 
+def grid_edge(sel: Selection) -> str:
+  """Where the chosen lr sits in its grid: "lowest" / "highest" of the grid (the optimum may
+  lie outside it: widen the grid), "only lr" (a grid of one), or "" (inside)."""
+  grid = sorted(sel.scores)
+  if len(grid) == 1:
+    return "only lr"
+  if sel.lr == grid[0]:
+    return "lowest"
+  if sel.lr == grid[-1]:
+    return "highest"
+  return ""
+
+
 def selection_table(selections: Mapping[tuple[str, str], Selection]) -> str:
-  """The learning-rate choice of every group: grid with scores, chosen lr, seeds, sizes."""
+  """The learning-rate choice of every group: grid with scores, chosen lr, whether it is at the
+  grid's edge, seeds, sizes."""
   rows = []
   for (setting, rep), sel in selections.items():
     grid = ", ".join(
@@ -298,6 +313,7 @@ def selection_table(selections: Mapping[tuple[str, str], Selection]) -> str:
         ROW_LABELS.get(rep, rep),
         grid,
         fmt_lr(sel.lr),
+        f"**{grid_edge(sel)}**" if grid_edge(sel) else "no",
         ",".join(map(str, sel.seeds)),
         str(r0.get("steps", "?")),
         str(r0.get("params", "?")),
@@ -309,6 +325,7 @@ def selection_table(selections: Mapping[tuple[str, str], Selection]) -> str:
     "representation",
     "lr: validation score (seeds)",
     "chosen lr",
+    "at grid edge",
     "test seeds",
     "steps",
     "params",

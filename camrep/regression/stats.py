@@ -1,0 +1,274 @@
+"""Intervals over seeds and test views, and the paired comparison of two representations
+(issue 29). Pure NumPy, for `experiments/table1.py` / `table2.py`.
+
+A table cell is the errors of one representation in one column: a (S, N) matrix E of per-view
+test errors, S seeds (runs at the chosen learning rate) by N test views (the same views in every
+run: the test split does not depend on the seed). Its statistic is
+
+  stat(E) = mean over seeds of reduce(E[s, views of each scene]) averaged over scenes
+
+with reduce the mean (Table 1: then stat is the mean of E) or the median (Table 2: per-scene
+medians averaged over scenes, as the paper's "average"); without scenes, one group of all views.
+
+Interval: a two-level bootstrap, `B` replicates with a fixed NumPy seed: each replicate draws S
+seeds with replacement and, independently, N views with replacement (within each scene when
+there are scenes, so every scene keeps its count), the same view draw for every drawn seed, and
+recomputes the statistic; the 95% interval is the 2.5 and 97.5 percentiles of the replicates.
+
+Paired comparison ("ours" against a baseline in one column): both matrices on the same seeds
+(the seeds both have, matched by seed number) and the same views (checked: the true poses are
+equal); each replicate draws seeds and views once and applies the draw to both, so the ratio
+stat(E_ours) / stat(E_base) keeps their pairing; the verdict is "better" when the 95% interval of
+the ratio lies entirely below 1, "worse" when entirely above, else "tie".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+B = 2000  # bootstrap replicates
+SEED = 0  # of the bootstrap's random generator: tables are reproducible
+HAND_DESIGNED = ("euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d")
+
+
+@dataclasses.dataclass(frozen=True)
+class Interval:
+  """A statistic and its 95% bootstrap interval (lo, hi), from `n_seeds` x `n_views`."""
+
+  value: float
+  lo: float
+  hi: float
+  n_seeds: int
+  n_views: int
+
+
+@dataclasses.dataclass(frozen=True)
+class Comparison:
+  """Paired ratio stat(ours) / stat(baseline) with its interval and verdict."""
+
+  ratio: Interval
+  baseline: str
+  verdict: str  # "better", "tie" or "worse" (for ours)
+
+
+def _groups(scenes: np.ndarray | None, n: int) -> list[np.ndarray]:
+  if scenes is None:
+    return [np.arange(n)]
+  scenes = np.asarray(scenes)
+  return [np.flatnonzero(scenes == s) for s in np.unique(scenes)]
+
+
+def statistic(errors: np.ndarray, scenes: np.ndarray | None = None, reduce: str = "mean") -> float:
+  """stat(E) of the module docstring.
+
+  Args:
+    errors: (S, N) per-seed, per-view errors.
+    scenes: (N,) scene id of each view, or None (one group).
+    reduce: "mean" or "median" over a scene's views.
+  """
+  fn = {"mean": np.mean, "median": np.median}[reduce]
+  errors = np.asarray(errors, np.float64)
+  per = [fn(errors[:, g], axis=1) for g in _groups(scenes, errors.shape[1])]
+  return float(np.mean(np.mean(per, axis=0)))
+
+
+def _draws(rng, n_seeds: int, groups: Sequence[np.ndarray]):
+  seeds = rng.integers(0, n_seeds, n_seeds)
+  views = np.concatenate([g[rng.integers(0, len(g), len(g))] for g in groups])
+  return seeds, views
+
+
+def _resampled_stats(mats, scenes, reduce, b, seed) -> np.ndarray:
+  """(b, len(mats)) statistics of the matrices under shared seed and view draws."""
+  rng = np.random.default_rng(seed)
+  n_seeds, n = mats[0].shape
+  groups = _groups(scenes, n)
+  sc = None if scenes is None else np.asarray(scenes)
+  out = np.empty((b, len(mats)))
+  for i in range(b):
+    s, v = _draws(rng, n_seeds, groups)
+    for j, m in enumerate(mats):
+      out[i, j] = statistic(m[np.ix_(s, v)], None if sc is None else sc[v], reduce)
+  return out
+
+
+def interval(
+  errors: np.ndarray,
+  scenes: np.ndarray | None = None,
+  reduce: str = "mean",
+  *,
+  b: int = B,
+  seed: int = SEED,
+) -> Interval:
+  """The statistic of (S, N) errors with its 95% bootstrap interval (module docstring)."""
+  errors = np.asarray(errors, np.float64)
+  if errors.ndim != 2 or errors.size == 0:
+    raise ValueError(f"errors must be a non-empty (seeds, views) matrix, got {errors.shape}")
+  reps = _resampled_stats([errors], scenes, reduce, b, seed)[:, 0]
+  lo, hi = np.percentile(reps, [2.5, 97.5])
+  value = statistic(errors, scenes, reduce)
+  return Interval(value, float(lo), float(hi), errors.shape[0], errors.shape[1])
+
+
+def verdict(lo: float, hi: float) -> str:
+  """ "better" (interval of ours / baseline below 1), "worse" (above 1) or "tie"."""
+  if hi < 1:
+    return "better"
+  if lo > 1:
+    return "worse"
+  return "tie"
+
+
+def paired_ratio(
+  ours: np.ndarray,
+  base: np.ndarray,
+  scenes: np.ndarray | None = None,
+  reduce: str = "mean",
+  *,
+  baseline: str = "",
+  b: int = B,
+  seed: int = SEED,
+) -> Comparison:
+  """stat(ours) / stat(base) of two (S, N) matrices paired by row (seed) and column (view)."""
+  ours, base = np.asarray(ours, np.float64), np.asarray(base, np.float64)
+  if ours.shape != base.shape or ours.ndim != 2 or ours.size == 0:
+    raise ValueError(
+      f"paired errors need equal (seeds, views) shapes, got {ours.shape}, {base.shape}"
+    )
+  reps = _resampled_stats([ours, base], scenes, reduce, b, seed)
+  with np.errstate(divide="ignore", invalid="ignore"):
+    ratios = reps[:, 0] / reps[:, 1]
+  lo, hi = np.percentile(ratios, [2.5, 97.5])
+  value = statistic(ours, scenes, reduce) / statistic(base, scenes, reduce)
+  r = Interval(float(value), float(lo), float(hi), ours.shape[0], ours.shape[1])
+  return Comparison(r, baseline, verdict(r.lo, r.hi))
+
+
+# ------------------------------------------------------------------------------ from the runs
+
+
+def errors_file(run: Mapping[str, Any]) -> str:
+  """The errors_<test split>.npz beside a loaded run's results.json ("" if it has no path)."""
+  path = run.get("_path", "")
+  if not path:
+    return ""
+  split = run.get("data", {}).get("test_split", "test")
+  return os.path.join(os.path.dirname(path), f"errors_{split}.npz")
+
+
+def view_errors(run: Mapping[str, Any], error: str) -> dict[str, np.ndarray] | None:
+  """{"errors": (N,), "scene": (N,), "pose": (N, P)} of one run's test split, or None when its
+  errors file is missing or lacks `error`."""
+  path = errors_file(run)
+  if not path or not os.path.isfile(path):
+    return None
+  with np.load(path) as z:
+    if error not in z:
+      return None
+    out = {"errors": np.asarray(z[error], np.float64), "scene": np.asarray(z["scene"])}
+    out["pose"] = np.asarray(z["pose"]) if "pose" in z else None
+  return out
+
+
+def seed_matrix(
+  runs: Sequence[Mapping[str, Any]], error: str, seeds: Sequence[int] | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None] | None:
+  """((S, N) errors, (N,) scenes, (N, P) poses) of runs (one per seed; only `seeds`, in that
+  order, when given), or None when a run has no per-view errors.
+
+  Raises:
+    ValueError: the runs' test views differ (another count or other true poses).
+  """
+  by_seed = {int(r["seed"]): r for r in runs}
+  order = list(seeds) if seeds is not None else sorted(by_seed)
+  rows, scenes, poses = [], None, None
+  for s in order:
+    v = view_errors(by_seed[s], error)
+    if v is None:
+      return None
+    if scenes is None:
+      scenes, poses = v["scene"], v["pose"]
+    elif len(v["errors"]) != len(scenes) or not _same_views(poses, v["pose"]):
+      raise ValueError(
+        f"runs {by_seed[order[0]].get('_path')} and {by_seed[s].get('_path')} have other test "
+        "views: their errors cannot be paired"
+      )
+    rows.append(v["errors"])
+  if not rows:
+    return None
+  return np.stack(rows), scenes, poses
+
+
+def _same_views(a, b) -> bool:
+  if a is None or b is None:
+    return True
+  return a.shape == b.shape and np.allclose(a, b, atol=1e-5)
+
+
+def cell_interval(
+  runs: Sequence[Mapping[str, Any]], error: str, reduce: str = "mean", *, by_scene: bool = False
+) -> Interval | None:
+  """The interval of one table cell from its runs' per-view errors (None without them)."""
+  m = seed_matrix(runs, error)
+  if m is None:
+    return None
+  errors, scenes, _ = m
+  return interval(errors, scenes if by_scene else None, reduce)
+
+
+def compare_runs(
+  ours: Sequence[Mapping[str, Any]],
+  base: Sequence[Mapping[str, Any]],
+  error: str,
+  reduce: str = "mean",
+  *,
+  baseline: str = "",
+  by_scene: bool = False,
+) -> Comparison | None:
+  """Paired comparison on the seeds both groups have (None: no common seed or no per-view
+  errors).
+
+  Raises:
+    ValueError: the two groups' test views differ.
+  """
+  common = sorted({int(r["seed"]) for r in ours} & {int(r["seed"]) for r in base})
+  if not common:
+    return None
+  a, b_ = seed_matrix(ours, error, common), seed_matrix(base, error, common)
+  if a is None or b_ is None:
+    return None
+  if a[0].shape != b_[0].shape or not _same_views(a[2], b_[2]):
+    raise ValueError(
+      f"ours and {baseline or 'the baseline'} were tested on other views: cannot pair them"
+    )
+  return paired_ratio(a[0], b_[0], a[1] if by_scene else None, reduce, baseline=baseline)
+
+
+def best_hand_designed(
+  cells: Mapping[str, float],
+) -> str | None:
+  """The hand-designed representation with the lowest finite value among `cells`
+  ({representation: value}), or None."""
+  cands = [(v, r) for r, v in cells.items() if r in HAND_DESIGNED and math.isfinite(v)]
+  return min(cands)[1] if cands else None
+
+
+def fmt_interval(iv: Interval | None, *, digits: int) -> str:
+  """ "1.23 [1.10, 1.41]" ("–" for None)."""
+  if iv is None or not math.isfinite(iv.value):
+    return "–"
+  return f"{iv.value:.{digits}f} [{iv.lo:.{digits}f}, {iv.hi:.{digits}f}]"
+
+
+def fmt_comparison(c: Comparison | None) -> str:
+  """ "0.81 [0.70, 0.93] better (vs quat)" ("–" for None)."""
+  if c is None:
+    return "–"
+  r = c.ratio
+  return f"{r.value:.2f} [{r.lo:.2f}, {r.hi:.2f}] {c.verdict} (vs {c.baseline})"

@@ -1,0 +1,92 @@
+"""When a pose-regression run stops (issue 29): a plateau rule on the periodic validation score.
+
+Evaluated at each periodic validation (every `eval_every_steps`) by the driver: with the scores
+s(t_1), ..., s(t_k) so far (lower is better; `tables.validation_score`-style, so one number per
+evaluation), at step t = t_k
+
+  best_now    = min over t_i <= t of s(t_i)
+  best_before = min over t_i <= (1 - window) * t of s(t_i)
+  improvement = (best_before - best_now) / best_before
+
+and the run stops when improvement < `min_improvement` and t >= `min_steps`: the best validation
+error improved by less than that share over the last `window` of the steps. `total_steps` is the
+cap. Nothing is decided before an evaluation lies at or before (1 - window) * t (no baseline yet).
+`min_improvement` = 0 turns the rule off (the run trains to `total_steps`, as before).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+
+
+@dataclasses.dataclass(frozen=True)
+class Rule:
+  """The stopping rule (`config.stop`): see the module docstring."""
+
+  min_improvement: float = 0.0
+  window: float = 0.25
+  min_steps: int = 0
+
+  @property
+  def active(self) -> bool:
+    return self.min_improvement > 0
+
+  def describe(self) -> str:
+    if not self.active:
+      return "none (runs to total_steps)"
+    return (
+      f"stop when the best validation score improved by less than {self.min_improvement:.3g} "
+      f"(relative) over the last {self.window:.3g} of the steps, not before step "
+      f"{self.min_steps}; total_steps is the cap"
+    )
+
+
+def rule_from_config(stop) -> Rule:
+  """The `Rule` of a config's `stop` section (absent: the rule is off).
+
+  Raises:
+    ValueError: min_improvement < 0, window outside (0, 1), or min_steps < 0.
+  """
+  if stop is None:
+    return Rule()
+  rule = Rule(float(stop.min_improvement), float(stop.window), int(stop.min_steps))
+  if rule.min_improvement < 0 or not 0 < rule.window < 1 or rule.min_steps < 0:
+    raise ValueError(
+      f"stop: need min_improvement >= 0, 0 < window < 1 and min_steps >= 0; got {rule}"
+    )
+  return rule
+
+
+def check(rule: Rule, curve: Sequence[tuple[int, float]]) -> tuple[bool, str]:
+  """Whether to stop after the last evaluation of `curve`, and why (a sentence either way).
+
+  Args:
+    rule: the rule.
+    curve: (step, validation score) in step order; the last entry is the evaluation just made.
+
+  Returns:
+    (stop, reason).
+  """
+  if not rule.active or not curve:
+    return False, "no stopping rule"
+  t, _ = curve[-1]
+  if t < rule.min_steps:
+    return False, f"step {t} < min_steps {rule.min_steps}"
+  cut = (1.0 - rule.window) * t
+  before = [s for step, s in curve if step <= cut]
+  if not before:
+    return False, f"no evaluation at or before step {cut:g} yet"
+  best_before = min(before)
+  best_now = min(s for _, s in curve)
+  if not math.isfinite(best_before) or best_before <= 0:
+    return False, f"best score before step {cut:g} is {best_before}: no relative improvement"
+  improvement = (best_before - best_now) / best_before
+  if improvement < rule.min_improvement:
+    return True, (
+      f"plateau at step {t}: best validation score {best_now:.4g} improved by "
+      f"{100 * improvement:.2f}% since step {cut:g} ({best_before:.4g}), less than "
+      f"{100 * rule.min_improvement:.3g}%"
+    )
+  return False, f"improved by {100 * improvement:.2f}% over the last {rule.window:g} of the steps"

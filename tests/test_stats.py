@@ -1,0 +1,139 @@
+"""Bootstrap intervals and paired comparisons (camrep/regression/stats.py) on synthetic per-view
+errors with known answers, and Table 1 built from run directories with errors_test.npz."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from camrep.regression import stats, tables
+from tests.utils import load_experiment
+
+
+def _errors(seed, shape=(3, 200), scale=1.0):
+  return np.random.default_rng(seed).gamma(2.0, scale, shape)
+
+
+def test_interval_covers_the_mean_and_shrinks_with_more_views():
+  e = _errors(0)
+  iv = stats.interval(e)
+  assert iv.value == pytest.approx(e.mean()) and iv.lo < iv.value < iv.hi
+  assert (iv.n_seeds, iv.n_views) == (3, 200)
+  assert stats.interval(e) == iv  # fixed bootstrap seed: reproducible
+  wide = stats.interval(_errors(0, (3, 20)))
+  assert (wide.hi - wide.lo) > 2 * (iv.hi - iv.lo)
+  # A seed offset (one seed's errors all larger) widens the interval: seeds are resampled.
+  shifted = e + np.array([[0.0], [0.0], [3.0]])
+  s = stats.interval(shifted)
+  assert (s.hi - s.lo) > 3 * (iv.hi - iv.lo)
+  # Constant errors: a point interval.
+  c = stats.interval(np.full((3, 10), 2.0))
+  assert (c.value, c.lo, c.hi) == (2.0, 2.0, 2.0)
+
+
+def test_medians_per_scene_averaged():
+  e = np.array([[1.0, 2.0, 3.0, 10.0, 20.0, 30.0], [1.0, 2.0, 3.0, 10.0, 20.0, 30.0]])
+  scenes = np.array([0, 0, 0, 1, 1, 1])
+  assert stats.statistic(e, scenes, "median") == pytest.approx((2.0 + 20.0) / 2)
+  assert stats.statistic(e, None, "median") == pytest.approx(6.5)
+  iv = stats.interval(e, scenes, "median")
+  assert iv.lo >= 1.0 * 0 + (1 + 10) / 2 and iv.hi <= (3 + 30) / 2
+
+
+def test_paired_verdicts():
+  base = _errors(1)
+  same = stats.paired_ratio(base, base.copy(), baseline="quat")
+  assert same.verdict == "tie" and (same.ratio.value, same.ratio.lo, same.ratio.hi) == (1, 1, 1)
+  better = stats.paired_ratio(0.6 * base * (1 + 0.1 * _errors(2)), base, baseline="quat")
+  assert better.verdict == "better" and better.ratio.hi < 1 and better.baseline == "quat"
+  worse = stats.paired_ratio(1.5 * base, base)
+  assert worse.verdict == "worse" and worse.ratio.value == pytest.approx(1.5)
+  # Unpaired noise of the same size: a tie, and the interval contains the point ratio.
+  noisy = stats.paired_ratio(_errors(3), _errors(4))
+  assert noisy.verdict == "tie" and noisy.ratio.lo < noisy.ratio.value < noisy.ratio.hi
+  # Pairing matters: a per-view difficulty shared by both makes a 10% gain detectable.
+  hard = np.exp(np.random.default_rng(5).normal(0, 1.5, (3, 200)))
+  assert stats.paired_ratio(0.9 * hard, hard).verdict == "better"
+  assert [stats.verdict(*x) for x in ((0.5, 0.9), (0.9, 1.1), (1.01, 2.0))] == [
+    "better",
+    "tie",
+    "worse",
+  ]
+  with pytest.raises(ValueError, match="equal"):
+    stats.paired_ratio(base[:2], base)
+
+
+def _write_run(root, rep, seed, errors, *, lr=1e-3, poses=None, setting="car"):
+  wd = os.path.join(root, setting, rep, f"lr{lr:g}_seed{seed}")
+  os.makedirs(wd)
+  n = len(errors)
+  poses = np.tile(np.arange(n, dtype=np.float32)[:, None], (1, 2)) if poses is None else poses
+  np.savez(
+    os.path.join(wd, "errors_test.npz"),
+    rotation_error_deg=np.asarray(errors, np.float32),
+    scene=np.zeros(n, np.int32),
+    pose=poses,
+  )
+  summ = {"all": {"rotation_error_deg": {"mean": float(np.mean(errors)), "median": 0.0}}}
+  r = dict(setting=setting, representation=rep, seed=seed, lr=lr, steps=10, variant="quick")
+  r.update(validation=summ, test=summ, data={"test_split": "test"})
+  with open(os.path.join(wd, "results.json"), "w") as f:
+    json.dump(r, f)
+
+
+def test_table1_intervals_and_verdicts_from_run_directories(tmp_path):
+  root = str(tmp_path / "runs")
+  for seed in range(3):
+    base = _errors(10 + seed, (100,))
+    _write_run(root, "quat", seed, base)
+    _write_run(root, "sincos", seed, 1.3 * base)
+    _write_run(root, "ours", seed, 0.5 * base)
+  C = load_experiment("table1")
+  results = C.C.load_results([os.path.join(root, "*", "*", "*")])
+  sel = C.C.select(results)
+  comp = stats.compare_runs(sel["car", "ours"].runs, sel["car", "quat"].runs, "rotation_error_deg")
+  assert comp.verdict == "better" and comp.ratio.value == pytest.approx(0.5, rel=1e-5)
+  text = C.build(results)
+  iv = stats.cell_interval(sel["car", "ours"].runs, "rotation_error_deg")
+  assert f"| ours | {stats.fmt_interval(iv, digits=C.C.digits_for(iv.value))} |" in text
+  assert "| ours / best hand-designed | 0.50 [0.50, 0.50] better (vs quat) |" in text
+  # Other test views (other true poses) cannot be paired: named, not silently compared.
+  _write_run(root, "logq", 0, _errors(9, (100,)), poses=np.ones((100, 2), np.float32))
+  _write_run(root, "logq", 1, _errors(8, (100,)))
+  with pytest.raises(ValueError, match="other test views"):
+    stats.seed_matrix(
+      C.C.select(C.C.load_results([os.path.join(root, "*", "*", "*")]))["car", "logq"].runs,
+      "rotation_error_deg",
+    )
+
+
+def test_table2_average_intervals_and_verdicts(tmp_path):
+  root = str(tmp_path / "runs")
+  scenes = np.repeat(np.arange(2, dtype=np.int32), 50)
+  for seed in range(3):
+    pos, rot = _errors(20 + seed, (100,)), _errors(30 + seed, (100,))
+    for rep, f_pos, f_rot in (("quat", 1.0, 1.0), ("logq", 1.2, 1.2), ("ours", 0.5, 1.0)):
+      wd = os.path.join(root, "seven_scenes", rep, f"lr1e-3_seed{seed}")
+      os.makedirs(wd)
+      e = {"position_error": f_pos * pos, "rotation_error_deg": f_rot * rot}
+      np.savez(os.path.join(wd, "errors_test.npz"), scene=scenes, **e)
+      summ = {
+        str(k) if k != "all" else k: {
+          n: {"mean": 0.0, "median": float(np.median(v if k == "all" else v[scenes == k]))}
+          for n, v in e.items()
+        }
+        for k in ("all", 0, 1)
+      }
+      r = dict(setting="seven_scenes", representation=rep, seed=seed, lr=1e-3, variant="quick")
+      r.update(validation=summ, test=summ, data={"test_split": "test"})
+      with open(os.path.join(wd, "results.json"), "w") as f:
+        json.dump(r, f)
+  text = load_experiment("table2").build(tables.load_results([os.path.join(root, "*", "*", "*")]))
+  row = next(x for x in text.splitlines() if x.startswith("| ours / best hand-designed"))
+  # ours halves quat's position errors view by view and equals its rotation errors.
+  assert "position 0.50 [0.50, 0.50] better (vs quat)" in row
+  assert "rotation 1.00 [1.00, 1.00] tie (vs quat)" in row
+  assert "95% bootstrap interval" in text
