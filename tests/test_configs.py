@@ -3,6 +3,8 @@ path-loaded configs/ files are the installed ones."""
 
 from __future__ import annotations
 
+import importlib
+import json
 import os
 import pathlib
 import sys
@@ -13,6 +15,8 @@ from absl import flags
 from camrep import configs
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+# Fields only ConvDRAW runs carry (camrep/configs/gqn_convdraw.py); other configs lack them.
+CONVDRAW_ONLY = ()
 
 
 def test_every_name_is_an_installed_module_with_get_config():
@@ -60,3 +64,37 @@ def test_overrides_apply_to_a_named_config(tmp_path, monkeypatch):
 def test_an_unknown_name_is_a_flag_error(monkeypatch):
   with pytest.raises(flags.IllegalFlagValueError, match="unknown config 'nope'"):
     _parse(["prog", "--config=nope:smoke"], monkeypatch)
+
+
+REFERENCE = pathlib.Path(__file__).parent / "data" / "configs_resolved.json"
+VARIANTS = {"paper": "", "quick": "quick", "medium": "medium", "smoke": "smoke"}
+
+
+def _resolved(name: str, variant: str) -> dict:
+  """`get_config(variant).to_dict()` of config `name`, through JSON (tuples become lists)."""
+  module = importlib.import_module(f"camrep.configs.{name}")
+  return json.loads(json.dumps(module.get_config(VARIANTS[variant]).to_dict(), sort_keys=True))
+
+
+def test_configs_resolve_as_before():
+  """Every variant of every config resolves to the ConfigDict recorded before the configs were
+  reduced to what differs from `common.base()` (and the ConvDRAW fields moved out of it).
+
+  tests/data/configs_resolved.json was generated at commit 830ed49, before that edit, by: for each
+  name in `camrep.configs.NAMES` and each variant in ("", "quick", "medium", "smoke") whose
+  `get_config` does not raise ValueError, `json.loads(json.dumps(get_config(v).to_dict(),
+  sort_keys=True))`, stored as {name: {variant or "paper": dict}}. The ConvDRAW-only fields
+  (CONVDRAW_ONLY) are dropped from the recorded non-ConvDRAW runs: they left `base()` on purpose.
+  """
+  reference = json.loads(REFERENCE.read_text())
+  assert sorted(reference) == sorted(configs.NAMES)
+  for name, variants in reference.items():
+    for variant, expected in variants.items():
+      if name != "gqn_convdraw":
+        for dotted in CONVDRAW_ONLY:
+          section, field = dotted.split(".")
+          expected.get(section, {}).pop(field, None)
+      assert _resolved(name, variant) == expected, (name, variant)
+  # gqn_convdraw refuses `:medium`, as before.
+  with pytest.raises(ValueError):
+    _resolved("gqn_convdraw", "medium")
