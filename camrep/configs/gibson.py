@@ -32,23 +32,17 @@ def get_config(arg: str | None = None):
   c.rep.position_spacing = 0.05
   c.rep.pair_radius = 2.2
   c.loss.rec_weight = 0.01
-  c.loss.rot_weight = 100.0
-  c.loss.dir_weight = 0.8
   c.loss.n_pairs = 3000
   c.loss.data_pairs = True
-  c.optax.lr_model = 1e-4
-  c.optax.lr_rep = 1e-2
   c.optax.pose_steps = 2
   c.total_steps = 500_000
   c.ckpt_every_steps = 3000
-  c.eval_every_steps = 5000
   if variant in ("quick", "medium"):
     common.quick(c)
     c.data.family.image_size = 64
     c.data.family.num_scenes = 4
     c.data.family.train_views = 400
     c.data.family.test_views = 16
-    c.data.scenes_per_device = 4
     c.data.views_per_scene = 8
     c.model.image_size = 64
     c.loss.n_pairs = 1000

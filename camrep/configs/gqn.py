@@ -33,26 +33,7 @@ from camrep.configs import common
 def get_config(arg: str | None = None):
   variant = common.parse_arg(arg)
   c = common.base()
-  c.task = "gqn"
-  c.data.source = "rooms"
-  c.data.scenes_per_device = 30
-  c.data.views_per_scene = 9
-  c.data.n_context = 6
-  c.data.mode = "random"
-  c.model.width = 1.0
-  c.model.image_size = 64
-  c.rep.pair_radius = 2.0
-  c.loss.rec_weight = 0.05
-  c.loss.rot_weight = 100.0
-  c.loss.dir_weight = 0.8
-  c.loss.n_pairs = 4000
-  c.optax.lr_model = 1e-4
-  c.optax.lr_rep = 1e-2
-  c.optax.pose_steps = 0
-  c.total_steps = 1_000_000
-  c.ckpt_every_steps = 50_000
   c.eval_every_steps = 10_000
-  c.log_every_steps = 100
   if variant in ("quick", "medium"):
     common.quick(c, total_steps=2000, every=500)
     c.data.family.num_train_scenes = 400
@@ -72,7 +53,6 @@ def get_config(arg: str | None = None):
     c.data.n_context = 3
     # At 1000 pairs the rotation losses took roughly a third of the quick step (BUILD_NOTES).
     c.loss.n_pairs = 250
-    c.evals.num_scenes = 64
     # AdaIN gamma = 1 + the encoder's head (camrep option; the paper size keeps the authors' raw
     # gamma): +0.2 to +0.5 dB at every evaluation of this run (BUILD_NOTES).
     c.model.gamma_init_one = True

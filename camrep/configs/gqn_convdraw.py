@@ -47,13 +47,8 @@ def get_config(arg: str | None = None):
   c.loss.n_pairs = 0
   c.loss.rot_weight = 0.0
   c.loss.dir_weight = 0.0
-  c.loss.sigma_initial = 2.0
-  c.loss.sigma_final = 0.7
-  c.loss.sigma_anneal_steps = 200_000
   c.optax.lr_model = 5e-4
   c.optax.schedule = "linear"
-  c.optax.final_scale = 0.1
-  c.optax.anneal_steps = 1_600_000
   if arg == "quick":
     # 2 cores: 4 generation steps and 3 context + 2 query views per scene (configs/gqn.py:quick
     # has 6 queries), ~6x less generator work than 8 steps x 6 queries, which ran at 0.24 steps/s.
