@@ -15,8 +15,6 @@ from absl import flags
 from camrep import configs
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-# Fields only ConvDRAW runs carry (camrep/configs/gqn_convdraw.py); other configs lack them.
-CONVDRAW_ONLY = ()
 
 
 def test_every_name_is_an_installed_module_with_get_config():
@@ -78,22 +76,19 @@ def _resolved(name: str, variant: str) -> dict:
 
 def test_configs_resolve_as_before():
   """Every variant of every config resolves to the ConfigDict recorded before the configs were
-  reduced to what differs from `common.base()` (and the ConvDRAW fields moved out of it).
+  reduced to what differs from their base (`common.base()`; `gqn` for `gqn_convdraw`).
 
   tests/data/configs_resolved.json was generated at commit 830ed49, before that edit, by: for each
   name in `camrep.configs.NAMES` and each variant in ("", "quick", "medium", "smoke") whose
   `get_config` does not raise ValueError, `json.loads(json.dumps(get_config(v).to_dict(),
-  sort_keys=True))`, stored as {name: {variant or "paper": dict}}. The ConvDRAW-only fields
-  (CONVDRAW_ONLY) are dropped from the recorded non-ConvDRAW runs: they left `base()` on purpose.
+  sort_keys=True))`, stored as {name: {variant or "paper": dict}}. A workdir's config.json is
+  compared with the requested config on resume (`runconfig.check_changes`), so a field that
+  changed or disappeared here would refuse to resume existing runs.
   """
   reference = json.loads(REFERENCE.read_text())
   assert sorted(reference) == sorted(configs.NAMES)
   for name, variants in reference.items():
     for variant, expected in variants.items():
-      if name != "gqn_convdraw":
-        for dotted in CONVDRAW_ONLY:
-          section, field = dotted.split(".")
-          expected.get(section, {}).pop(field, None)
       assert _resolved(name, variant) == expected, (name, variant)
   # gqn_convdraw refuses `:medium`, as before.
   with pytest.raises(ValueError):

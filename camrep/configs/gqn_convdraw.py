@@ -39,8 +39,9 @@ def get_config(arg: str | None = None):
   common.parse_arg(arg, common.NO_MEDIUM)  # no `:medium` size for the generator yet
   c = gqn.get_config(arg)  # data, layout and durations of the GQN-rooms setting and variant
   c.model.kind = "convdraw"
-  c.model.draw_steps = 12
-  c.model.z_channels = 3
+  # GQN's paper-size generator and schedules are common.base()'s (model.draw_steps 12,
+  # model.z_channels 3, loss.sigma_* 2.0 -> 0.7 over 200k steps, optax.final_scale 0.1 over
+  # optax.anneal_steps 1.6M): only what differs from configs/gqn.py is set here.
   c.model.gamma_init_one = False  # (decoder option, unused by the generator)
   c.rep.kind = "lowdim"
   # No pose-system parameters: no rotation losses.
