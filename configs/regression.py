@@ -1,4 +1,4 @@
-"""Pose regression for the paper's Tables 1 and 2 (section 4.4; digest sections 4.1-4.5).
+"""Pose regression for the paper's Tables 1 and 2 (sections 4.2 and 5.4, and the supplement).
 
 Loaded by path (`--config=configs/regression.py[:quick|:smoke]`) from a checkout. The config itself,
 with its commands, run times and expected results, is camrep/configs/regression.py, installed with

@@ -3,6 +3,8 @@ path-loaded configs/ files are the installed ones."""
 
 from __future__ import annotations
 
+import importlib
+import json
 import os
 import pathlib
 import sys
@@ -60,3 +62,34 @@ def test_overrides_apply_to_a_named_config(tmp_path, monkeypatch):
 def test_an_unknown_name_is_a_flag_error(monkeypatch):
   with pytest.raises(flags.IllegalFlagValueError, match="unknown config 'nope'"):
     _parse(["prog", "--config=nope:smoke"], monkeypatch)
+
+
+REFERENCE = pathlib.Path(__file__).parent / "data" / "configs_resolved.json"
+VARIANTS = {"paper": "", "quick": "quick", "medium": "medium", "smoke": "smoke"}
+
+
+def _resolved(name: str, variant: str) -> dict:
+  """`get_config(variant).to_dict()` of config `name`, through JSON (tuples become lists)."""
+  module = importlib.import_module(f"camrep.configs.{name}")
+  return json.loads(json.dumps(module.get_config(VARIANTS[variant]).to_dict(), sort_keys=True))
+
+
+def test_configs_resolve_as_before():
+  """Every variant of every config resolves to the ConfigDict recorded before the configs were
+  reduced to what differs from their base (`common.base()`; `gqn` for `gqn_convdraw`).
+
+  tests/data/configs_resolved.json was generated at commit 830ed49, before that edit, by: for each
+  name in `camrep.configs.NAMES` and each variant in ("", "quick", "medium", "smoke") whose
+  `get_config` does not raise ValueError, `json.loads(json.dumps(get_config(v).to_dict(),
+  sort_keys=True))`, stored as {name: {variant or "paper": dict}}. A workdir's config.json is
+  compared with the requested config on resume (`runconfig.check_changes`), so a field that
+  changed or disappeared here would refuse to resume existing runs.
+  """
+  reference = json.loads(REFERENCE.read_text())
+  assert sorted(reference) == sorted(configs.NAMES)
+  for name, variants in reference.items():
+    for variant, expected in variants.items():
+      assert _resolved(name, variant) == expected, (name, variant)
+  # gqn_convdraw refuses `:medium`, as before.
+  with pytest.raises(ValueError):
+    _resolved("gqn_convdraw", "medium")

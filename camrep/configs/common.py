@@ -167,9 +167,9 @@ def quick(c: ml_collections.ConfigDict, *, total_steps: int = 600, every: int = 
 
 
 def medium(c: ml_collections.ConfigDict, *, total_steps: int = 20_000, every: int = 5_000):
-  """Shared part of every `:medium` variant (one GPU, issue 16): the `:quick` variant's data
-  layout and learning rates at a quarter of the paper width (on the H100 the quarter-width GQN
-  curve reached +3 dB over its baseline in ~7500 steps, BUILD_NOTES) and 10x its steps. The
+  """Shared part of every `:medium` variant (one GPU): the `:quick` variant's data layout and
+  learning rates at a quarter of the paper width (on an H100 the quarter-width GQN curve reached
+  +3 dB over its baseline in ~7500 steps, BUILD_NOTES "The medium size") and 10x its steps. The
   callers apply their `:quick` overrides first, then these, then larger data."""
   quick(c, total_steps=total_steps, every=every)
   c.model.width = 0.25

@@ -1,26 +1,29 @@
 """GQN rooms: learn the (x, y) polar + yaw pose system by view synthesis (paper section 4.1).
 
-Paper size (digest 3): 1M steps, 30 scenes x (6 context + 3 query) per step, one simultaneous
-step of both parameter groups, lr 1e-4 (decoder + encoder) / 1e-2 (pose system), lambda_1 0.05,
-lambda_2 100, lambda_4 0.8, 4000 extra rotation pairs, 6 blocks of 16, 21 x 21 position grid
-(0.1), 10-degree yaw grid, 144 direction bins. Data: procedural rooms rendered per batch.
+Goal: a pose system (paper section 3: v_l(l + dl) = exp(B_l dl) v_l(l), eq. 5, with skew B_l;
+polar position, eqs. 3-4) and a decoder, trained on section 4.1's L_rec + L_rot, that render
+held-out views of a room better than the mean of its context views.
+Paper size (the supplement's "GQN rooms dataset", the authors' code): 1M steps, 30 scenes x
+(6 context + 3 query) per step, one simultaneous step of both parameter groups, lr 1e-4 (decoder
++ encoder) / 1e-2 (pose system), lambda_1 0.05, lambda_2 100, lambda_4 0.8, 4000 extra rotation
+pairs, 6 blocks of 16, 21 x 21 position grid (0.1), 10-degree yaw grid, 144 direction bins.
+Data: procedural rooms rendered per batch.
 
   python -m camrep.main --config=configs/gqn.py --workdir=/tmp/gqn
     paper size: ~4 days on one Titan RTX in the paper; measured on one H100: 3.5 steps/s, ETA
-    ~80 h. On 2 CPU cores it starts, prints an ETA and trains (far too slowly to finish).
-    Expected: the paper's GQN PSNR (not reported in full text) and pose-regression targets of
-    Table 1 (x, y errors 0.053, yaw 4.07 degrees).
+    ~80 h (a GPU job; on 2 CPU cores it starts and prints an ETA, far too slow to finish).
+    Expected: the paper's Table 1 pose-regression errors from this pose system (x, y 0.053,
+    yaw 4.07 degrees); the paper gives no GQN PSNR in its text.
     On a GPU, `--config.model.dtype=bfloat16` computes the encoder and decoder in bfloat16
     (parameters, optimiser state, pose system and losses stay float32; BUILD_NOTES "Mixed
     precision"); with a prepared dataset (`--config.data.dir=DIR`), `data.num_workers` worker
     processes decode its PNGs (default: all cores but two).
   python -m camrep.main --config=configs/gqn.py:quick --workdir=/tmp/gqn_quick
-    eighth width, 400 in-memory rooms with compass walls (as the quick regression's), 3 context
-    + 6 query views, 2000 steps: ~10.5 minutes on 2 CPU cores. Measured: held-out-view PSNR
-    20.94 dB against 16.95 dB for the mean of the 3 context views (+3.99 dB; +3.23 at step
-    1000). On the old rooms (--config.data.family.wall_style=tinted) 21.03 against 19.12 dB
-    (+1.9 dB; +2.9 only at step 8000 on a GPU): the model is as good, the baseline is worse on
-    rooms whose walls differ (BUILD_NOTES "The rooms setting at quick size on compass rooms").
+    eighth width, 400 in-memory rooms with compass walls, 3 context + 6 query views, 2000
+    steps: 10 min 24 s on a quiet 2-core CPU. Expected: held-out-view PSNR 20.94 dB against
+    16.95 dB for the mean of the 3 context views (+3.99 dB; BUILD_NOTES "View synthesis, quick
+    configs"). With --config.data.family.wall_style=tinted (rooms whose walls differ per
+    room) 21.03 against 19.12 dB: the model is as good, the baseline is worse.
   python -m camrep.main --config=configs/gqn.py:smoke --workdir=/tmp/gqn_smoke
     seconds; for tests.
 """
@@ -33,26 +36,7 @@ from camrep.configs import common
 def get_config(arg: str | None = None):
   variant = common.parse_arg(arg)
   c = common.base()
-  c.task = "gqn"
-  c.data.source = "rooms"
-  c.data.scenes_per_device = 30
-  c.data.views_per_scene = 9
-  c.data.n_context = 6
-  c.data.mode = "random"
-  c.model.width = 1.0
-  c.model.image_size = 64
-  c.rep.pair_radius = 2.0
-  c.loss.rec_weight = 0.05
-  c.loss.rot_weight = 100.0
-  c.loss.dir_weight = 0.8
-  c.loss.n_pairs = 4000
-  c.optax.lr_model = 1e-4
-  c.optax.lr_rep = 1e-2
-  c.optax.pose_steps = 0
-  c.total_steps = 1_000_000
-  c.ckpt_every_steps = 50_000
   c.eval_every_steps = 10_000
-  c.log_every_steps = 100
   if variant in ("quick", "medium"):
     common.quick(c, total_steps=2000, every=500)
     c.data.family.num_train_scenes = 400
@@ -64,7 +48,7 @@ def get_config(arg: str | None = None):
     # Wall hues fixed to the world directions, as the quick / medium regression's rooms
     # (configs/regression.py): "ours" must come from a pose system learned on the rooms it
     # regresses, and in the old look (wall_style="tinted", the family's default and the paper
-    # size's) a view cannot be told from its quarter-turn twins (issues 16 and 18, BUILD_NOTES).
+    # size's) a view cannot be told from its quarter-turn twins (BUILD_NOTES "Rooms regression").
     c.data.family.wall_style = "compass"
     c.data.scenes_per_device = 8
     # 3 context + 6 queries: half the encoder's work and twice the decoder's signal per step
@@ -72,7 +56,6 @@ def get_config(arg: str | None = None):
     c.data.n_context = 3
     # At 1000 pairs the rotation losses took roughly a third of the quick step (BUILD_NOTES).
     c.loss.n_pairs = 250
-    c.evals.num_scenes = 64
     # AdaIN gamma = 1 + the encoder's head (camrep option; the paper size keeps the authors' raw
     # gamma): +0.2 to +0.5 dB at every evaluation of this run (BUILD_NOTES).
     c.model.gamma_init_one = True

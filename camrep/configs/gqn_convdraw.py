@@ -4,10 +4,10 @@ The tower representation network summed over context views and the ConvDRAW gene
 (`camrep.models.convdraw`), fed GQN's 7-D pose vector (`rep.kind = "lowdim"`), trained on the
 negative ELBO with GQN's annealed pixel std and learning rate; evaluation predicts the mean image
 of one prior sample with fixed per-scene keys. Same data, splits, loop, checkpoints and evaluation
-as configs/gqn.py (issue 17).
+as configs/gqn.py. Goal: the baseline the paper compares its pose system with (sections 5.2-5.3).
 
 Paper size (Eslami et al. 2018 supplement; sources in BUILD_NOTES "GQN generator (ConvDRAW)"):
-L = 12 steps, hidden 128, r 256, latent 3 channels per step (the issue's choice; open-source
+L = 12 steps, hidden 128, r 256, latent 3 channels per step (camrep's choice; open-source
 ports use 64), pixel std 2.0 -> 0.7 over 200k steps, Adam 5e-4 -> 5e-5 over 1.6M steps (b1 0.9,
 b2 0.999, eps 1e-8); batch 36 scenes in GQN, here the camrep GQN layout (30 scenes x 6 context +
 3 query views).
@@ -18,9 +18,9 @@ b2 0.999, eps 1e-8); batch 36 scenes in GQN, here the camrep GQN layout (30 scen
   python -m camrep.main --config=configs/gqn_convdraw.py:quick --workdir=/tmp/gqn_convdraw_quick
     eighth width, the scenes of configs/gqn.py:quick (400 in memory) with 3 context + 2 query
     views per scene, 4 generation steps, 2000 steps, the KL weight annealed 10 -> 1 over the
-    first 1000 (a camrep option for short runs; GQN: 1 throughout): ~11 minutes on 2 CPU cores
-    (3.1 steps/s). Measured on the compass rooms of gqn.py:quick: held-out-view PSNR 19.14 dB
-    (prior sample) against 16.95 dB for the mean of the 3 context views (10 min 42 s). On the old
+    first 1000 (a camrep option for short runs; GQN: 1 throughout): 10 min 42 s on a 2-core
+    CPU (3.1 steps/s). Expected on the compass rooms of gqn.py:quick: held-out-view PSNR
+    19.14 dB (prior sample) against 16.95 dB for the mean of the 3 context views. On the old
     rooms (wall_style=tinted) 19.72 against 19.12 dB; there, with GQN's plain ELBO
     (--config.loss.kl_weight_initial=1) 18.92 dB, below the baseline: the prior ignored the pose
     (BUILD_NOTES "GQN generator (ConvDRAW)").
@@ -39,21 +39,17 @@ def get_config(arg: str | None = None):
   common.parse_arg(arg, common.NO_MEDIUM)  # no `:medium` size for the generator yet
   c = gqn.get_config(arg)  # data, layout and durations of the GQN-rooms setting and variant
   c.model.kind = "convdraw"
-  c.model.draw_steps = 12
-  c.model.z_channels = 3
+  # GQN's paper-size generator and schedules are common.base()'s (model.draw_steps 12,
+  # model.z_channels 3, loss.sigma_* 2.0 -> 0.7 over 200k steps, optax.final_scale 0.1 over
+  # optax.anneal_steps 1.6M): only what differs from configs/gqn.py is set here.
   c.model.gamma_init_one = False  # (decoder option, unused by the generator)
   c.rep.kind = "lowdim"
   # No pose-system parameters: no rotation losses.
   c.loss.n_pairs = 0
   c.loss.rot_weight = 0.0
   c.loss.dir_weight = 0.0
-  c.loss.sigma_initial = 2.0
-  c.loss.sigma_final = 0.7
-  c.loss.sigma_anneal_steps = 200_000
   c.optax.lr_model = 5e-4
   c.optax.schedule = "linear"
-  c.optax.final_scale = 0.1
-  c.optax.anneal_steps = 1_600_000
   if arg == "quick":
     # 2 cores: 4 generation steps and 3 context + 2 query views per scene (configs/gqn.py:quick
     # has 6 queries), ~6x less generator work than 8 steps x 6 queries, which ran at 0.24 steps/s.

@@ -1,4 +1,4 @@
-"""Pose regression for the paper's Tables 1 and 2 (section 4.4; digest sections 4.1-4.5).
+"""Pose regression for the paper's Tables 1 and 2 (sections 4.2 and 5.4, and the supplement).
 
 One run trains one pose regressor for one (setting, representation, learning rate, seed) on the
 setting's procedural family (gqn: rooms, car: object, gibson: area, seven_scenes: scene6dof) or
@@ -32,10 +32,10 @@ run's config.json, `camrep.regression.learner.resolve_hparams` reads the rest).
     (results/table1.md, mean of seeds 0 and 1 at the validation-chosen lr): car ours 3.71 deg
     mean rotation error, sin/cos 4.50, quat 7.73 (paper, real data: 2.85 / 7.29 / 4.28); rooms
     (GQN) every representation at chance (x, y ~0.41, yaw ~89 deg) with the old rooms, whose
-    views can be placed only relative to their room's context (issue 18). The quick rooms now
-    have compass walls (`settings.gqn.family.wall_style`, "tinted" for the old look): quat at
-    600 steps, yaw 31.4 deg on new rooms, 28.0 on held-out views of training rooms (BUILD_NOTES,
-    "Rooms regression (issue 18)").
+    views can be placed only relative to their room's context. The quick rooms now have
+    compass walls (`settings.gqn.family.wall_style`, "tinted" for the old look): quat at 600
+    steps, yaw 31.4 deg on new rooms, 28.0 on held-out views of training rooms (BUILD_NOTES
+    "Rooms regression").
   python -m camrep.regression --config=configs/regression.py:quick --workdir=/tmp/reg_7s \
       --config.setting=seven_scenes --config.representation=quat \
       --config.data.source=seven_scenes --config.data.dir=/data/tfds
@@ -107,7 +107,7 @@ def _ours(
 
 
 def _hparams(ours: ml_collections.ConfigDict, *, extra_fc: int | None) -> ml_collections.ConfigDict:
-  """One setting's `ours` and what every baseline changes from it (paper section 4.4): its own
+  """One setting's `ours` and what every baseline changes from it (paper section 5.4): its own
   loss (MSE for euler / sincos, L1 for quat / logq / axis_angle, the matrix losses of rot6d /
   svd9d), Kendall's weighting from s = (0, -3), learned, and an extra dense layer of `extra_fc`
   units that equalises parameter counts at paper width. Baselines keep the setting's learning
@@ -126,7 +126,7 @@ def _hparams(ours: ml_collections.ConfigDict, *, extra_fc: int | None) -> ml_col
 
 
 def _medium(c: ml_collections.ConfigDict) -> None:
-  """`:medium` (one GPU, issue 16): the `:quick` families with the data of the `:medium`
+  """`:medium` (one GPU): the `:quick` families with the data of the `:medium`
   view-synthesis configs, a quarter of the paper width, twice the batch and ~4x the steps."""
   c.log_every_steps = 200
   c.model.resnet_stages = (2, 2, 2, 2)
@@ -239,7 +239,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.optax.lr = config_dict.placeholder(float)
   c.optax.weight_decay = config_dict.placeholder(float)
 
-  # The loss, weighting and optimiser of each setting (paper section 4.4 and its supplement).
+  # The loss, weighting and optimiser of each setting (paper section 5.4 and its supplement).
   c.hparams = ml_collections.ConfigDict()
   # GQN: Kendall's weighting from s = (-log 20, -log 5), learned.
   gqn = _ours(loss=dict(init_s=(-math.log(20.0), -math.log(5.0))))
@@ -268,8 +268,9 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   # True: every evaluation split (test and extra ones too), for learning curves.
   c.evals.periodic_all_splits = False
 
-  # Paper sizes (digest 4.1-4.4). Procedural data is held in memory, so the rooms family is
-  # capped at 20k scenes (the paper's GQN files hold 200k) and test sets at a few thousand views.
+  # Paper sizes (the supplement's training details, the authors' code). Procedural data is held
+  # in memory, so the rooms family is capped at 20k scenes (the paper's GQN files hold 200k) and
+  # test sets at a few thousand views.
   c.settings = ml_collections.ConfigDict()
   c.settings.gqn = _setting(
     family=dict(num_train_scenes=20_000, num_test_scenes=1_000),
@@ -312,7 +313,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
         train_views=10,
         test_views=2,
         texture_contrast=(0.0, 0.08),
-        # Wall hues fixed to the world directions, so that a view tells the yaw (issue 18: with
+        # Wall hues fixed to the world directions, so that a view tells the yaw (with
         # the old look, wall_style="tinted", every cue that tells a view from its quarter-turn
         # twins is drawn afresh per room and the regression stays at chance).
         wall_style="compass",

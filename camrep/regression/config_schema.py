@@ -52,6 +52,10 @@ SCHEMA: dict[str, V.Field] = {
   "total_steps": _F(V.optional(V.POSITIVE)),
   "log_every_steps": _F(V.NONNEG),
   "eval_every_steps": _F(V.NONNEG),  # 0: at the end only
+  # The stopping rule (camrep/regression/stopping.py; the ranges `rule_from_config` accepts).
+  "stop.min_improvement": _F(V.NONNEG),  # 0: off
+  "stop.window": _F(V.Rule("fraction")),
+  "stop.min_steps": _F(V.NONNEG),
   "data.preset": _F(V.ANY),
   "data.batch_size": _F(V.optional(V.POSITIVE)),
   "data.n_context": _F(V.POSITIVE, _U(_gqn, _NOT_GQN)),
