@@ -4,7 +4,8 @@
 rotation and direction losses, pair sampling, decode (with and without refinement), candidates,
 Gram maps and the lowdim / MLP pose inputs for small systems of every DOF kind and exp method.
 tests/data/pose_reference.npz holds what it returned at commit "tests: stored pose reference"
-(before the DOF classes and the pose-input interface); test_pose.py compares bit for bit.
+(before the DOF classes and the pose-input interface, with the parameter keys of then: "B",
+"B0", "C"); test_pose.py compares bit for bit.
 
 Regenerate (only when a change of numbers is intended, and say so in BUILD_NOTES):
   PYTHONPATH=$PWD python -m tests.pose_reference
@@ -131,13 +132,14 @@ def _spec_outputs(
       out[f"{d.name}/direction"] = P.direction_loss(params, spec, d.name, max_shift=3)
   # The other pose inputs.
   for source in ("rooms", "object"):
-    vecs = pose_inputs.pose_vectors(_lowdim_config(source), spec, {}, poses)
+    vecs = pose_inputs.from_config(_lowdim_config(source), spec).embed({}, poses)
     out.update(_flat(f"lowdim_{source}", vecs))
-  mlp = pose_inputs.init_mlp(key(4), spec)
+  mlp_input = pose_inputs.MlpPoseInput(spec)
+  mlp = mlp_input.init(key(4))
   out.update(_flat("mlp_init", mlp))
-  mlp_vectors = pose_inputs.mlp_embed(mlp, spec, poses)
+  mlp_vectors = mlp_input.embed(mlp, poses)
   out.update(_flat("mlp_embed", mlp_vectors))
-  out["mlp_decode"] = pose_inputs.mlp_decode(mlp, spec, mlp_vectors, 128)
+  out["mlp_decode"] = mlp_input.decode(mlp, mlp_vectors)
   return out
 
 

@@ -514,3 +514,36 @@ def test_spectral_gradient_has_no_per_element_matrices():
   # Per-element vectors: pairs * n_blocks * s (x2 for the stacked near products); a per-element
   # matrix would be pairs * n_blocks * s * s.
   assert max(sizes) <= 2 * pairs * n_blocks * s
+
+
+# ---------------------------------------------------------------------------- skew check
+
+
+def test_check_skew():
+  """Generators must be skew; `check_skew` says so on the host (the jitted functions do not
+  check: "spectral" would silently use the skew part, e.g. the identity for a symmetric B)."""
+  rng = np.random.default_rng(7)
+  B = lie.skew(rng.normal(size=(3, 6)).astype(np.float32))
+  assert lie.check_skew(B) is None
+  assert lie.check_skew(np.zeros((2, 2))) is None
+  sym = np.asarray(B) + np.swapaxes(np.asarray(B), -1, -2) + np.eye(4, dtype=np.float32)
+  with pytest.raises(ValueError, match="skew-symmetric"):
+    lie.check_skew(sym)
+  with pytest.raises(ValueError, match="skew-symmetric"):
+    lie.check_skew(np.asarray(B) + 1e-3 * np.eye(4))
+  lie.check_skew(np.asarray(B) + 1e-3 * np.eye(4), atol=1e-2)
+  with pytest.raises(ValueError, match="non-finite"):
+    lie.check_skew(np.full((4, 4), np.nan))
+  with pytest.raises(ValueError, match=r"\(\.\.\., s, s\)"):
+    lie.check_skew(np.zeros((3, 4)))
+  with x64():
+    B64 = lie.skew(rng.normal(size=(6,)))
+    lie.check_skew(B64)
+    with pytest.raises(ValueError, match="skew-symmetric"):
+      lie.check_skew(np.asarray(B64) + 1e-9 * np.eye(4))
+
+
+def test_exp_functions_document_the_skew_requirement():
+  for f in (lie.exp_skew, lie.apply_exp_skew, lie.apply_exp_blocks):
+    assert "check_skew" in f.__doc__, f.__name__
+  assert "must be skew-symmetric" in lie.__doc__

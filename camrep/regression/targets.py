@@ -489,7 +489,7 @@ def default_spec(
 def _check_spec(setting: str, spec: P.PoseSystemSpec) -> None:
   cols = []
   for d in spec.dofs:
-    cols.extend(["x", "y"] if isinstance(d, P.PolarDof) else [d.name])
+    cols.extend(d.column_names)
   if len(cols) != len(POSE_COLUMNS[setting]):
     raise ValueError(
       f"spec DOFs {spec.names} do not match {setting} columns {POSE_COLUMNS[setting]}"
@@ -525,8 +525,8 @@ def head_specs(
     _check_spec(setting, spec)
     heads = []
     for d in spec.dofs:
-      group = "orientation" if isinstance(d, P.AngularDof) else "position"
-      block = representation == "ours" and isinstance(d, P.PolarDof) and d.block_norm
+      group = "orientation" if d.is_angle else "position"
+      block = representation == "ours" and d.block_norm
       heads.append(
         pose_regressor.HeadSpec(
           d.name, spec.dim, group, "block" if block else "unit", spec.n_blocks if block else 1
@@ -565,7 +565,7 @@ def encode(
     setting: one of `SETTINGS`.
     poses: (..., P) poses in the setting's columns (`POSE_COLUMNS`).
     spec: pose system of a learned representation (default `default_spec(setting)`).
-    rep_params: "ours": the frozen pose-system params; "mlp": `init_mlp`-style params. Taken
+    rep_params: "ours": the frozen pose-system params; "mlp": `MlpPoseInput.init` params. Taken
       under stop_gradient.
     mode: quantisation of "ours" ("floor" / "nearest"); default the setting's (`defaults`).
     mlp_hidden: hidden size of the MLP embedding.
@@ -585,7 +585,7 @@ def encode(
     if representation == "ours":
       mode = mode or defaults(setting, "ours").quantisation
       return P.embed(rp, spec, poses, mode=mode)
-    return pose_inputs.mlp_embed(rp, spec, poses, hidden=mlp_hidden)
+    return pose_inputs.MlpPoseInput(spec, hidden=mlp_hidden).embed(rp, poses)
   pos, ang = split_pose(setting, poses)
   if representation == "euler":
     ori = ang
@@ -642,7 +642,7 @@ def decode(
       mode = mode or defaults(setting, "ours").quantisation
       vectors = {n: heads[n] for n in spec.names}
       return P.decode(rep_params, spec, vectors, refine_steps=refine_steps, mode=mode)
-    return pose_inputs.mlp_decode(rep_params, spec, heads, mlp_hidden)
+    return pose_inputs.MlpPoseInput(spec, hidden=mlp_hidden).decode(rep_params, heads)
   ori = heads["orientation"]
   if representation == "euler":
     ang = wrap_angles(setting, ori)

@@ -4,7 +4,6 @@ the kernel figures): how similar the vectors of two poses are.
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Mapping
 
@@ -35,9 +34,7 @@ def gram_values(spec: P.PoseSystemSpec, name: str) -> Array:
   Returns:
     (K,) values, or (K, 2) positions for a polar DOF (flat index gx * n_side + gy).
   """
-  d = spec.dof(name)
-  res = math.pi / 180 if isinstance(d, P.AngularDof) else d.spacing
-  return P.candidates(spec, name, res)
+  return P.candidates(spec, name, spec.dof(name).gram_resolution)
 
 
 def gram_maps(run: Run) -> dict[str, np.ndarray]:
@@ -47,12 +44,11 @@ def gram_maps(run: Run) -> dict[str, np.ndarray]:
   grid points); a polar DOF with block_norm has 1 / n_blocks.
   """
   rep = run.params["rep"]
-  if pose_inputs.rep_kind(run.config) != "grid":  # the same map of another pose input's vectors
+  pose_input = pose_inputs.from_config(run.config, run.spec)
+  if not pose_input.learned_grid:  # the same map of another pose input's vectors
     out = {}
     for n in run.spec.names:
-      v = pose_inputs.pose_vectors(
-        run.config, run.spec, rep, dof_poses(run.spec, n, gram_values(run.spec, n))
-      )[n]
+      v = pose_input.embed(rep, dof_poses(run.spec, n, gram_values(run.spec, n)))[n]
       out[n] = np.asarray(v @ v.T)
     return out
   return {
@@ -62,12 +58,7 @@ def gram_maps(run: Run) -> dict[str, np.ndarray]:
 
 
 def _gram_caption(spec: P.PoseSystemSpec, name: str, k: int) -> str:
-  d = spec.dof(name)
-  if isinstance(d, P.AngularDof):
-    return f"{k} values, 1-degree steps from {math.degrees(d.low):.0f} deg"
-  if isinstance(d, P.PolarDof):
-    return f"{d.n_side} x {d.n_side} grid points, flat index gx * {d.n_side} + gy"
-  return f"{k} grid points, {d.low:g} to {d.high:g} step {d.spacing:g}"
+  return spec.dof(name).describe_grid(k)
 
 
 def write_grams(out: str, run: Run, grams: Mapping[str, np.ndarray]) -> list[str]:

@@ -57,9 +57,8 @@ def make_predict(config, model, spec):
   """
 
   def predict(params, b):
-    vec = lambda p: P.concat(
-      pose_inputs.pose_vectors(config, spec, params["rep"], p, mode="nearest"), spec
-    )
+    pose_input = pose_inputs.from_config(config, spec)
+    vec = lambda p: P.concat(pose_input.embed(params["rep"], p, mode="nearest"), spec)
     ctx = components.to_float_images(b["context_image"])
     others = {}
     if config.task == "gqn":

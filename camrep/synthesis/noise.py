@@ -61,12 +61,13 @@ def grid_betas(params_rep: dict, spec: P.PoseSystemSpec, config=None) -> dict[st
   the same grid points (`P.candidates` at the grid spacing) pushed through that pose input, so
   every kind is noised relative to its own spread over the same poses.
   """
-  if config is None or pose_inputs.rep_kind(config) == "grid":
+  pose_input = None if config is None else pose_inputs.from_config(config, spec)
+  if pose_input is None or pose_input.learned_grid:
     return {n: np.asarray(P.grid_std(params_rep, spec, n)) for n in spec.names}
   out = {}
   for d in spec.dofs:
     poses = gram_lib.dof_poses(spec, d.name, P.candidates(spec, d.name, d.spacing))
-    v = pose_inputs.pose_vectors(config, spec, params_rep, poses)[d.name]
+    v = pose_input.embed(params_rep, poses)[d.name]
     out[d.name] = np.asarray(jnp.std(v, axis=0))
   return out
 
@@ -86,8 +87,9 @@ def pose_vectors(
     keys: (E,) PRNG keys, used (and required) only for mode="random".
     config: the run's config; its `rep.kind` picks the pose input (default: the learned grid).
   """
-  if config is not None and pose_inputs.rep_kind(config) != "grid":
-    return pose_inputs.pose_vectors(config, spec, params_rep, poses)
+  pose_input = None if config is None else pose_inputs.from_config(config, spec)
+  if pose_input is not None and not pose_input.learned_grid:
+    return pose_input.embed(params_rep, poses)
   if mode == "random":
     if keys is None:
       raise ValueError("quantisation 'random' needs per-image keys")

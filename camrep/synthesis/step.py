@@ -66,9 +66,10 @@ def init_params(
 ) -> dict:
   """Initial parameters of both groups, shaped from one device's slice of a batch."""
   k_model, k_rep = jax.random.split(key)
-  rep = pose_inputs.init_rep(k_rep, config, spec)
+  pose_input = pose_inputs.from_config(config, spec)
+  rep = pose_input.init(k_rep)
   images = components.to_float_images(jnp.asarray(batch["image"][0]))
-  vecs = P.concat(pose_inputs.pose_vectors(config, spec, rep, jnp.asarray(batch["pose"][0])), spec)
+  vecs = P.concat(pose_input.embed(rep, jnp.asarray(batch["pose"][0])), spec)
   if components.model_kind(config) == "convdraw":
     c = config.data.n_context
     keys = jax.random.split(k_model, images.shape[0])
@@ -101,10 +102,11 @@ def _scene_keys(key: Array, num_scenes: int) -> Array:
 
 def _pose_vectors(config, rep, spec, poses, keys, mode):
   """(S, V, P) poses -> (S, V, n_dofs * d) with one key per scene."""
-  if mode == "random" and pose_inputs.rep_kind(config) == "grid":
-    f = lambda p, k: P.concat(P.embed(rep, spec, p, mode=mode, key=k), spec)
+  pose_input = pose_inputs.from_config(config, spec)
+  if mode == "random" and pose_input.learned_grid:
+    f = lambda p, k: P.concat(pose_input.embed(rep, p, mode=mode, key=k), spec)
     return jax.vmap(f)(poses, keys)
-  return P.concat(pose_inputs.pose_vectors(config, spec, rep, poses, mode=mode), spec)
+  return P.concat(pose_input.embed(rep, poses, mode=mode), spec)
 
 
 def reconstruction(model, config, spec, params_model, params_rep, batch, keys, mode):
@@ -137,7 +139,7 @@ def elbo(model, config, spec, params_model, batch, keys, step):
   """
   L = config.loss
   images = components.to_float_images(batch["image"])
-  vecs = P.concat(pose_inputs.pose_vectors(config, spec, None, batch["pose"]), spec)
+  vecs = P.concat(pose_inputs.from_config(config, spec).embed(None, batch["pose"]), spec)
   c = config.data.n_context
   target = images[:, c:]
   mean, aux = model.apply(
@@ -163,7 +165,7 @@ def rotation_objective(config, spec, params_rep, batch, key_pairs, keys):
   batch's image pairs) use per-scene keys and are averaged over devices by the caller's pmean.
   """
   L = config.loss
-  if pose_inputs.rep_kind(config) != "grid":  # no generators: nothing to tie nearby poses together
+  if not pose_inputs.from_config(config, spec).learned_grid:  # no generators: nothing to tie
     return jnp.zeros((), jnp.float32), {}
   mode = config.rep.quantisation
   extra = P.rotation_losses(key_pairs, params_rep, spec, n_pairs=L.n_pairs, mode=mode)
@@ -174,9 +176,7 @@ def rotation_objective(config, spec, params_rep, batch, key_pairs, keys):
       poses = batch["pose"]  # (S, V, P), views laid out as (anchor, partner) pairs
       S, V = poses.shape[:2]
       pairs = poses.reshape(S, V // 2, 2, -1)[..., spec.columns(d.name)]
-      x0, x1 = pairs[:, :, 0], pairs[:, :, 1]
-      if not isinstance(d, P.PolarDof):
-        x0, x1 = x0[..., 0], x1[..., 0]
+      x0, x1 = d.values(pairs[:, :, 0]), d.values(pairs[:, :, 1])
       kd = jax.vmap(lambda k, i=i: jax.random.fold_in(k, 1000 + i))(keys)
       per_scene = jax.vmap(
         lambda a, b, k, n=d.name: P.dof_rotation_loss(
@@ -188,7 +188,7 @@ def rotation_objective(config, spec, params_rep, batch, key_pairs, keys):
   total = L.rot_weight * sum(terms.values())
   if L.dir_weight:
     for d in spec.dofs:
-      if isinstance(d, P.PolarDof) and d.variant == "binned":
+      if d.has_direction_loss:
         terms[f"dir_{d.name}"] = P.direction_loss(params_rep, spec, d.name)
         total = total + L.dir_weight * terms[f"dir_{d.name}"]
   return total, terms
