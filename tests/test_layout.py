@@ -3,7 +3,8 @@
 Layers, lowest first (a module may import its own layer and those below):
 
   0  camrep.lie, camrep.metrics                 Lie operators, image metrics
-  1  camrep.pose, camrep.data, camrep.runtime   the pose system; data; checkpoints, writers, plots
+  1  camrep.dofs, camrep.pose, camrep.data,     the pose system's DOFs and the system; data;
+     camrep.runtime                             checkpoints, writers, plots
   2  camrep.pose_inputs                         every pose input a decoder can take
   3  camrep.models                              Flax modules
   4  camrep.synthesis                           view-synthesis training and evaluation
@@ -24,6 +25,7 @@ PACKAGE = ROOT / "camrep"
 LAYERS = {
   "camrep.lie": 0,
   "camrep.metrics": 0,
+  "camrep.dofs": 1,
   "camrep.pose": 1,
   "camrep.data": 1,
   "camrep.runtime": 1,

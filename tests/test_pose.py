@@ -464,11 +464,11 @@ def test_isinstance_dof_only_where_dofs_are_validated():
     if re.search(r"isinstance\(.*Dof", line)
   ]
   check = "if not isinstance(d, Dof):"
-  assert hits == [f"pose.py:{_line_of(check)}: {check}"]
+  assert hits == [f"dofs.py:{_line_of(check)}: {check}"]
 
 
 def _line_of(text):
-  lines = pathlib.Path(P.__file__).read_text().splitlines()
+  lines = (pathlib.Path(P.__file__).parent / "dofs.py").read_text().splitlines()
   return next(i for i, line in enumerate(lines, 1) if line.strip() == text)
 
 
