@@ -26,6 +26,13 @@ exponential are offered (`EXP_METHODS`):
 Conventions: generator blocks `B` have shape (..., s, s); shifts `t` broadcast against B's leading
 axes; vectors `v` have shape (..., s). Functions whose name contains `blocks` take a block stack
 (..., n_blocks, s, s) and flat vectors (..., n_blocks * s).
+
+Every generator B must be skew-symmetric (B^T = -B), as `skew` builds it from free coefficients.
+The functions here do not check it (they run inside jitted code, where a check would cost a
+reduction or a host round trip): given a B that is not skew, "spectral" silently uses its skew
+part (B - B^T) / 2 (a symmetric B gives the identity) while "expm" and "taylor2" use B as given,
+and none of them is then a rotation. Callers holding a B from elsewhere check it once on the
+host with `check_skew`.
 """
 
 from __future__ import annotations
@@ -88,6 +95,35 @@ def skew(params: Array, *, block_size: int | None = None) -> Array:
     raise ValueError(f"params has {n} entries on its last axis, expected {num_skew_params(s)}")
   flat = jnp.concatenate([jnp.zeros_like(params[..., :1]), params, -params], axis=-1)
   return flat[..., _skew_gather_index(s)]
+
+
+def check_skew(B: Array, *, atol: float | None = None) -> None:
+  """Host-side check that generators are skew-symmetric: max |B + B^T| <= atol.
+
+  Cheap (one pass over B) but not for jitted code: it reads the values back (a traced B raises
+  jax's ConcretizationTypeError).
+
+  Args:
+    B: (..., s, s) generators.
+    atol: tolerance; default 1e-5 (float32 and lower) or 1e-12 (float64) times max(1, max |B|).
+
+  Raises:
+    ValueError: B is not (..., s, s), holds non-finite values, or is not skew-symmetric (the
+      message gives the largest |B + B^T|).
+  """
+  B = np.asarray(B)
+  _check_square(B, "B")
+  if not np.all(np.isfinite(B)):
+    raise ValueError("B holds non-finite values")
+  if atol is None:
+    rel = 1e-12 if B.dtype == np.float64 else 1e-5
+    atol = rel * max(1.0, float(np.max(np.abs(B), initial=0.0)))
+  err = float(np.max(np.abs(B + np.swapaxes(B, -1, -2)), initial=0.0))
+  if err > atol:
+    raise ValueError(
+      f"B must be skew-symmetric (B^T = -B); max |B + B^T| = {err:.3g} > atol = {atol:.3g} "
+      "(build generators with `skew` from free coefficients)"
+    )
 
 
 def vee(B: Array) -> Array:
@@ -154,8 +190,8 @@ def exp_skew(B: Array, t: Array | float, *, method: str = "spectral", n_steps: i
   """exp(t B) for skew-symmetric generators (paper eqs. 6-7).
 
   Args:
-    B: (..., s, s) skew-symmetric generators (only the skew part (B - B^T)/2 is used by
-      "spectral"; "expm" and "taylor2" use B as given).
+    B: (..., s, s) skew-symmetric generators, not checked (`check_skew`): only the skew part
+      (B - B^T)/2 is used by "spectral"; "expm" and "taylor2" use B as given.
     t: shifts, broadcastable against B.shape[:-2]; e.g. t of shape (4, 1) with B of shape
       (6, s, s) gives (4, 6, s, s).
     method: one of `EXP_METHODS`.
@@ -201,7 +237,8 @@ def apply_exp_skew(
   "expm" forms the matrices.
 
   Args:
-    B: (..., s, s) generators; with `index`, a table (K, ..., s, s) indexed by `index`.
+    B: (..., s, s) skew-symmetric generators, not checked (`check_skew`); with `index`, a table
+      (K, ..., s, s) indexed by `index`.
     t: shifts, broadcastable against the (indexed) generator's leading axes and v's.
     v: (..., s) vectors.
     method: one of `EXP_METHODS`.
@@ -241,7 +278,8 @@ def apply_exp_skew(
 def exp_blocks(B: Array, t: Array | float, *, method: str = "spectral", n_steps: int = 1) -> Array:
   """exp(t B) for a block stack: B (..., n, s, s), t (...) -> (..., n, s, s).
 
-  The same shift acts on every block (the blocks of one block-diagonal generator).
+  The same shift acts on every block (the blocks of one block-diagonal generator). The blocks
+  must be skew-symmetric, as in `exp_skew`.
   """
   t = jnp.asarray(t, jnp.asarray(B).dtype)
   return exp_skew(B, t[..., None], method=method, n_steps=n_steps)
@@ -259,7 +297,8 @@ def apply_exp_blocks(
   """exp(t B) v for a block-diagonal generator kept as blocks.
 
   Args:
-    B: (..., n, s, s) block stack (with `index`, a table (K, n, s, s)).
+    B: (..., n, s, s) block stack of skew-symmetric blocks, not checked (`check_skew`); with
+      `index`, a table (K, n, s, s).
     t: (...) shifts, one per flat vector.
     v: (..., n s) flat vectors.
     method, n_steps, index: as in `apply_exp_skew`.

@@ -182,11 +182,13 @@ def test_other_pose_inputs_train_and_take_noise(kind, tmp_path):
   run = restore.load_run(str(tmp_path))
   spec = run.spec
   poses = jnp.asarray([[0.1, -0.2, 1.0], [0.5, 0.3, 4.0]], jnp.float32)
-  vecs = pose_inputs.pose_vectors(run.config, spec, run.params["rep"], poses)
+  pose_input = pose_inputs.from_config(run.config, spec)
+  vecs = pose_input.embed(run.params["rep"], poses)
   betas = noise_lib.grid_betas(run.params["rep"], spec, run.model)
   if kind == "lowdim":
     assert run.params["rep"] == {}
-    z, pitch = pose_inputs.lowdim_constants(run.config)
+    z, pitch = pose_inputs.gqn_lowdim_constants(run.config.data.family)
+    assert (pose_input.camera_height, pose_input.pitch) == (z, pitch)
     np.testing.assert_allclose(vecs["xy"], [[0.1, -0.2, z], [0.5, 0.3, z]], atol=1e-7)
     np.testing.assert_allclose(
       vecs["yaw"][0], [np.sin(1.0), np.cos(1.0), np.sin(pitch), np.cos(pitch)], atol=1e-6

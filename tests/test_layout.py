@@ -4,7 +4,8 @@ Layers, lowest first (a module may import its own layer and those below):
 
   0  camrep.lie, .metrics, .rotations,      Lie operators, image metrics, rotations of 3-space,
      camrep.configs                           experiment configs
-  1  camrep.pose, camrep.data, camrep.runtime   the pose system; data; checkpoints, writers, plots
+  1  camrep.dofs, camrep.pose, camrep.data,     the pose system's DOFs and the system; data;
+     camrep.runtime                             checkpoints, writers, plots
   2  camrep.pose_inputs                         every pose input a decoder can take
   3  camrep.models                              Flax modules
   4  camrep.synthesis                           view-synthesis training and evaluation
@@ -27,6 +28,7 @@ LAYERS = {
   "camrep.metrics": 0,
   "camrep.rotations": 0,
   "camrep.configs": 0,
+  "camrep.dofs": 1,
   "camrep.pose": 1,
   "camrep.data": 1,
   "camrep.runtime": 1,

@@ -64,7 +64,7 @@ def _rep_params(setting, rep, spec, key=0):
   if rep == "ours":
     return jax.jit(P.init, static_argnums=1)(jax.random.key(key), spec)
   if rep == "mlp":
-    return pose_inputs.init_mlp(jax.random.key(key), spec)
+    return pose_inputs.MlpPoseInput(spec).init(jax.random.key(key))
   return None
 
 

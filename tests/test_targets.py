@@ -191,7 +191,7 @@ def consistent_params(spec, seed=0):
     v0 = rng.normal(size=(nb, s))
     v0 /= np.linalg.norm(v0, axis=-1, keepdims=True)
     v0 = v0.reshape(-1)
-    if isinstance(d, P.PolarDof):
+    if d.width == 2:  # polar
       scale = 1.2 / (d.high - d.low)
       fx = rng.uniform(-1, 1, (nb, s // 2)) * scale
       fy = rng.uniform(-1, 1, (nb, s // 2)) * scale
@@ -206,19 +206,19 @@ def consistent_params(spec, seed=0):
       table = np.cos(th)[:, None, None, None] * Bx + np.sin(th)[:, None, None, None] * By
       params[d.name] = {
         "grid": jnp.asarray(grid, jnp.float32),
-        "B": lie.vee(jnp.asarray(table)).astype(jnp.float32),
-        "C": jnp.zeros((nb, lie.num_skew_params(s)), jnp.float32),
+        P.GENERATOR: lie.vee(jnp.asarray(table)).astype(jnp.float32),
+        P.DIRECTION: jnp.zeros((nb, lie.num_skew_params(s)), jnp.float32),
       }
       continue
     f = rng.integers(1, 3, (nb, s // 2)).astype(float)
-    if not (isinstance(d, P.AngularDof) and d.periodic):
+    if not d.periodic:
       f = f * (1.2 / (d.high - d.low))
     B = _skew_from_planes(Qs, f)
     k = np.arange(d.n_grid) * d.spacing
     grid = lie.apply_exp_blocks(B, k, np.broadcast_to(v0, (d.n_grid, spec.dim)), method="expm")
     params[d.name] = {
       "grid": jnp.asarray(grid, jnp.float32),
-      "B": lie.vee(jnp.asarray(B)).astype(jnp.float32),
+      P.GENERATOR: lie.vee(jnp.asarray(B)).astype(jnp.float32),
     }
   return params
 
@@ -281,7 +281,7 @@ def test_ours_targets_are_frozen_embeddings():
 
 def test_mlp_embedding_round_trip():
   spec = T.default_spec("car")
-  mlp = pose_inputs.init_mlp(jax.random.key(3), spec)
+  mlp = pose_inputs.MlpPoseInput(spec).init(jax.random.key(3))
   assert set(mlp) == {"azimuth", "polar"}
   assert mlp["azimuth"]["hidden"]["kernel"].shape == (1, 128)
   assert mlp["azimuth"]["out"]["kernel"].shape == (128, 96)

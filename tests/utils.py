@@ -7,6 +7,7 @@ import functools
 import importlib.util
 import os
 import sys
+import zlib
 
 import jax
 import numpy as np
@@ -37,6 +38,14 @@ def sample_generator(rng: np.random.Generator, batch: tuple[int, ...], s: int, r
   )
   scale = {"normal": 1.0, "large": 5.0, "near_zero": 1e-7}[regime]
   return B / np.maximum(norm, 1e-30) * scale
+
+
+def stable_seed(*parts) -> int:
+  """A 32-bit seed from `parts` (strings, numbers, tuples) that is the same in every process.
+
+  Python's `hash` of a string is salted per process (PYTHONHASHSEED), so a seed drawn from it
+  changes from run to run and a failure cannot be replayed."""
+  return zlib.crc32(repr(parts).encode())
 
 
 def assert_close(a, b, *, atol=1e-8, rtol=1e-8):

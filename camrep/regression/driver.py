@@ -43,7 +43,7 @@ evaluation split is, and the number of test views.
 Representations: baselines need nothing more; "ours" restores the frozen pose system of a
 view-synthesis workdir (`load_pose_system`, via `camrep.synthesis`'s `load_run`); "mlp" uses that
 workdir's MLP embedding when it was trained with rep.kind="mlp", else a frozen randomly
-initialised MLP embedding (`targets.init_mlp`; the supplement's MLP is trained by view synthesis).
+initialised MLP embedding (`MlpPoseInput`; the supplement's MLP is trained by view synthesis).
 The synthesis workdir must have been trained on the same data (`check_same_data`: same source,
 same prepared directory and dataset) and, for "ours", with the learned grid system.
 `model.resnet_weights` (seven_scenes) loads a torchvision ResNet-34 state dict into the trunk
@@ -323,7 +323,7 @@ def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
     return spec, system["rep"], info
   key = jax.random.fold_in(jax.random.key(config.seed), 1)
   info = {"source": "random_init", "note": "frozen randomly initialised MLP embedding"}
-  return spec, pose_inputs.init_mlp(key, spec), info
+  return spec, pose_inputs.MlpPoseInput(spec).init(key), info
 
 
 # --------------------------------------------------------------------------------------------

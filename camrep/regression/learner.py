@@ -317,7 +317,7 @@ def init(
     key: PRNG key of the network initialisation.
     reg: from `make_regressor`.
     batch: an example batch (only shapes matter).
-    rep_params: the frozen representation ("ours": pose-system params, "mlp": `init_mlp`).
+    rep_params: the frozen representation ("ours": pose-system params, "mlp": `MlpPoseInput.init`).
   """
   if reg.representation in T.LEARNED and rep_params is None:
     raise ValueError(f"representation {reg.representation!r} needs rep_params")

@@ -232,7 +232,7 @@ def default_spec(
 def _check_spec(setting: str, spec: P.PoseSystemSpec) -> None:
   cols = []
   for d in spec.dofs:
-    cols.extend(["x", "y"] if isinstance(d, P.PolarDof) else [d.name])
+    cols.extend(d.column_names)
   if len(cols) != len(POSE_COLUMNS[setting]):
     raise ValueError(
       f"spec DOFs {spec.names} do not match {setting} columns {POSE_COLUMNS[setting]}"
@@ -362,11 +362,11 @@ def _decode_ours(space: TargetSpace, heads: Mapping[str, Array], rep_params: Any
 
 def _encode_mlp(space: TargetSpace, poses: Array, rep_params: Any) -> dict[str, Array]:
   rp = jax.lax.stop_gradient(rep_params)
-  return pose_inputs.mlp_embed(rp, space.spec, poses, hidden=space.mlp_hidden)
+  return pose_inputs.MlpPoseInput(space.spec, hidden=space.mlp_hidden).embed(rp, poses)
 
 
 def _decode_mlp(space: TargetSpace, heads: Mapping[str, Array], rep_params: Any) -> Array:
-  return pose_inputs.mlp_decode(rep_params, space.spec, heads, space.mlp_hidden)
+  return pose_inputs.MlpPoseInput(space.spec, hidden=space.mlp_hidden).decode(rep_params, heads)
 
 
 def _spec_dim(space: TargetSpace) -> int:
@@ -466,8 +466,8 @@ def head_specs(
   if c.learned:
     heads = []
     for d in space.spec.dofs:
-      group = "orientation" if isinstance(d, P.AngularDof) else "position"
-      block = c.block_norm and isinstance(d, P.PolarDof) and d.block_norm
+      group = "orientation" if d.is_angle else "position"
+      block = c.block_norm and d.block_norm
       norm, n_blocks = ("block", space.spec.n_blocks) if block else ("unit", 1)
       heads.append(pose_regressor.HeadSpec(d.name, size, group, norm, n_blocks))
     return tuple(heads)
@@ -495,7 +495,7 @@ def encode(
     setting: one of `SETTINGS`.
     poses: (..., P) poses in the setting's columns (`POSE_COLUMNS`).
     spec: pose system of a learned representation (default `default_spec(setting)`).
-    rep_params: "ours": the frozen pose-system params; "mlp": `init_mlp`-style params. Taken
+    rep_params: "ours": the frozen pose-system params; "mlp": `MlpPoseInput.init` params. Taken
       under stop_gradient.
     mode: quantisation of "ours" ("floor" / "nearest"; required there).
     mlp_hidden: hidden size of the MLP embedding.

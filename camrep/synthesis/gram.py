@@ -4,7 +4,6 @@ the kernel figures): how similar the vectors of two poses are.
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Mapping
 
@@ -34,9 +33,7 @@ def gram_values(spec: P.PoseSystemSpec, name: str) -> Array:
   Returns:
     (K,) values, or (K, 2) positions for a polar DOF (flat index gx * n_side + gy).
   """
-  d = spec.dof(name)
-  res = math.pi / 180 if isinstance(d, P.AngularDof) else d.spacing
-  return P.candidates(spec, name, res)
+  return P.candidates(spec, name, spec.dof(name).gram_resolution)
 
 
 def gram_maps(run: Run) -> dict[str, np.ndarray]:
@@ -59,12 +56,7 @@ def gram_maps(run: Run) -> dict[str, np.ndarray]:
 
 
 def _gram_caption(spec: P.PoseSystemSpec, name: str, k: int) -> str:
-  d = spec.dof(name)
-  if isinstance(d, P.AngularDof):
-    return f"{k} values, 1-degree steps from {math.degrees(d.low):.0f} deg"
-  if isinstance(d, P.PolarDof):
-    return f"{d.n_side} x {d.n_side} grid points, flat index gx * {d.n_side} + gy"
-  return f"{k} grid points, {d.low:g} to {d.high:g} step {d.spacing:g}"
+  return spec.dof(name).describe_grid(k)
 
 
 def write_grams(out: str, run: Run, grams: Mapping[str, np.ndarray]) -> list[str]:
@@ -76,7 +68,7 @@ def write_grams(out: str, run: Run, grams: Mapping[str, np.ndarray]) -> list[str
     arrays[name] = g
     values = np.asarray(gram_values(run.spec, name))
     arrays[f"{name}_values"] = values
-    angular = isinstance(run.spec.dof(name), P.AngularDof)
+    angular = run.spec.dof(name).is_angle
     title = f"Gram V V^T of {name} ({g.shape[0]} x {g.shape[1]}), step {run.step}"
     fig = plots.gram_figure(
       g,

@@ -103,7 +103,8 @@ class Synthesizer(abc.ABC):
     config: the run's config.
     spec: the pose system (the DOFs whose columns the poses hold).
     module: the Flax module.
-    pose_input: the pose input's kind (`config.rep.kind`).
+    pose_input: the pose input (`pose_inputs.from_config`: the learned grid, GQN's low-dim
+      vector or the MLP).
     loss_weight: lambda_1, the weight of `loss` in the rep group's objective.
     n_context: context views per scene (GQN layouts), None for per-scene tables.
     temperature: latent temperature of `predict` for a generative model, else None.
@@ -116,18 +117,18 @@ class Synthesizer(abc.ABC):
 
   def __init__(self, config, spec: P.PoseSystemSpec, module: nn.Module):
     self.config, self.spec, self.module = config, spec, module
-    self.pose_input = pose_inputs.rep_kind(config)
+    self.pose_input = pose_inputs.from_config(config, spec)
     self.loss_weight = float(config.loss.rec_weight)
 
   @property
   def learns_pose_system(self) -> bool:
     """Whether the pose input is the learned grid (vectors rotated by generators)."""
-    return self.pose_input == "grid"
+    return self.pose_input.learned_grid
 
   def init(self, key: Array, batch: Mapping[str, Array]) -> Params:
     """Initial parameters {"model", "rep"} shaped from one device's training batch."""
     k_model, k_rep = jax.random.split(key)
-    rep = pose_inputs.init_rep(k_rep, self.config, self.spec)
+    rep = self.pose_input.init(k_rep)
     images = to_float_images(jnp.asarray(batch["image"]))
     vecs = self.vectors(rep, jnp.asarray(batch["pose"]))
     variables = self._init_module(k_model, images, vecs, jnp.asarray(batch["scene"]))
@@ -189,7 +190,7 @@ class Synthesizer(abc.ABC):
     quantise the learned system and are ignored by the other pose inputs."""
     if self.learns_pose_system and (keys is not None or mode == "random"):
       return grid_vectors(params_rep, self.spec, poses, mode=mode, keys=keys)
-    return pose_inputs.pose_vectors(self.config, self.spec, params_rep, poses, mode=mode)
+    return self.pose_input.embed(params_rep, poses, mode=mode)
 
   def pose_loss(self, params_rep: Params, batch: Mapping[str, Array], key: Array):
     """lambda_2 sum_l L_rot,l + lambda_4 sum L_rot,theta (eqs. 9, 9.2) and the terms.
@@ -211,9 +212,7 @@ class Synthesizer(abc.ABC):
         poses = batch["pose"]  # (S, V, P), views laid out as (anchor, partner) pairs
         S, V = poses.shape[:2]
         pairs = poses.reshape(S, V // 2, 2, -1)[..., spec.columns(d.name)]
-        x0, x1 = pairs[:, :, 0], pairs[:, :, 1]
-        if not isinstance(d, P.PolarDof):
-          x0, x1 = x0[..., 0], x1[..., 0]
+        x0, x1 = d.values(pairs[:, :, 0]), d.values(pairs[:, :, 1])
         kd = jax.vmap(lambda k, i=i: jax.random.fold_in(k, 1000 + i))(keys)
         per_scene = jax.vmap(
           lambda a, b, k, n=d.name: P.dof_rotation_loss(
@@ -225,7 +224,7 @@ class Synthesizer(abc.ABC):
     total = L.rot_weight * sum(terms.values())
     if L.dir_weight:
       for d in spec.dofs:
-        if isinstance(d, P.PolarDof) and d.variant == "binned":
+        if d.has_direction_loss:
           terms[f"dir_{d.name}"] = P.direction_loss(params_rep, spec, d.name)
           total = total + L.dir_weight * terms[f"dir_{d.name}"]
     return total, terms
