@@ -40,7 +40,7 @@ def _table(c) -> bool:
 
 
 def _convdraw(c) -> bool:
-  return c.model.get("kind", "decoder") == "convdraw"
+  return synthesizers.is_generator(c)
 
 
 def _grid(c) -> bool:
@@ -81,7 +81,7 @@ SCHEMA: dict[str, V.Field] = {
   ),
   "data.scenes_per_device": _F(V.POSITIVE),
   "data.views_per_scene": _F(V.at_least(2)),
-  "data.n_context": _F(V.POSITIVE, _U(lambda c: c.task == "gqn", "used by task='gqn' only")),
+  "data.n_context": _F(V.POSITIVE, _U(synthesizers.reads_context, "used by task='gqn' only")),
   "data.mode": _F(V.one_of(DATA_MODES)),
   "data.num_threads": _F(V.NONNEG),
   "data.prefetch": _F(V.NONNEG),
@@ -147,14 +147,17 @@ SCHEMA: dict[str, V.Field] = {
   "evals.grid_scenes": _F(V.POSITIVE),
   "evals.baseline_views": _F(
     V.POSITIVE,
-    _U(lambda c: c.task != "gqn", "the GQN task's baseline is the mean of the context views"),
+    _U(
+      lambda c: not synthesizers.reads_context(c),
+      "the GQN task's baseline is the mean of the context views",
+    ),
   ),
 }
 
 
 def model_image_size(config) -> int:
   """The side of the images the config's model renders."""
-  return GQN_IMAGE_SIZE if config.task == "gqn" else int(config.model.image_size)
+  return GQN_IMAGE_SIZE if synthesizers.reads_context(config) else int(config.model.image_size)
 
 
 def data_image_shape(config) -> tuple[tuple[int, int], str]:
@@ -199,7 +202,7 @@ def check_data(config) -> None:
   (h, w), where = data_image_shape(config)
   side = model_image_size(config)
   if (h, w) != (side, side):
-    if config.task == "gqn":
+    if synthesizers.reads_context(config):
       model = f"the GQN task's model renders {side}x{side} images"
     else:
       model = f"--config.model.image_size={side}: the model renders {side}x{side} images"
@@ -207,7 +210,7 @@ def check_data(config) -> None:
       f"{model}, but {where} has {h}x{w} images; "
       + (
         f"set --config.model.image_size={h} (allowed: {list(TABLE_IMAGE_SIZES)})"
-        if config.task != "gqn" and h == w and h in TABLE_IMAGE_SIZES
+        if not synthesizers.reads_context(config) and h == w and h in TABLE_IMAGE_SIZES
         else f"use data of {side}x{side} images"
       )
     )

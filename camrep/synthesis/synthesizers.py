@@ -408,6 +408,17 @@ def check_config(config) -> None:
     )
 
 
+def reads_context(config) -> bool:
+  """Whether the config's model encodes context views of each scene (the GQN task: an encoder
+  and a decoder, or GQN's generator) rather than keeping a table of scene vectors."""
+  return config.task == "gqn"
+
+
+def is_generator(config) -> bool:
+  """Whether the config's model is GQN's generator (ConvDRAW, trained on its ELBO)."""
+  return model_kind(config) == "convdraw"
+
+
 def from_config(config, spec: P.PoseSystemSpec, num_scenes: int) -> Synthesizer:
   """The view-synthesis model of a config: `config.model.kind` and `config.task` pick it.
 
