@@ -2,8 +2,8 @@
 
 Layers, lowest first (a module may import its own layer and those below):
 
-  0  camrep.lie, .metrics, .rotations,      Lie operators, image metrics, rotations of 3-space,
-     camrep.configs                           experiment configs
+  0  camrep.lie, .spectral, .metrics,       Lie operators and their exact exponential, image
+     .rotations, camrep.configs               metrics, rotations of 3-space, experiment configs
   1  camrep.dofs, camrep.pose, camrep.data,     the pose system's DOFs and the system; data;
      camrep.runtime                             checkpoints, writers, plots
   2  camrep.pose_inputs                         every pose input a decoder can take
@@ -27,6 +27,7 @@ LAYERS = {
   "camrep.lie": 0,
   "camrep.metrics": 0,
   "camrep.rotations": 0,
+  "camrep.spectral": 0,
   "camrep.configs": 0,
   "camrep.dofs": 1,
   "camrep.pose": 1,
