@@ -123,7 +123,7 @@ class Dof(abc.ABC):
     return values[..., None]
 
   def init_params(self, key: Array, spec: PoseSystemSpec, *, dtype) -> Params:
-    """Initial parameters of this DOF, i.i.d. N(0, init_stddev^2) (digest 1.1-1.2):
+    """Initial parameters of this DOF, i.i.d. N(0, init_stddev^2) (the authors' code):
     {"grid": (n_grid, d), "generator_coeffs": (n_blocks, s(s-1)/2)} (polar: see `PolarDof`)."""
     kg, kb, _ = jax.random.split(key, 3)
     return {
@@ -158,7 +158,7 @@ class Dof(abc.ABC):
     return x
 
   def sample_pairs(self, key: Array, n: int) -> tuple[Array, Array]:
-    """Extra pairs of values for the rotation loss (digest 1.5), (n,) each (polar (n, 2)).
+    """Extra pairs of values for the rotation loss (the authors' code), (n,) each (polar (n, 2)).
 
     Non-periodic (the authors' recipe, A = n_grid - 1 intervals): a0 ~ U(0, A - 1),
     a1 = min(a0 + U(0.5, 1), A) grid units. Periodic: a0 ~ U(0, N), a1 = a0 +/- U(0.5, 1)
@@ -317,7 +317,7 @@ class PolarDof(Dof):
   """2-D position with the polar generator B(theta) of section 3.2 (eqs. 4-5).
 
   Grid: (L + 1) x (L + 1) vectors over [low, high]^2 with L = (high - low) / spacing, flat index
-  gx * (L + 1) + gy (digest 1.4). Out-of-range positions are clamped per axis.
+  gx * (L + 1) + gy (the authors' code). Out-of-range positions are clamped per axis.
 
   variant="binned" (the authors' code): B(theta) is a table of `n_directions` free generators,
   theta rounded to the nearest bin (mod n_directions: the authors' index could reach
@@ -578,7 +578,7 @@ def wrap_angle(x: Array) -> Array:
 
 
 def _quantise(g: Array, mode: str, key: Array | None) -> Array:
-  """Grid index (float, before clipping/wrapping) for grid coordinates g (digest 1.3)."""
+  """Grid index (float, before clipping/wrapping) for grid coordinates g (the authors' code)."""
   if mode == "nearest":
     return jnp.round(g)
   if mode == "floor":

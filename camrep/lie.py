@@ -82,7 +82,8 @@ def _skew_gather_index(s: int) -> np.ndarray:
 def skew(params: Array, *, block_size: int | None = None) -> Array:
   """Skew-symmetric blocks from their strict upper triangles ("hat").
 
-  Block = U - U^T with U the row-major strict upper triangle filled from `params` (digest 1.1).
+  Block = U - U^T with U the row-major strict upper triangle filled from `params`
+  (as the authors' code).
 
   Args:
     params: (..., s (s - 1) / 2) free parameters.
@@ -145,7 +146,7 @@ def init_generator(
   stddev: float = 1e-3,
   dtype=jnp.float32,
 ) -> Array:
-  """Free parameters of generators, i.i.d. N(0, stddev^2) as in the authors' code (digest 1.1).
+  """Free parameters of generators, i.i.d. N(0, stddev^2) as in the authors' code.
 
   Args:
     key: PRNG key.

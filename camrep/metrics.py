@@ -6,7 +6,7 @@ functions work under `jax.jit` and `jax.vmap` and over any leading batch axes.
 
 Image convention: images are float arrays (..., H, W, 3) in [-1, 1], as the models produce and
 the data pipeline stores them. PSNR and SSIM first map them to [0, 1] by x / 2 + 0.5 and clip, as
-the authors' evaluation does (digest section 5), and then use max value 1.
+the authors' evaluation does (the authors' code), and then use max value 1.
 
 Quaternion convention: (..., 4) with the scalar first, (w, x, y, z), as in jaxlie/transforms3d and
 the 7-Scenes pose tables. scipy's `Rotation.as_quat()` is (x, y, z, w): roll it before comparing.
@@ -37,7 +37,7 @@ def _check_same_shape(a: jax.Array, b: jax.Array, *, last: int | None = None) ->
 
 
 def to_unit_range(images: jax.Array) -> jax.Array:
-  """Maps images from [-1, 1] to [0, 1] by x / 2 + 0.5 and clips (digest section 5).
+  """Maps images from [-1, 1] to [0, 1] by x / 2 + 0.5 and clips (the authors' code).
 
   Args:
     images: (...) array with values nominally in [-1, 1].

@@ -55,7 +55,7 @@ Params = dict
 
 
 def init(key: Array, spec: PoseSystemSpec, *, dtype=jnp.float32) -> Params:
-  """Initial parameters: grid vectors and generators i.i.d. N(0, init_stddev^2) (digest 1.1-1.2).
+  """Initial parameters: grid vectors and generators i.i.d. N(0, init_stddev^2) (the authors' code).
 
   Returns:
     {name: {"grid": (n_grid, d), "generator_coeffs": (n_blocks, s(s-1)/2)}} for linear and
@@ -117,7 +117,7 @@ def embed_dof(
   mode: str = "nearest",
   key: Array | None = None,
 ) -> Array:
-  """Vector of one DOF at continuous values: exp(B rest) v_grid[k] (section 3.5, digest 1.3).
+  """Vector of one DOF at continuous values: exp(B rest) v_grid[k] (section 3.5, the authors' code).
 
   Out-of-range values are clamped or wrapped as the DOF's `out_of_range` says; NaN values give
   NaN vectors.
@@ -174,7 +174,7 @@ def split(v: Array, spec: PoseSystemSpec) -> dict[str, Array]:
 
 
 # --------------------------------------------------------------------------------------------
-# Rotation losses (eqs. 9 and 9.2) and pair sampling (digest 1.5).
+# Rotation losses (eqs. 9 and 9.2) and pair sampling (the authors' code).
 
 
 def pose_delta(spec: PoseSystemSpec, pose0: Array, pose1: Array) -> Array:
@@ -186,7 +186,7 @@ def pose_delta(spec: PoseSystemSpec, pose0: Array, pose1: Array) -> Array:
 
 
 def sample_pairs(key: Array, spec: PoseSystemSpec, name: str, n: int) -> tuple[Array, Array]:
-  """Extra pose pairs for the rotation loss of DOF `name`, in physical units (digest 1.5).
+  """Extra pose pairs for the rotation loss of DOF `name`, in physical units (the authors' code).
 
   As `Dof.sample_pairs` (and `PolarDof.sample_pairs`) describe.
 
@@ -263,7 +263,7 @@ def rotation_losses(
 def direction_loss(params: Params, spec: PoseSystemSpec, name: str, *, max_shift: int = 5):
   """L_rot,theta of eq. 9.2 for a binned polar DOF: B(theta + D) ~ exp(C D) B(theta).
 
-  As the authors' code (digest 1.4): every bin j and shift D in 1..max_shift (720 combinations),
+  As the authors' code: every bin j and shift D in 1..max_shift (720 combinations),
   left multiplication exp(C D dtheta) B_j - B_{(j + D) mod n}, squared and summed over matrix
   entries, averaged over combinations, times `spec.direction_loss_scale` (their 36 / 720).
   Blocks are multiplied block-wise. The continuous variant satisfies the relation exactly, so

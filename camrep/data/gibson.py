@@ -1,6 +1,6 @@
 """Gibson rooms: the authors' own renders of square areas in 12 Gibson buildings.
 
-On-disk format (shared/reference/datasets_and_conventions.md 2d, digest 6.3):
+On-disk format (the authors' code):
 
 * `<root>/<Building>/<area>/` holds the images and `train_meta.json`, `test_meta.json`, which are
   PYTHON PICKLES despite the suffix (they are unpickled, so only read data you trust).

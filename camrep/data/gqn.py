@@ -18,7 +18,7 @@ but is not part of the paper's pose system). The authors used yaw + 2 pi (valid 
 yaw in [-2 pi, 0]); wrapping modulo 2 pi is identical whenever their assertion held.
 
 Splits: a GQN record has no split of its own. The authors trained on a random permutation of
-all 10 views of every scene and tested on view 9 of the same scenes (digest 7.1 item 8: a
+all 10 views of every scene and tested on view 9 of the same scenes (the authors' code: a
 leak). camrep fixes the held-out view: "train" yields views 0..8, "test" view 9 (generally the
 first `num_train_views` views vs the rest) of the same scenes, which come from one source split
 of the release (the authors used the release's `test` split only; that is the default).

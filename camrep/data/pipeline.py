@@ -543,7 +543,7 @@ class RenderPipeline(BatchPipeline):
   follow the same rules as `BatchPipeline` (epoch permutations of this process's scenes,
   per-step view choice), so a resumed run sees the same data.
 
-  Rendering (issue 14): the batch's D S scenes and their (D S, V) poses go to the renderer as
+  Rendering: the batch's D S scenes and their (D S, V) poses go to the renderer as
   arrays in ONE jitted call (`family.render_batch`: vmapped over scenes and views, uint8
   conversion on the device; one compile per batch layout). The images are the same as the
   family's per-scene `render_views` (the old path, `one_call=False`, one call per scene, each

@@ -1,6 +1,6 @@
 """Procedural posed-image datasets rendered by `camrep.data.render`: camrep's default data.
 
-Four families mirror the paper's four datasets (digest sections 1.7 and 6); each yields view
+Four families mirror the paper's four datasets (the authors' code); each yields view
 records (`camrep.data.records`) with the same pose conventions as its real counterpart:
 
   rooms      like GQN rooms: many square rooms [-1, 1]^2 (textured walls and floor, 1 to 4

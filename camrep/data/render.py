@@ -35,7 +35,7 @@ compiling the whole ray caster once per (camera, primitive budget, batch shape) 
 this module. `render` is the plain,
 un-jitted single-image function they wrap.
 
-The module stays whole past the package's 700-line bound for modules (issue 26 exempts it): it
+The module stays whole past the package's 700-line bound for modules : it
 reads as one piece, the ray caster and its shading vmapped and compiled together.
 """
 

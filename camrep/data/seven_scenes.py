@@ -40,7 +40,7 @@ from camrep.rotations import (
 )
 
 DEFAULT_EXTENT = (4.0, 1.5, 3.0)
-"""Grid cuboid (x, y, z) in metres that the re-based translations must fit (paper / digest)."""
+"""Grid cuboid (x, y, z) in metres the re-based translations must fit (paper, authors' code)."""
 
 DEFAULT_MARGIN = 0.5
 """Metres a re-based translation may lie outside [0, extent] before the readers refuse it.

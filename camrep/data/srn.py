@@ -8,7 +8,7 @@ On-disk format (shared/reference/datasets_and_conventions.md, section 2b), one f
 * `<instance>/intrinsics.txt`: `f cx cy 0.` / `0. 0. 0.` / `1.` / `H W` (an optional fifth line
   is a world-to-camera flag).
 
-Pose (authors' car code, digest 6.2): from the camera centre c (translation column),
+Pose (authors' car code, the authors' code): from the camera centre c (translation column),
 azimuth = atan2(c_y, c_x) wrapped to [0, 2 pi) and polar = arccos(c_z / |c|) in [0, pi]; the
 rotation is not used (all cameras look at the origin). Intrinsics are read, validated and
 rescaled to the output size although the paper never uses them.

@@ -1,5 +1,5 @@
-"""Flax Linen models of camrep: GQN-rooms encoder, decoders, shared layers (digest section 2),
-pose regressors (digest section 4) and GQN's own generator (the view-synthesis baseline)."""
+"""Flax Linen models of camrep: GQN-rooms encoder, decoders, shared layers (the authors' code),
+pose regressors (the authors' code) and GQN's own generator (the view-synthesis baseline)."""
 
 from camrep.models.convdraw import GQNConvDraw as GQNConvDraw
 from camrep.models.convdraw import GQNConvDrawTiny as GQNConvDrawTiny

@@ -1,6 +1,6 @@
 """Composite view-synthesis models: scene representation + pose vectors -> images (section 3.6).
 
-Two kinds, matching the authors' four settings (digest section 2):
+Two kinds, matching the authors' four settings (the authors' code):
 
   GQNSynthesis    GQN rooms: the scene code comes from an encoder over context views and their
                   pose vectors (summed over views), decoded with AdaIN for every query pose.
@@ -11,7 +11,7 @@ Two kinds, matching the authors' four settings (digest section 2):
 Both take pose vectors already computed by `camrep.pose` (the pose system is a separate parameter
 group, trained with its own optimiser), and return (images in [-1, 1], aux).
 
-Mixed precision (`model.dtype`, issue 14): `dtype` is the dtype of the encoder's and decoder's
+Mixed precision (`model.dtype`): `dtype` is the dtype of the encoder's and decoder's
 computation (bfloat16 on a GPU); parameters are float32 whatever it is, so the optimiser state is
 too, and the images come out in float32, so the losses are float32 sums. Scene codes, AdaIN
 tables and pose vectors stay float32.
@@ -33,7 +33,7 @@ Array = jax.Array
 
 
 class GQNSynthesis(nn.Module):
-  """Encoder over context views + residual AdaIN decoder (digest 2.1).
+  """Encoder over context views + residual AdaIN decoder (the authors' code).
 
   Attributes:
     width: channel multiplier (1.0 = paper width).
@@ -70,7 +70,7 @@ class GQNSynthesis(nn.Module):
 
 
 class TableSynthesis(nn.Module):
-  """Per-scene code u (unit norm) and pose vectors -> image (digest 2.2, 2.3).
+  """Per-scene code u (unit norm) and pose vectors -> image (the authors' code).
 
   Attributes:
     num_scenes: size of the per-scene tables (training scenes).

@@ -38,7 +38,7 @@ Hyper-parameters and their sources (BUILD_NOTES, "GQN generator (ConvDRAW)"):
     wohlert/generative-query-network-pytorch (gqn/generator.py: h_dim=128, L=12, kernel 5, SCALE 4;
     run-gqn.py: r_dim=256) and ogroth/tf-gqn (gqn/gqn_params.py: LSTM and eta kernel 5, external
     kernel 1, "SEQ_LENGTH ... orig.: 12").
-  Latent 3 channels per step: the task brief (issue 17); both open-source implementations above use
+  Latent 3 channels per step: the task brief; both open-source implementations above use
     64 (`z_channels` is a field; 3 keeps the KL small and the cores cheap).
   Pixel sigma 2.0 -> 0.7 linearly over 200k steps; Adam lr 5e-4 -> 5e-5 linearly over 1.6M steps,
     b1 0.9, b2 0.999, eps 1e-8: wohlert run-gqn.py (sigma_i 2.0, sigma_f 0.7, 2e5 steps; mu_i 5e-4,

@@ -1,8 +1,8 @@
-"""Decoders (generators) of the view-synthesis model (digest section 2).
+"""Decoders (generators) of the view-synthesis model (the authors' code).
 
 Two architectures, both ending in tanh (images in [-1, 1]) and upsampling by nearest-neighbour x2:
 
-`ResAdaINDecoder` (GQN rooms, 64 x 64, digest 2.1). Input z = [u (128) || pose vector] per query
+`ResAdaINDecoder` (GQN rooms, 64 x 64, the authors'). Input z = [u (128) || pose vector] per query
 view; the scene's u and AdaIN parameters come from `SceneEncoder` and are broadcast over the
 scene's query views. Channel counts at width 1.0:
 
@@ -14,7 +14,7 @@ scene's query views. Channel counts at width 1.0:
   res32   h = up(x); main: conv3 128 -> lrelu -> conv3 128 -> lrelu; skip: conv1 128; sum
   res64   h = up(x); main: conv3 64 -> lrelu -> conv3 3; skip: conv1 3; sum; tanh -> 64 x 64 x 3
 
-`UpConvDecoder` (ShapeNet car, digest 2.2; Gibson rooms and 7-Scenes, digest 2.3). Input
+`UpConvDecoder` (ShapeNet car; Gibson rooms and 7-Scenes; as the authors'). Input
 [u || pose vectors]; u comes from a `SceneTable` owned by the training code. At width 1.0:
 
   fc      dense 4096, lrelu, reshape                                           -> 4 x 4 x 256
@@ -25,7 +25,7 @@ scene's query views. Channel counts at width 1.0:
   to_rgb  up; conv4 3; tanh                                                    -> 128 x 128 x 3
 
 The bracketed instance norms exist only with `per_scene_norm=True` (Gibson, 7-Scenes), whose
-gamma / beta come from per-scene tables looked up by scene index. The digest calls them gamma2,
+gamma / beta come from per-scene tables looked up by scene index. The authors call them gamma2,
 gamma4, gamma6, gamma8 (layer numbers); here they are named by resolution (gamma8 ... gamma64),
 like the GQN decoder's. `image_size=64` drops conv64 for quick runs.
 
@@ -51,7 +51,7 @@ GQN_STYLE_KEYS = ("gamma8", "beta8", "gamma16", "beta16")
 
 
 class ResAdaINDecoder(nn.Module):
-  """GQN-rooms decoder with AdaIN at 8 x 8 and 16 x 16 (digest 2.1).
+  """GQN-rooms decoder with AdaIN at 8 x 8 and 16 x 16 (the authors' code).
 
   Attributes:
     width: channel multiplier (paper: 1.0); the AdaIN parameters must have 256 * width channels.
@@ -143,7 +143,7 @@ class ResAdaINDecoder(nn.Module):
 
 
 class UpConvDecoder(nn.Module):
-  """Car / Gibson / 7-Scenes decoder (digest 2.2, 2.3), optionally with per-scene AdaIN tables.
+  """Car / Gibson / 7-Scenes decoder (the authors' code), optionally with per-scene AdaIN tables.
 
   Attributes:
     width: channel multiplier (paper: 1.0).

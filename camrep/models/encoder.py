@@ -1,8 +1,8 @@
-"""GQN-rooms scene encoder (digest section 2.1).
+"""GQN-rooms scene encoder (the authors' code).
 
 Each context image of a scene is encoded together with its pose vector; the per-view head
 outputs (the scene vector u and the AdaIN parameters of the decoder) are SUMMED over the context
-views of the scene (not averaged, and u is not normalised: digest 2.1, 7.1 item 7).
+views of the scene (not averaged, and u is not normalised: the authors' code).
 
 Trunk, for a 64 x 64 x 3 image in [-1, 1] (ReLU everywhere; channel counts at width 1.0):
 
@@ -17,10 +17,10 @@ Trunk, for a 64 x 64 x 3 image in [-1, 1] (ReLU everywhere; channel counts at wi
 Heads (no activation): conv 3x3 on a named trunk feature, then global average pooling. The
 generator's heads (`GQN_GENERATOR_HEADS`) are u (128, from h9), gamma8 / beta8 (256, from h7)
 and gamma16 / beta16 (256, from h5). The head list is a field so that the pose-regression
-encoder of digest 4.1 (AdaIN parameters only, gamma16 / beta16 of 128 channels) is the same
+encoder of the authors' code (AdaIN parameters only, gamma16 / beta16 of 128 channels) is the same
 module with other heads.
 
-Reading of the digest: step 1 lists no activation; "ReLU everywhere unless stated" is applied,
+Our reading: step 1 lists no activation; "ReLU everywhere unless stated" is applied,
 so conv1 is followed by ReLU.
 """
 

@@ -1,4 +1,4 @@
-"""Building blocks shared by the generative models (digest sections 2 and 7.3).
+"""Building blocks shared by the generative models (the authors' code).
 
 The authors' TF1 models use a few conventions that differ from Flax defaults; they are fixed here
 once so that every model follows them:
@@ -18,7 +18,7 @@ and the AdaIN affine are computed in float32 whatever the activations' dtype, an
 cast back to it.
 
 Also here: `SceneTable`, the learned per-scene code u of the car, Gibson and 7-Scenes models
-(digest 2.2-2.3), and `param_count` / `intermediate_shapes` helpers for logging.
+(the authors' code), and `param_count` / `intermediate_shapes` helpers for logging.
 """
 
 from __future__ import annotations
@@ -109,8 +109,8 @@ def conv(features: int, kernel: int, *, strides: int = 1, name: str, dtype: Any 
   `dtype` (inputs and the float32 parameters are cast to it; None: Flax infers it, float32).
 
   Also stands in for the authors' stride-1 `conv2d_transpose` layers: with stride 1 a transposed
-  conv is a conv with a flipped kernel, which does not matter when training from scratch (digest
-  7.3). On CPU its kernel gradient is computed as matmuls (`camrep.models.fastconv`).
+  conv is a conv with a flipped kernel, which does not matter when training from scratch.
+  On CPU its kernel gradient is computed as matmuls (`camrep.models.fastconv`).
   """
   return nn.Conv(
     features,
@@ -160,7 +160,7 @@ def flatten_leading(x: Array, n_trailing: int) -> tuple[Array, tuple[int, ...]]:
 
 
 class SceneTable(nn.Module):
-  """Learned per-scene code u (digest 2.2 and 2.3), looked up by integer scene index.
+  """Learned per-scene code u (the authors' code), looked up by integer scene index.
 
   The table is initialised N(0, init_stddev^2) (the authors' 0.001) and, when `normalise`, each
   looked-up row is divided by its L2 norm on every lookup (projection, not a penalty); the table

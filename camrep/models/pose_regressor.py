@@ -1,7 +1,7 @@
-"""Pose regressors: images -> pose heads (paper section 4.4; digest 4.1-4.5).
+"""Pose regressors: images -> pose heads (paper section 4.4; the authors' code).
 
 Every regressor ends in `PoseHeads`: an optional extra dense layer (the baselines' parameter-count
-equaliser, digest 4.5: 196 units for GQN, 256 car, 192 Gibson) and one dense layer per
+equaliser, the authors' code: 196 units for GQN, 256 car, 192 Gibson) and one dense layer per
 `HeadSpec`, normalised as the targets are (`normalise_head`: learned
 position vectors block-normalised to 1 / n_blocks per block, angle vectors unit length, baselines
 raw). All modules share one call signature and return `(heads, aux)`:
@@ -10,7 +10,7 @@ raw). All modules share one call signature and return `(heads, aux)`:
 
 Channel counts below are at width 1.0 (`layers.scaled(c, width)` otherwise).
 
-`GQNRegressor` (digest 4.1), 64 x 64 query images, AdaIN parameters from its own context
+`GQNRegressor` (the authors' code), 64 x 64 query images, AdaIN parameters from its own context
 encoder (`SceneEncoder` with heads gamma16 / beta16 (128, from h5), gamma8 / beta8 (256, h7),
 gamma4 / beta4 (256, h9), summed over the scene's context views):
 
@@ -19,14 +19,14 @@ gamma4 / beta4 (256, h9), summed over the scene's context views):
   conv3  conv 4x4 s2 256, AdaIN(gamma8, beta8), lrelu    -> 8 x 8 x 256
   conv4  conv 4x4 s2 256, AdaIN(gamma4, beta4), lrelu    -> 4 x 4 x 256; flatten 4096; heads
 
-`CarRegressor` (digest 4.2): conv 4x4 s2 64, 64, 128, 128, 256, each + lrelu; 128 -> 4 x 4 x 256;
+`CarRegressor` (authors'): conv 4x4 s2 64, 64, 128, 128, 256, each + lrelu; 128 -> 4 x 4 x 256;
 flatten; heads.
 
-`GibsonRegressor` (digest 4.3): conv 4x4 s2 64, 128, 256, 256, 256, each followed by a per-area
+`GibsonRegressor` (authors'): conv 4x4 s2 64, 128, 256, 256, 256, each followed by a per-area
 instance norm with learned tables gamma_k, beta_k (num_scenes, C) initialised N(0, 0.001^2) and
 lrelu; flatten; heads.
 
-`ResNetRegressor` (digest 4.4, the MapNet-based 7-Scenes model): torchvision ResNet-34 trunk
+`ResNetRegressor` (the authors' code, the MapNet-based 7-Scenes model): torchvision ResNet-34 trunk
 (basic blocks [3, 4, 6, 3], batch norm), global average pool, fc 512 -> 2048 + ReLU, heads
 (six 32-d unit heads for ours, or position / orientation heads); new layers Kaiming-normal with
 zero bias. `load_torchvision_resnet34` loads ImageNet weights saved from torchvision.
@@ -61,7 +61,7 @@ GQN_REGRESSION_HEADS: tuple[Head, ...] = (
   Head("gamma4", "h9", 256, True),
   Head("beta4", "h9", 256, True),
 )
-"""Encoder heads of the GQN regressor (digest 4.1): AdaIN parameters only."""
+"""Encoder heads of the GQN regressor (the authors' code): AdaIN parameters only."""
 
 # torch.nn.init.kaiming_normal_ (fan_in, gain sqrt(2), untruncated normal): MapNet's new layers.
 kaiming_normal = nn.initializers.variance_scaling(2.0, "fan_in", "normal")
@@ -110,7 +110,7 @@ def _flatten_images(images: Array) -> tuple[Array, tuple[int, ...]]:
 
 
 class GQNRegressor(nn.Module):
-  """GQN-rooms regressor with AdaIN parameters from a context encoder (digest 4.1).
+  """GQN-rooms regressor with AdaIN parameters from a context encoder (the authors' code).
 
   Attributes:
     heads: output heads.
@@ -175,7 +175,7 @@ class GQNRegressor(nn.Module):
 
 
 class CarRegressor(nn.Module):
-  """ShapeNet-car regressor: five strided convs, no normalisation (digest 4.2).
+  """ShapeNet-car regressor: five strided convs, no normalisation (the authors' code).
 
   Attributes:
     heads: output heads.
@@ -220,7 +220,7 @@ class CarRegressor(nn.Module):
 
 
 class GibsonRegressor(nn.Module):
-  """Gibson-rooms regressor: strided convs with per-area instance-norm tables (digest 4.3).
+  """Gibson-rooms regressor: strided convs with per-area instance-norm tables (the authors' code).
 
   Attributes:
     heads: output heads.
@@ -320,7 +320,7 @@ RESNET_CHANNELS = (64, 128, 256, 512)
 
 
 class ResNetRegressor(nn.Module):
-  """ResNet-34-style regressor for 7-Scenes-like data (digest 4.4), from scratch or torchvision.
+  """ResNet-34-style regressor for 7-Scenes-like data (authors'), from scratch or torchvision.
 
   Parameter names mirror torchvision's state dict: conv1, bn1, layer{i}_{j}/{conv1, bn1, conv2,
   bn2, downsample_0, downsample_1}; then fc (-> fc_dim, ReLU) and heads.
@@ -533,7 +533,7 @@ class HeadSpec:
 
 
 def normalise_head(v: Array, head: HeadSpec) -> Array:
-  """Apply a head's normalisation exactly as `camrep.pose` normalises grid vectors (digest 1.2).
+  """Apply a head's normalisation exactly as `camrep.pose` normalises grid vectors.
 
   Args:
     v: (..., head.size) raw outputs.

@@ -1,4 +1,4 @@
-"""Pose regression on a frozen pose representation (paper section 4.4; digest section 4).
+"""Pose regression on a frozen pose representation (paper section 4.4; the authors' code).
 
 Plain functions, independent of the view-synthesis trainer (`camrep.synthesis.train`):
 
@@ -144,7 +144,7 @@ class Regressor:
     hparams: loss, weighting and optimiser settings.
     spec: the pose system of a learned representation, else None.
     refine_steps: Gauss-Newton refinement steps when decoding "ours" (0: plain arg-min).
-    image_norm: how uint8 images become network inputs: "symmetric" [-1, 1] (digest 6.1), or
+    image_norm: how uint8 images become network inputs: "symmetric" [-1, 1] (the authors' code), or
       "imagenet" ((x / 255 - mean) / std, torchvision's, for ImageNet-pretrained weights).
   """
 
@@ -228,7 +228,7 @@ def make_regressor(
 
 def make_optimizer(hparams: HyperParams) -> optax.GradientTransformation:
   """Adam(lr) (eps 1e-8, b1 0.9); with weight_decay, coupled L2 added to the gradient first
-  (PyTorch Adam's weight_decay, digest 7.3), which also acts on s_x, s_q."""
+  (PyTorch Adam's weight_decay, the authors' code), which also acts on s_x, s_q."""
   if hparams.weight_decay:
     return optax.chain(
       optax.add_decayed_weights(hparams.weight_decay),
@@ -262,7 +262,7 @@ class RegressionState:
 
 
 def prepare_images(images: Array, norm: str = "symmetric") -> Array:
-  """uint8 [0, 255] -> float32 [-1, 1] (digest 6.1), or with norm="imagenet" torchvision's
+  """uint8 [0, 255] -> float32 [-1, 1] (the authors' code), or with norm="imagenet" torchvision's
   (x / 255 - mean) / std; float images are returned unchanged."""
   images = jnp.asarray(images)
   if not jnp.issubdtype(images.dtype, jnp.integer):

@@ -20,7 +20,7 @@ Array = jax.Array
 
 
 def pose_errors(setting: str, pred: Array, true: Array) -> dict[str, Array]:
-  """Per-example pose errors of a setting (digest 4.1-4.4), via `camrep.metrics`.
+  """Per-example pose errors of a setting (the authors' code), via `camrep.metrics`.
 
   gqn, gibson: "x_error", "y_error" (|.| in scene units / m), "position_error" (Euclidean),
     "yaw_error_deg" (wrapped to [0, 180]).

@@ -1,5 +1,5 @@
 """Intervals over seeds and test views, and the paired comparison of two representations
-(issue 29). Pure NumPy, for `experiments/table1.py` / `table2.py`.
+(results that carry a conclusion). Pure NumPy, for `experiments/table1.py` / `table2.py`.
 
 A table cell is the errors of one representation in one column: a (S, N) matrix E of per-view
 test errors, S seeds (runs at the chosen learning rate) by N test views (the same views in every

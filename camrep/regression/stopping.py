@@ -1,4 +1,4 @@
-"""When a pose-regression run stops (issue 29): a plateau rule on the periodic validation score.
+"""When a pose-regression run stops: a plateau rule on the periodic validation score.
 
 Evaluated at each periodic validation (every `eval_every_steps`) by the driver: with the scores
 s(t_1), ..., s(t_k) so far (lower is better; `tables.validation_score`-style, so one number per

@@ -82,7 +82,7 @@ PAPER_TABLE1: dict[str, dict[str, float]] = {
     gibson_ori=0.87,
   ),
 }  # fmt: skip
-"""The paper's Table 1 (digest 4.5): mean errors on real data at paper size."""
+"""The paper's Table 1 (the authors' code): mean errors on real data at paper size."""
 
 PAPER_TABLE2: dict[str, tuple[float, float]] = {
   "chess": (0.12, 4.83),
@@ -94,7 +94,7 @@ PAPER_TABLE2: dict[str, tuple[float, float]] = {
   "stairs": (0.29, 10.70),
   "average": (0.21, 7.92),
 }
-"""The paper's Table 2, ours (digest 4.4): median position (m) / rotation (deg) error per scene
+"""The paper's Table 2, ours: median position (m) / rotation (deg) error per scene
 of the real 7-Scenes data."""
 
 TABLE2_ROWS = ("ours", "quat", "logq", "rot6d", "svd9d")

@@ -39,7 +39,7 @@ def check_config(config) -> None:
 
 
 def pose_spec(config) -> P.PoseSystemSpec:
-  """The pose system of the config's setting (digest 1.7), with camrep's options from config.rep."""
+  """The pose system of the config's setting (the authors'), with camrep's options (config.rep)."""
   r = config.rep
   ang = math.radians(r.angle_spacing_deg)
 

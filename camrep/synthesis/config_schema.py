@@ -69,7 +69,7 @@ SCHEMA: dict[str, V.Field] = {
   "total_steps": _F(V.POSITIVE),
   "log_every_steps": _F(V.NONNEG),  # 0: never
   "eval_every_steps": _F(V.NONNEG),  # 0: never
-  # Retention that keeps no checkpoint would lose the run: refused (issue 27).
+  # Retention that keeps no checkpoint would lose the run: refused.
   "ckpt_every_steps": _F(V.POSITIVE),
   "max_to_keep": _F(V.POSITIVE),
   "data.source": _F(V.one_of(sources.SOURCES)),

@@ -1,4 +1,4 @@
-"""Noise robustness and Gram maps of a trained run (paper section 4.3, digest 5):
+"""Noise robustness and Gram maps of a trained run (paper section 4.3, the authors' code):
 `python -m camrep.synthesis.evaluate --workdir=DIR [--what=noise,gram] [--levels=13] [--out=DIR]`.
 
 Reads a training workdir (config.json and checkpoints/ written by `camrep.synthesis.train`) back

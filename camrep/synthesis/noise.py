@@ -1,6 +1,6 @@
-"""Robustness of view synthesis to noise on the pose vectors (paper section 4.3, digest 5).
+"""Robustness of view synthesis to noise on the pose vectors (paper section 4.3, the authors' code).
 
-Noise-robustness experiment (paper figure "PSNR vs noise", digest 5): beta_i is the std of
+Noise-robustness experiment (paper figure "PSNR vs noise", the authors' code): beta_i is the std of
 element i over the DOF's normalised grid vectors (`pose.grid_std`, computed once per DOF). At
 level alpha every element i of every query pose sub-vector, computed for the exact pose, gets
 independent N(0, (alpha beta_i)^2) noise, without renormalisation; fresh noise per image and per
@@ -97,7 +97,7 @@ def add_noise(
   alpha: Array | float,
   betas: Mapping[str, Array],
 ) -> dict[str, Array]:
-  """v + alpha * beta * z per element, z ~ N(0, 1) independent (digest 5), no renormalisation.
+  """v + alpha * beta * z per element, z ~ N(0, 1) independent (as the authors), no renormalisation.
 
   Args:
     vectors: {name: (E, ..., d)}.
@@ -166,7 +166,7 @@ def noise_robustness(
   batches: list[dict[str, np.ndarray]] | None = None,
   progress: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
-  """Mean per-image PSNR and SSIM of held-out views against pose-vector noise (digest 5).
+  """Mean per-image PSNR and SSIM of held-out views against pose-vector noise (the authors' code).
 
   Args:
     run: a loaded run.
