@@ -34,7 +34,7 @@ from camrep.data.captures.collection import CaptureSource
 from camrep.data.errors import DataError
 from tests.utils import load_experiment
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 _SHARED = pathlib.Path(os.environ.get("CAMREP_SHARED", ROOT.parent / "shared"))

@@ -16,7 +16,7 @@ from camrep.models import convdraw
 from camrep.runtime import runconfig
 from camrep.synthesis import components, noise, restore, train
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 S, C, Q, P = 2, 2, 2, 7
 

@@ -24,7 +24,7 @@ from camrep.synthesis import gram as gram_lib
 from camrep.synthesis import noise as noise_lib
 from tests.utils import load_experiment
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 
 @pytest.fixture(scope="session")

@@ -7,7 +7,7 @@ import pytest
 
 from camrep.data import procedural, storage
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 
 @pytest.mark.parametrize("name", procedural.FAMILIES)

@@ -38,7 +38,7 @@ from camrep.synthesis import train
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 
 # --------------------------------------------------------------------------------------------

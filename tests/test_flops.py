@@ -39,6 +39,7 @@ def test_nested_jaxprs_scan_and_grad():
   assert flops.count_flops(jax.grad(f), w, x) == pytest.approx(3 * 5 * 2 * 4 * 16 * 16)
 
 
+@pytest.mark.slow
 def test_agrees_with_xla_cost_analysis_on_cpu_for_a_conv_net():
   """The GQN scene encoder (convolutions + heads): within 10% of XLA's count on the CPU (measured
   6% above it: XLA leaves out the zero padding's multiply-adds at the borders of SAME convolutions

@@ -16,6 +16,8 @@ import pytest
 
 from tests.utils import load_experiment
 
+pytestmark = pytest.mark.slow
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 

@@ -21,7 +21,7 @@ from camrep.runtime import runconfig
 from camrep.synthesis import components, synthesizers
 from camrep.synthesis import step as step_lib
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 STEPS = 3
 LOSS_RTOL = 0.10  # train/loss, per step (measured <= 2.4%)

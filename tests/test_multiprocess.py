@@ -17,9 +17,12 @@ import time
 
 import jax
 import numpy as np
+import pytest
 
 from camrep.runtime import writers
 from camrep.synthesis import restore
+
+pytestmark = pytest.mark.slow
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 STEPS = 6

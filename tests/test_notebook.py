@@ -17,6 +17,8 @@ import pytest
 
 from tests.utils import load_experiment
 
+pytestmark = pytest.mark.slow
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 NOTEBOOK = ROOT / "experiments" / "quickstart.ipynb"
 # Committed with its outputs (PNG images in base64): small enough to review on the web page.

@@ -114,6 +114,7 @@ def test_restart_at_step_matches_uninterrupted_stream():
     assert_batches_equal(batch, full[k])
 
 
+@pytest.mark.slow
 def test_worker_processes_give_the_same_stream_and_resume(data_dir):
   """num_workers > 0 (grain mp_prefetch, spawned processes decoding the stored PNGs): the same
   batches in the same order as `batch(k)`, from any start step, on every process's shard."""

@@ -8,7 +8,7 @@ import re
 import pytest
 
 # The example compiles expm, decode and the rotation losses once each: compilation dominates.
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 README = pathlib.Path(__file__).resolve().parents[1] / "README.md"
 

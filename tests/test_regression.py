@@ -29,7 +29,7 @@ from tests.utils import load_experiment, snapshot
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")

@@ -28,6 +28,8 @@ from camrep.regression import driver, learner
 from camrep.regression import targets as T
 from camrep.runtime.runconfig import ConfigError
 
+pytestmark = pytest.mark.slow
+
 REFERENCE = pathlib.Path(__file__).parent / "data" / "regression_configs.json"
 VARIANTS = ("smoke", "quick", "medium", "paper")
 # Fields the old configs did not have: command-line overrides of the hyper-parameters, unset

@@ -37,7 +37,7 @@ from camrep.synthesis import train as synthesis_train
 from tests import readers_fixtures as fx
 from tests.utils import load_experiment
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 _SHARED = pathlib.Path(os.environ.get("CAMREP_SHARED", ROOT.parent / "shared"))

@@ -180,6 +180,7 @@ def _paper_params(setting, rep, *, size, **kw):
   return layers.param_count(_abstract_init(reg, batch)["params"])
 
 
+@pytest.mark.slow
 def test_paper_width_parameter_counts():
   """The baselines' extra FC layer brings their size within 10% of ours (GQN)."""
   ours = _paper_params("gqn", "ours", size=64)
@@ -367,6 +368,7 @@ def test_training_reduces_the_loss():
   assert errors["rotation_error_deg"].shape == (64,) and np.mean(errors["rotation_error_deg"]) < 60
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rep", ["rot6d", "svd9d"])
 def test_continuous_rotation_targets_train(rep):
   """The 6-D / 9-D targets through the real step: finite matrix losses that fall, rotations out."""
@@ -403,6 +405,7 @@ def test_train_step_homoscedastic_and_batch_norm():
   assert float(m["loss"]) == pytest.approx(want, rel=1e-5)
 
 
+@pytest.mark.slow
 def test_train_and_predict_gqn():
   rng = np.random.default_rng(2)
   reg = _make("gqn", "ours", refine_steps=0)  # refinement: tests/test_targets.py

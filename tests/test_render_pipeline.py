@@ -9,7 +9,7 @@ import pytest
 from camrep.data import pipeline, procedural
 from camrep.data.errors import DataError
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 
 def test_render_pipeline_matches_records_and_is_deterministic():

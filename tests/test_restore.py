@@ -21,7 +21,7 @@ from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import components, restore
 from camrep.synthesis import step as step_lib
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 
 class Rendered(AssertionError):

@@ -26,7 +26,7 @@ from camrep.runtime import writers
 from camrep.synthesis import restore, train
 
 # One xdist worker runs the module, so the reference run is made once.
-pytestmark = pytest.mark.xdist_group("resume")
+pytestmark = [pytest.mark.xdist_group("resume"), pytest.mark.slow]
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 # Run as a module from ROOT, where camrep and tests import (`python -m tests.resume_script`).

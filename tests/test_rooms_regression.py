@@ -21,6 +21,8 @@ from camrep.configs import regression as regression_config
 from camrep.regression import driver, learner, scoring
 from camrep.regression import views as views_lib
 
+pytestmark = pytest.mark.slow
+
 
 def _small_quick_config(**family):
   """configs/regression.py:quick's gqn setting (its rooms' look) at a size that trains in

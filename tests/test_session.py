@@ -19,7 +19,7 @@ from camrep.synthesis import step as step_lib
 from camrep.synthesis import train
 from tests.utils import load_experiment
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 
 def hashes(workdir) -> dict[str, str]:

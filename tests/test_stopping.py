@@ -56,6 +56,7 @@ def cache(tmp_path_factory):
   return str(tmp_path_factory.mktemp("stop_cache"))
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("fast_compile")
 def test_driver_stops_a_flat_run_and_runs_an_improving_one_to_the_cap(tmp_path, cache, monkeypatch):
   flat = [1.0] * 20

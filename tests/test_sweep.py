@@ -9,7 +9,7 @@ import pytest
 
 from tests.utils import load_experiment
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 
 def test_parse_variant():

@@ -24,7 +24,7 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 CONFIGS = {"gqn": gqn, "shapenet_car": shapenet_car, "gibson": gibson, "seven_scenes": seven_scenes}
 
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 
 @pytest.mark.parametrize("name", sorted(CONFIGS))

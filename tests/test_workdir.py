@@ -23,7 +23,7 @@ from camrep.synthesis import evaluate as ev
 from camrep.synthesis import train
 from tests.utils import snapshot
 
-pytestmark = pytest.mark.usefixtures("fast_compile")
+pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
