@@ -248,6 +248,7 @@ def _loss(params, t, v, method, s):
   return jnp.sum(jnp.sin(lie.apply_exp_skew(B, t, v, method=method)) * jnp.arange(1, s + 1))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", lie.EXP_METHODS)
 def test_jit_vmap_grad_agree_with_eager(method):
   with x64():
@@ -266,6 +267,7 @@ def test_jit_vmap_grad_agree_with_eager(method):
       assert_close(a, b, atol=1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", lie.EXP_METHODS)
 @pytest.mark.parametrize("point", ["random", "near_zero"])
 def test_jacfwd_jacrev_numerical(method, point):
@@ -286,6 +288,7 @@ def test_jacfwd_jacrev_numerical(method, point):
       assert_close(jf, jn, atol=1e-7)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", lie.EXP_METHODS)
 @pytest.mark.parametrize("case", ["B_zero", "t_zero", "degenerate", "near_degenerate"])
 def test_no_nan_gradient_and_matches_expm(method, case):
@@ -413,6 +416,7 @@ def test_plane_pq_split():
     assert_close(q, np.zeros((h, h)), atol=0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("s", [7, 8])
 @pytest.mark.parametrize("case", ["random", "degenerate", "near_degenerate", "B_zero"])
 def test_spectral_even_planes_and_odd_fallback_match_expm(s, case):
@@ -462,6 +466,7 @@ def test_spectral_broadcast_layouts():
       assert_close(out, ref, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_spectral_float32_bench_workload():
   """The bench's shape (6 blocks of 16 x 16, |B dl| <= 1, float32; fewer pairs): value within
   2e-6 of float64 and gradient (generator parameters and vectors) within 1e-5 relative."""

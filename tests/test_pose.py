@@ -136,6 +136,7 @@ def test_normalisation_in_forward_pass():
 # ---------------------------------------------------------------------------- embedding
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("batch", [(), (5,), (2, 3)])
 def test_embed_shapes_jit_vmap(batch):
   spec = P.PoseSystemSpec(
@@ -209,6 +210,7 @@ def test_periodic_angle_wraps():
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", lie.EXP_METHODS)
 def test_consistent_system_embeds_on_orbit_and_is_continuous(method):
   """With grid vectors on the orbit exp(B x) v0, embedding reproduces the orbit between grid
@@ -405,6 +407,7 @@ def _random_poses(spec, n, seed=0):
   ],
   ids=["yaw_x", "polar"],
 )
+@pytest.mark.slow
 def test_rotation_fitted_system_decodes_below_grid_spacing(dofs):
   """A system fitted with the rotation losses alone decodes random poses to a small fraction of
   the grid spacing; refinement beats the plain arg-min of eq. 12."""
