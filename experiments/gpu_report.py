@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib.util
 import json
 import os
 import platform
@@ -48,9 +49,20 @@ import sys
 import tempfile
 import time
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+
+
+def _sibling(name: str):
+  """experiments/<name>.py as a module (experiments/ is not a package; no sys.path edits)."""
+  if name in sys.modules:
+    return sys.modules[name]
+  spec = importlib.util.spec_from_file_location(name, os.path.join(HERE, f"{name}.py"))
+  module = importlib.util.module_from_spec(spec)
+  sys.modules[name] = module
+  spec.loader.exec_module(module)
+  return module
+
 
 PHASES = ("env", "step", "profile", "e2e", "car", "gibson", "seven_scenes", "medium")
 # Config of each end-to-end phase.
@@ -79,11 +91,11 @@ def wheelhouse_command() -> str:
 
 def gpu_command(phases: str) -> str:
   """The device tool's `run` command of one call (run with carry=[".whl"])."""
-  import build_wheelhouse
+  build_wheelhouse = _sibling("build_wheelhouse")
 
   return (
     f"{build_wheelhouse.install_command(WHEELHOUSE)} && "
-    f"PYTHONUNBUFFERED=1 python3 experiments/gpu_report.py --phases {phases} --out $OUT"
+    f"PYTHONPATH=. PYTHONUNBUFFERED=1 python3 experiments/gpu_report.py --phases {phases} --out $OUT"
   )
 
 
@@ -143,7 +155,8 @@ def plan_lines(variant: str) -> list[str]:
 def _device_memory() -> dict:
   """Peak device memory of this process (GPU allocator stats; RSS on the CPU), MiB."""
   import jax
-  from bench_train_step import peak_rss_mb
+
+  peak_rss_mb = _sibling("bench_train_step").peak_rss_mb
 
   stats = jax.local_devices()[0].memory_stats() or {}
   out = {"host_peak_rss_mib": peak_rss_mb()}
@@ -188,7 +201,8 @@ def phase_env(args) -> dict:
 
 def phase_step(args) -> dict:
   """The paper GQN step alone, float32 and bfloat16, MFU against the same dtype's peak."""
-  import bench_train_step as bts
+  _sibling("bench_pipeline")  # bench_train_step imports it by name
+  bts = _sibling("bench_train_step")
   import jax
 
   smoke = args.variant == "smoke"
@@ -243,7 +257,8 @@ def summarise_trace(folder: str, steps: int, top: int = 25) -> dict:
 
 def phase_profile(args) -> dict:
   """Where the float32 paper-size step's time goes: a jax.profiler trace of 10 steps."""
-  import bench_train_step as bts
+  _sibling("bench_pipeline")  # bench_train_step imports it by name
+  bts = _sibling("bench_train_step")
   import jax
 
   smoke = args.variant == "smoke"
@@ -264,7 +279,7 @@ def phase_profile(args) -> dict:
 
 def phase_e2e(args, config_path: str) -> dict:
   """Step alone, renderers, prepared data and the end-to-end loops of one config."""
-  import bench_pipeline
+  bench_pipeline = _sibling("bench_pipeline")
 
   from camrep.synthesis import components
 
@@ -336,8 +351,7 @@ def phase_medium(args) -> dict:
     return max(10.0, deadline - time.perf_counter())
 
   # View synthesis, shortened: K steps timed whole, the rest extrapolated at the logged rate.
-  sys.path.insert(0, ROOT)
-  from configs import gqn
+  from camrep.configs import gqn
 
   total = int(gqn.get_config(variant).total_steps)
   k = min(total, 4 if smoke else 2000)

@@ -528,7 +528,7 @@ def _variants(base: pathlib.Path) -> str:
     return " (nothing is prepared under it)"
   return (
     f"; it holds {', '.join(found)}. The configs read the dataset of data.preset (':quick' ones "
-    "'small'): prepare with `--preset small` (or `--config_name small` with your --set "
+    "'small'): prepare with `--preset small` (or `--config_name small` with your --config. "
     "overrides), or pass --config.data.preset=default to read the default one, when its image "
     "size is the model's"
   )

@@ -300,7 +300,7 @@ def load_frame_image(
       raise DistortionError(
         frame.image_path,
         f"camera has distortion {frame.distortion.tolist()} (k1, k2, p1, p2, k3, ...) and "
-        "undistortion is off; pass --set undistort=True",
+        "undistortion is off; pass --config.undistort=True",
       )
     k = frame.camera_matrix()
     # Pixels that come from outside the source image take the background colour.

@@ -140,7 +140,7 @@ class CaptureSource:
             bad[0].image_path,
             f"{len(bad)} frame(s) of {cap.name} have lens distortion "
             f"{bad[0].distortion.tolist()} (k1, k2, p1, p2, k3, ...) and undistort=False; "
-            "drop --set undistort=False to undistort them with OpenCV",
+            "drop --config.undistort=False to undistort them with OpenCV",
           )
     names = [c.name for c in self.captures]
     if isinstance(unseen, int):

@@ -211,7 +211,7 @@ def object_centric(
 _ROUTE = (
   ": the capture does not look at one object, so the car setting (azimuth, polar around a "
   "centre) would mis-pose it; prepare it in the 6-DOF setting instead (--source "
-  "nerf_6dof / llff_6dof / colmap_6dof), or accept it with --set max_residual_deg=DEG"
+  "nerf_6dof / llff_6dof / colmap_6dof), or accept it with --config.max_residual_deg=DEG"
 )
 
 
