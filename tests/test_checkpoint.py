@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import json
 import os
 import signal
 import warnings
@@ -369,3 +370,85 @@ def test_signal_handler_first_sigint_only_requests():
   finally:
     handler.uninstall()
   assert signal.getsignal(signal.SIGINT) is before
+
+
+def _manifest(step_dir: str) -> str:
+  return os.path.join(step_dir, ckpt_lib.MANIFEST_NAME)
+
+
+@pytest.mark.parametrize("async_save", [False, True])
+def test_manifest_written_for_each_save(tmp_path, async_save):
+  with ckpt_lib.Checkpointer(tmp_path, max_to_keep=2, async_save=async_save) as c:
+    for s in (1, 2, 3):
+      c.save(s, _make_state(s), extra={"data_step": s})
+    c.wait_until_finished()
+    assert c.all_steps() == [2, 3]
+    for s in (2, 3):
+      step_dir = os.path.join(c.directory, str(s))
+      assert os.path.isfile(_manifest(step_dir))
+      assert ckpt_lib.verify_manifest(step_dir)
+      with open(_manifest(step_dir)) as fh:
+        files = json.load(fh)["files"]
+      # Every file of the step is covered, the array data included.
+      on_disk = {
+        os.path.relpath(os.path.join(r, n), step_dir)
+        for r, _, names in os.walk(step_dir)
+        for n in names
+        if n != ckpt_lib.MANIFEST_NAME
+      }
+      assert set(files) == on_disk
+      assert any(os.path.join(step_dir, f) in _data_files(step_dir) for f in files)
+    # No manifest temp file is left behind.
+    left = [n for r, _, ns in os.walk(c.directory) for n in ns if ".tmp" in n]
+    assert left == []
+
+
+@_ignore_orbax_async_noise
+def test_flipped_bytes_fail_verification_and_fall_back(ckpt):
+  good, bad = _make_state(1), _make_state(2)
+  ckpt.save(1, good, extra={"data_step": 1})
+  ckpt.save(2, bad, extra={"data_step": 2})
+  step_dir = os.path.join(ckpt.directory, "2")
+  target = _data_files(step_dir)[0]
+  size = os.path.getsize(target)
+  with open(target, "r+b") as fh:  # 64 bytes in the middle, size unchanged
+    fh.seek(size // 2)
+    chunk = fh.read(64)
+    fh.seek(size // 2)
+    fh.write(bytes(b ^ 0xFF for b in chunk))
+  assert os.path.getsize(target) == size
+  rel = os.path.relpath(target, step_dir)
+  with pytest.warns(
+    ckpt_lib.CorruptCheckpointWarning, match=rf"step 2 .*checksum mismatch in {rel}"
+  ):
+    restored, extra, step = ckpt.restore(_make_state(0))
+  _assert_bit_exact(restored, good)
+  assert (extra, step) == ({"data_step": 1}, 1)
+  with pytest.raises(ckpt_lib.CheckpointError, match="checksum mismatch"):
+    ckpt.restore(_make_state(0), step=2)
+  # The bad step is deleted at the next save and written again, verified.
+  assert ckpt.save(2, bad, extra={"data_step": 2})
+  with warnings.catch_warnings():
+    warnings.simplefilter("error", ckpt_lib.CorruptCheckpointWarning)
+    restored, _, step = ckpt.restore(_make_state(0))
+  _assert_bit_exact(restored, bad)
+  assert step == 2
+
+
+def test_checkpoint_without_manifest_restores(tmp_path, caplog):
+  state = _make_state(3)
+  with ckpt_lib.Checkpointer(tmp_path) as c:
+    c.save(1, state, extra={"data_step": 1})
+    c.save(2, state, extra={"data_step": 2})
+    for s in (1, 2):  # as written by an older camrep
+      os.remove(_manifest(os.path.join(c.directory, str(s))))
+  with ckpt_lib.Checkpointer(tmp_path) as c:
+    with warnings.catch_warnings():
+      warnings.simplefilter("error")
+      with caplog.at_level("INFO"):
+        restored, extra, step = c.restore(_make_state(0))
+        c.restore(_make_state(0), step=1)
+  _assert_bit_exact(restored, state)
+  assert (extra, step) == ({"data_step": 2}, 2)
+  notes = [r for r in caplog.records if ckpt_lib.MANIFEST_NAME in r.getMessage()]
+  assert len(notes) == 1  # at most one note, no warning

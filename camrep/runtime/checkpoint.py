@@ -29,6 +29,15 @@ Faults and what happens:
   truncated or deleted, a sub-item missing) it emits a `CorruptCheckpointWarning` naming the
   bad step and tries the previous one, and raises `CheckpointError` if none is usable. The next
   `save()` deletes the steps found bad, so that the resumed run can write them again.
+* Integrity: once a save is complete on disk (after Orbax's rename; for an async save at the
+  next `save`, `wait_until_finished` or `close`), process 0 writes `<step>/camrep_checksums.json`
+  (crc32c and size of every file of the step, written atomically). `restore()` checks it before
+  reading a step: a file whose size or checksum differs (bit rot, a flipped byte that Orbax
+  would read without complaint) makes that step bad exactly like an unreadable one
+  (`CorruptCheckpointWarning` "checksum mismatch in FILE", fallback, deleted at the next save).
+  So a step that restores is verified. A step without a manifest (written by an older camrep,
+  or an async save killed after its rename and before its manifest) restores unverified, with
+  one log line. The cost is one read of the step's files per save, once it is finished.
 * A template that does not match the checkpoint (missing/extra leaves, other shapes) raises
   `CheckpointError` at once, without falling back: older checkpoints would not match either.
   Dtypes are cast to the template's.
@@ -40,9 +49,10 @@ Several processes (multi-host): every process must construct the `Checkpointer` 
 `save`/`restore` with the same steps, because Orbax's saves are collective. Orbax handles
 `jax.process_index()`: each process writes its own array shards, the `extra` JSON, step
 metadata and directory renames/deletions happen only on the primary process (0), and it places
-the barriers. This module writes no files of its own (the writability probe is a per-process
-uniquely named temporary file, removed at once). `extra` must be identical on all processes.
-With several processes, combine `PreemptionHandler.requested` across processes (e.g. an
+the barriers. This module writes only the checksum manifest, on process 0 (the writability probe
+is a per-process uniquely named temporary file, removed at once); every process verifies it at
+restore (same files, same verdict, so all fall back alike). `extra` must be identical on all
+processes. With several processes, combine `PreemptionHandler.requested` across processes (e.g. an
 all-gather, or `CheckpointManager.reached_preemption`) before deciding to save, since a save
 that only some processes enter would hang. Only one writer may use a directory at a time;
 readers (evaluation jobs) should pass `read_only=True`, which neither cleans up tmp
@@ -65,6 +75,7 @@ import warnings
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
+import crc32c
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -84,6 +95,8 @@ _STATE = "state"
 _EXTRA = "extra"
 CHECKPOINT_SUBDIR = "checkpoints"
 _TMP_SUFFIX = ".orbax-checkpoint-tmp"
+MANIFEST_NAME = "camrep_checksums.json"
+_MANIFEST_VERSION = 1
 
 
 class CheckpointError(RuntimeError):
@@ -176,6 +189,76 @@ class _HeldStderr:
     return self._restore().count(b"\n")
 
 
+class _ChecksumMismatch(ValueError):
+  """A step's files differ from its checksum manifest."""
+
+
+def _file_crc32c(path: str, chunk: int = 1 << 22) -> str:
+  value = 0
+  with open(path, "rb") as fh:
+    while block := fh.read(chunk):
+      value = crc32c.crc32c(block, value)
+  return f"{value:08x}"
+
+
+def _step_files(step_dir: str) -> list[str]:
+  """Paths relative to `step_dir` of every file under it except the manifest (and its tmp)."""
+  out = []
+  for root, _, names in os.walk(step_dir):
+    for name in names:
+      if name.startswith(MANIFEST_NAME):
+        continue
+      out.append(os.path.relpath(os.path.join(root, name), step_dir))
+  return sorted(out)
+
+
+def write_manifest(step_dir: str) -> None:
+  """Writes `step_dir/camrep_checksums.json` (crc32c and size per file), atomically."""
+  files = {}
+  for rel in _step_files(step_dir):
+    path = os.path.join(step_dir, rel)
+    files[rel] = {"size": os.path.getsize(path), "crc32c": _file_crc32c(path)}
+  text = json.dumps({"version": _MANIFEST_VERSION, "files": files}, indent=1, sort_keys=True)
+  final = os.path.join(step_dir, MANIFEST_NAME)
+  tmp = f"{final}.tmp-{os.getpid()}"
+  try:
+    with open(tmp, "w") as fh:
+      fh.write(text)
+      fh.flush()
+      os.fsync(fh.fileno())
+    os.replace(tmp, final)
+  finally:
+    if os.path.lexists(tmp):
+      os.remove(tmp)
+
+
+def verify_manifest(step_dir: str) -> bool:
+  """Checks the files of `step_dir` against its manifest.
+
+  Returns:
+    True if verified, False if the step has no manifest (written by an older camrep).
+
+  Raises:
+    _ChecksumMismatch: naming the first file that is missing or differs, or an unreadable
+      manifest.
+  """
+  path = os.path.join(step_dir, MANIFEST_NAME)
+  if not os.path.exists(path):
+    return False
+  try:
+    with open(path) as fh:
+      files = json.load(fh)["files"]
+  except (OSError, ValueError, KeyError, TypeError) as e:
+    raise _ChecksumMismatch(f"checksum manifest {MANIFEST_NAME} unreadable ({_short(e)})") from e
+  for rel, want in sorted(files.items()):
+    full = os.path.join(step_dir, rel)
+    if not os.path.isfile(full):
+      raise _ChecksumMismatch(f"checksum mismatch in {rel}: file missing")
+    if os.path.getsize(full) != want["size"] or _file_crc32c(full) != want["crc32c"]:
+      raise _ChecksumMismatch(f"checksum mismatch in {rel}")
+  return True
+
+
 def _short(exc: BaseException, limit: int = 300) -> str:
   text = " ".join(str(exc).split())
   if len(text) > limit:
@@ -256,6 +339,8 @@ class Checkpointer:
     self._read_only = read_only
     self._bad_steps: set[int] = set()
     self._pending_step: int | None = None
+    self._unhashed_step: int | None = None  # saved (maybe still in flight), no manifest yet
+    self._noted_unverified = False
     if read_only:
       if not os.path.isdir(self.directory):
         raise CheckpointError(f"Checkpoint directory {self.directory} does not exist.")
@@ -354,6 +439,7 @@ class Checkpointer:
     try:
       # Surface errors of a previous async save before deleting anything.
       self._manager.wait_until_finished()
+      self._write_pending_manifest()
       self._delete_bad_steps()
       self._remove_tmp_dirs(step)
       if force and step in self._manager.all_steps():
@@ -362,6 +448,7 @@ class Checkpointer:
         logging.info("Checkpoint step %d not saved: not newer than step %d.", step, latest)
         return False
       self._pending_step = step
+      self._unhashed_step = step
       saved = self._manager.save(
         step,
         args=ocp.args.Composite(
@@ -371,6 +458,7 @@ class Checkpointer:
       )
       if not self._async_save:
         self._manager.wait_until_finished()
+        self._write_pending_manifest()
     except Exception as e:
       try:
         self._raise_save_error(e, step)
@@ -386,6 +474,19 @@ class Checkpointer:
     held.release()
     return bool(saved)
 
+  def _write_pending_manifest(self) -> None:
+    """Writes the manifest of the last save, which must be complete (after Orbax's
+    `wait_until_finished`). Process 0 only."""
+    step, self._unhashed_step = self._unhashed_step, None
+    if step is None or jax.process_index() != 0:
+      return
+    step_dir = os.path.join(self.directory, str(step))
+    if not os.path.isdir(step_dir):  # not saved (skipped), or already removed by retention
+      return
+    t0 = time.perf_counter()
+    write_manifest(step_dir)
+    logging.info("Checksummed checkpoint step %d in %.3f s.", step, time.perf_counter() - t0)
+
   def _delete_bad_steps(self) -> None:
     for bad in sorted(self._bad_steps & set(self._manager.all_steps())):
       logging.warning("Deleting unreadable checkpoint step %d in %s.", bad, self.directory)
@@ -394,6 +495,7 @@ class Checkpointer:
 
   def _raise_save_error(self, exc: Exception, step: int | None) -> None:
     """Cleans up after a failed save and re-raises, as CheckpointError for I/O errors."""
+    self._unhashed_step = None
     self._recover()
     if _is_disk_full(exc):
       raise CheckpointError(
@@ -451,6 +553,13 @@ class Checkpointer:
       self._manager.wait_until_finished()
     except Exception as e:
       self._raise_save_error(e, self._pending_step)
+    try:
+      self._write_pending_manifest()
+    except OSError as e:
+      raise CheckpointError(
+        f"Could not write the checksum manifest of step {self._pending_step} in "
+        f"{self.directory} ({_short(e)})."
+      ) from e
 
   def close(self) -> None:
     """Waits for pending saves and releases Orbax's resources."""
@@ -500,6 +609,7 @@ class Checkpointer:
     failures = []
     for s in candidates:
       try:
+        self._verify(s)
         restored = self._manager.restore(
           s,
           args=ocp.args.Composite(
@@ -511,7 +621,9 @@ class Checkpointer:
         if not isinstance(extra, dict):
           raise ValueError(f"'extra' is {type(extra).__name__}, not a dict")
       except Exception as e:
-        mismatch = self._template_mismatch(s, abstract)
+        mismatch = (
+          None if isinstance(e, _ChecksumMismatch) else self._template_mismatch(s, abstract)
+        )
         if mismatch:
           raise CheckpointError(
             f"Checkpoint step {s} in {self.directory} does not match the state template: {mismatch}"
@@ -543,6 +655,19 @@ class Checkpointer:
       f"No usable checkpoint in {self.directory}: all of steps {steps} are unreadable. "
       + "; ".join(failures)
     )
+
+  def _verify(self, step: int) -> None:
+    """Checks step `step` against its checksum manifest (raises `_ChecksumMismatch`)."""
+    if not verify_manifest(os.path.join(self.directory, str(step))):
+      if not self._noted_unverified:
+        self._noted_unverified = True
+        logging.info(
+          "Checkpoint step %d in %s has no %s (written by an older camrep): restored "
+          "without checksum verification.",
+          step,
+          self.directory,
+          MANIFEST_NAME,
+        )
 
   def _template_mismatch(self, step: int, abstract: PyTree) -> str | None:
     """Describes how `abstract` differs from checkpoint `step`'s metadata.

@@ -61,7 +61,7 @@ def train_and_evaluate(
   Raises:
     ConfigError: a bad config, one the workdir's does not allow, or `total_steps` below the
       latest checkpoint's step.
-    FloatingPointError: a loss or gradient became non-finite (the last good checkpoint is kept).
+    FloatingPointError: a loss or gradient became non-finite (the last checkpoint is kept).
     WorkdirError: the workdir cannot be written.
   """
   components.check_config(config)
@@ -183,7 +183,8 @@ def raise_if_not_finite(writer, pending: list[tuple[int, Mapping]], workdir: str
     writer.write_scalars(step, host)
     raise FloatingPointError(
       f"non-finite training values at step {step} ({', '.join(bad) or 'gradients'}); "
-      f"updates of this step were skipped and the last good checkpoint is kept in {workdir}"
+      f"updates of this step were skipped; the last checkpoint is kept in {workdir} and a resume "
+      "verifies its checksums before using it"
     )
 
 
