@@ -11,7 +11,7 @@ Exit status, the same for every tool:
      flag, an unknown `--config.` field, a value of the wrong type, enum or sign, a config whose
      parts do not fit, a workdir or dataset that cannot be used, an unusable checkpoint, a full
      disk or a read-only file system
-  3  a training run stopped on non-finite values (the last good checkpoint is kept)
+  3  a training run stopped on non-finite values (the last checkpoint is kept; a resume verifies it)
 
 Usage in a tool's module, either with flags defined at import (camrep.main, camrep.regression):
 
