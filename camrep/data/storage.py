@@ -49,6 +49,7 @@ import tensorflow_datasets as tfds
 import tqdm
 
 from camrep.data.errors import DataError
+from camrep.runtime import writers
 
 DEFAULT_VERSION = "1.0.0"
 KNOWN_SPLITS = ("train", "test", "test_scenes")
@@ -429,23 +430,9 @@ def prepare(
   describe = getattr(source, "describe", None)
   if callable(describe):  # optional: facts the source states about itself (captures)
     meta["source_info"] = describe()
-  _write_text_atomic(path / METADATA_FILE, json.dumps(meta, indent=2, sort_keys=True, default=str))
+  text = json.dumps(meta, indent=2, sort_keys=True, default=str)
+  writers.write_text_atomic(path / METADATA_FILE, text)  # last: it marks a finished dataset
   return path
-
-
-def _write_text_atomic(path: pathlib.Path, text: str) -> None:
-  """Writes `path` whole or not at all (a full disk leaves the old file or none, never a cut
-  one: the metadata marks a finished dataset)."""
-  tmp = path.with_name(path.name + ".tmp")
-  try:
-    with open(tmp, "w", encoding="utf-8") as f:
-      f.write(text)
-      f.flush()
-      os.fsync(f.fileno())
-    os.replace(tmp, path)
-  except BaseException:
-    tmp.unlink(missing_ok=True)
-    raise
 
 
 def _version_dirs(base: pathlib.Path) -> list[pathlib.Path]:

@@ -81,6 +81,8 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
+from camrep.runtime import writers
+
 __all__ = [
   "CheckpointError",
   "Checkpointer",
@@ -219,17 +221,7 @@ def write_manifest(step_dir: str) -> None:
     path = os.path.join(step_dir, rel)
     files[rel] = {"size": os.path.getsize(path), "crc32c": _file_crc32c(path)}
   text = json.dumps({"version": _MANIFEST_VERSION, "files": files}, indent=1, sort_keys=True)
-  final = os.path.join(step_dir, MANIFEST_NAME)
-  tmp = f"{final}.tmp-{os.getpid()}"
-  try:
-    with open(tmp, "w") as fh:
-      fh.write(text)
-      fh.flush()
-      os.fsync(fh.fileno())
-    os.replace(tmp, final)
-  finally:
-    if os.path.lexists(tmp):
-      os.remove(tmp)
+  writers.write_text_atomic(os.path.join(step_dir, MANIFEST_NAME), text)
 
 
 def verify_manifest(step_dir: str) -> bool:

@@ -67,12 +67,7 @@ def last_logged(workdir: str) -> dict[str, float]:
 
 def _write_json(path: str, record: Mapping[str, Any]) -> None:
   """Writes `record` atomically: a reader sees the old file or the whole new one."""
-  tmp = f"{path}.tmp.{os.getpid()}"
-  with open(tmp, "w", encoding="utf-8") as f:
-    json.dump(record, f, indent=1)
-    f.flush()
-    os.fsync(f.fileno())
-  os.replace(tmp, path)
+  writers.write_text_atomic(path, json.dumps(record, indent=1))
 
 
 class Session:

@@ -47,6 +47,23 @@ _STR_TO_NONFINITE = {"NaN": math.nan, "Infinity": math.inf, "-Infinity": -math.i
 _PNG_NAME = re.compile(r"^(?P<name>.+)_(?P<step>\d{8,})\.png$")
 
 
+def write_text_atomic(path: str | os.PathLike, text: str) -> None:
+  """Writes `path` whole or not at all: a temporary file beside it, flushed to disk, then
+  renamed over it, so a reader (or a run after a full disk or a kill) sees the old file or the
+  whole new one, never a cut one; the temporary file is removed on any failure."""
+  path = os.fspath(path)
+  tmp = f"{path}.tmp.{os.getpid()}"
+  try:
+    with open(tmp, "w", encoding="utf-8") as f:
+      f.write(text)
+      f.flush()
+      os.fsync(f.fileno())
+    os.replace(tmp, path)
+  finally:
+    if os.path.lexists(tmp):
+      os.remove(tmp)
+
+
 def tensorboard_available() -> bool:
   """Whether tensorboardX is importable (TensorBoard output is skipped otherwise)."""
   return _TBFileWriter is not None
