@@ -81,9 +81,10 @@ def test_configs_resolve_as_before():
   tests/data/configs_resolved.json was generated at commit 830ed49, before that edit, by: for each
   name in `camrep.configs.NAMES` and each variant in ("", "quick", "medium", "smoke") whose
   `get_config` does not raise ValueError, `json.loads(json.dumps(get_config(v).to_dict(),
-  sort_keys=True))`, stored as {name: {variant or "paper": dict}}. A workdir's config.json is
-  compared with the requested config on resume (`runconfig.check_changes`), so a field that
-  changed or disappeared here would refuse to resume existing runs.
+  sort_keys=True))`, stored as {name: {variant or "paper": dict}}; the view-synthesis configs'
+  `stop` section (issue 29, defaults: off) was added to their entries since. A workdir's
+  config.json is compared with the requested config on resume (`runconfig.check_changes`), so a
+  field that changed or disappeared here would refuse to resume existing runs.
   """
   reference = json.loads(REFERENCE.read_text())
   assert sorted(reference) == sorted(configs.NAMES)

@@ -1,18 +1,27 @@
-"""The regression stopping rule (camrep/regression/stopping.py, issue 29): the rule on given
-curves, and the driver applying it at its periodic validation (configs/regression.py:smoke runs
+"""The plateau stopping rule (camrep/runtime/stopping.py, issue 29): the rule on given curves;
+the regression driver applying it at its periodic validation (configs/regression.py:smoke runs
 whose validation score is replaced by a fixed curve: flat -> stops early and says why; still
-improving -> trains to the cap)."""
+improving -> trains to the cap); and the view-synthesis trainer applying it at its held-out
+evaluations (configs/gqn.py:smoke runs whose held-out PSNR is replaced by a fixed curve): the
+checkpoint and final_metrics.json at the step it stops, a rerun that changes nothing, a resumed
+run that goes on with its recorded curve, and a rule turned off that extends the run."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import shutil
 
 import pytest
 
+from camrep.configs import gqn
 from camrep.regression import driver as R
-from camrep.regression import stopping
+from camrep.runtime import session, stopping, writers
+from camrep.runtime.checkpoint import CHECKPOINT_SUBDIR
 from camrep.runtime.runconfig import ConfigError
+from camrep.synthesis import config_schema as synthesis_schema
+from camrep.synthesis import train
 from configs import regression as regression_config
 
 RULE = stopping.Rule(min_improvement=0.05, window=0.25, min_steps=0)
@@ -88,3 +97,129 @@ def test_an_active_rule_needs_periodic_validation(tmp_path):
   c.eval_every_steps, c.stop.window = 10, 0.0
   with pytest.raises(ConfigError, match="window"):
     R.resolve_config(c)
+
+
+# --------------------------------------------------------------------------------------------
+# View synthesis.
+
+
+def test_psnr_score_is_the_held_out_mse():
+  assert stopping.psnr_score(20.0) == pytest.approx(0.01)
+  # A 5% relative improvement of the score is a gain of ~0.22 dB.
+  assert stopping.psnr_score(20.2228) == pytest.approx(0.0095, rel=1e-4)
+
+
+def test_an_active_synthesis_rule_needs_held_out_evaluations():
+  c = gqn.get_config("smoke")
+  synthesis_schema.validate(c)  # off by default
+  c.stop.min_improvement, c.eval_every_steps = 0.02, 0
+  with pytest.raises(ConfigError, match="eval_every_steps > 0"):
+    synthesis_schema.validate(c)
+  c.eval_every_steps, c.stop.window = 2, 1.5
+  with pytest.raises(ConfigError, match="stop.window"):
+    synthesis_schema.validate(c)
+
+
+def _hashes(workdir) -> dict[str, str]:
+  out = {}
+  for root, _, files in os.walk(workdir):
+    for f in files:
+      p = os.path.join(root, f)
+      with open(p, "rb") as fh:
+        out[os.path.relpath(p, workdir)] = hashlib.sha256(fh.read()).hexdigest()
+  return out
+
+
+def _fake_psnr(monkeypatch, psnrs):
+  """The held-out evaluation replaced by `psnrs` in turn (written to metrics.jsonl as usual)."""
+  values = iter(psnrs)
+
+  def evaluate_and_log(writer, predict, batches, params, step, *, grid_scenes, log):
+    scalars = {"eval/psnr": float(next(values))}
+    writer.write_scalars(step, scalars)
+    return scalars
+
+  monkeypatch.setattr(train.heldout, "evaluate_and_log", evaluate_and_log)
+
+
+def _synthesis_config(total=12, **stop):
+  c = gqn.get_config("smoke")
+  c.total_steps, c.eval_every_steps, c.ckpt_every_steps, c.log_every_steps = total, 2, 4, 2
+  c.stop.update(stop)
+  return c
+
+
+def _checkpoints(wd) -> list[int]:
+  return sorted(int(n) for n in os.listdir(os.path.join(wd, CHECKPOINT_SUBDIR)) if n.isdigit())
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("fast_compile")
+def test_synthesis_stops_at_its_plateau_and_a_rerun_changes_nothing(tmp_path, monkeypatch):
+  wd = str(tmp_path / "flat")
+  rule = {"min_improvement": 0.05, "min_steps": 6}
+  _fake_psnr(monkeypatch, [20.0] * 20)
+  lines = []
+  train.train_and_evaluate(_synthesis_config(**rule), wd, log=lines.append)
+  final = session.read_final(wd)
+  s = final["stopping"]
+  # Evaluations at 2, 4, 6; from step 6 (min_steps) the window starts at 4.5: nothing improved
+  # since step 2. The checkpoint of step 6 is saved although ckpt_every_steps is 4.
+  assert final["complete"] is True and final["step"] == 6 and s["steps"] == 6
+  assert s["stopped_early"] and s["total_steps"] == 12 and "plateau at step 6" in s["reason"]
+  assert s["rule"] == {"min_improvement": 0.05, "window": 0.25, "min_steps": 6}
+  assert s["curve"] == [[2, 0.01], [4, 0.01], [6, 0.01]]
+  assert final["eval/psnr"] == 20.0
+  assert _checkpoints(wd)[-1] == 6 and max(r["step"] for r in writers.read_metrics(wd)) == 6
+  assert any("stopping at step 6: plateau" in line for line in lines)
+
+  # The same command again: nothing to do, no byte changed.
+  before = _hashes(wd)
+  lines = []
+  train.train_and_evaluate(_synthesis_config(**rule), wd, log=lines.append)
+  assert _hashes(wd) == before
+  assert len(lines) == 1 and "complete at step 6, stopped by the plateau rule" in lines[0]
+
+  # The rule turned off (a recorded change): the run goes on from step 6 to the cap.
+  _fake_psnr(monkeypatch, [21.0] * 20)
+  c = _synthesis_config()
+  c.allow_changes = "stop"
+  train.train_and_evaluate(c, wd, log=lambda s: None)
+  final = session.read_final(wd)
+  assert final["complete"] is True and final["step"] == 12 and "stopping" not in final
+  assert _checkpoints(wd)[-1] == 12
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("fast_compile")
+def test_a_resumed_synthesis_run_goes_on_with_its_recorded_curve(tmp_path, monkeypatch):
+  # Steps 1-4 under a 4-step cap (evaluations at 2 and 4: no plateau before min_steps 6).
+  wd = str(tmp_path / "resumed")
+  rule = {"min_improvement": 0.05, "min_steps": 6}
+  _fake_psnr(monkeypatch, [20.0, 21.0])
+  train.train_and_evaluate(_synthesis_config(total=4, **rule), wd, log=lambda s: None)
+  s = session.read_final(wd)["stopping"]
+  assert not s["stopped_early"] and s["reason"] == "reached total_steps" and s["steps"] == 4
+  # Extended to 12: the curve of steps 2 and 4 comes back from metrics.jsonl, so step 6 is
+  # judged against step 4's 21 dB (flat since: stop), not against nothing.
+  _fake_psnr(monkeypatch, [21.0] * 10)
+  c = _synthesis_config(**rule)
+  c.allow_changes = "total_steps"
+  train.train_and_evaluate(c, wd, log=lambda s: None)
+  final = session.read_final(wd)
+  s = final["stopping"]
+  assert final["step"] == 6 and s["stopped_early"] and _checkpoints(wd)[-1] == 6
+  assert [t for t, _ in s["curve"]] == [2, 4, 6]
+  assert s["curve"][0][1] == pytest.approx(stopping.psnr_score(20.0))
+
+  # A copy stopped early, extended with a stricter rule checked on the recorded curve at once:
+  # still a plateau by it at step 6 (the same decision the uninterrupted run would make).
+  strict = str(tmp_path / "strict")
+  shutil.copytree(wd, strict)
+  c = _synthesis_config(min_improvement=0.5, min_steps=6)
+  c.allow_changes = "stop"
+  lines = []
+  train.train_and_evaluate(c, strict, log=lines.append)
+  final = session.read_final(strict)
+  assert final["step"] == 6 and final["stopping"]["rule"]["min_improvement"] == 0.5
+  assert _checkpoints(strict)[-1] == 6

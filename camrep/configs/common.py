@@ -142,6 +142,14 @@ def base() -> ml_collections.ConfigDict:
   # ("total_steps,optax.lr_model"; a section name such as "evals" allows its fields). Only fields in
   # camrep.runtime.runconfig.SYNTHESIS_RESUMABLE may change; the changes go to config_history.jsonl.
   c.allow_changes = ""
+  # Plateau stopping rule (camrep/runtime/stopping.py), checked at each held-out evaluation (needs
+  # eval_every_steps > 0) on the held-out-view MSE 10^(-eval/psnr / 10): stop when its best value
+  # improved by less than `min_improvement` (relative) over the last `window` of the steps, not
+  # before `min_steps`; total_steps is the cap. min_improvement 0: off (train to total_steps).
+  c.stop = ml_collections.ConfigDict()
+  c.stop.min_improvement = 0.0
+  c.stop.window = 0.25
+  c.stop.min_steps = 0
 
   c.evals = ml_collections.ConfigDict()
   c.evals.num_scenes = 64  # held-out-view evaluation: scenes (one target view each)

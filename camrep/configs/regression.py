@@ -167,7 +167,7 @@ def get_config(arg: str | None = None) -> ml_collections.ConfigDict:
   c.log_every_steps = 100
   # Validation errors during training (metrics.jsonl only); 0: at the end only.
   c.eval_every_steps = 0
-  # Stopping rule (camrep/regression/stopping.py), checked at each periodic validation (needs
+  # Stopping rule (camrep/runtime/stopping.py), checked at each periodic validation (needs
   # eval_every_steps): stop when the best validation score (tables.validation_score) improved by
   # less than `min_improvement` (relative) over the last `window` of the steps, not before
   # `min_steps`; total_steps is the cap. min_improvement 0: off (train to total_steps).

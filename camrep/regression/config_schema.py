@@ -52,7 +52,7 @@ SCHEMA: dict[str, V.Field] = {
   "total_steps": _F(V.optional(V.POSITIVE)),
   "log_every_steps": _F(V.NONNEG),
   "eval_every_steps": _F(V.NONNEG),  # 0: at the end only
-  # The stopping rule (camrep/regression/stopping.py; the ranges `rule_from_config` accepts).
+  # The stopping rule (camrep/runtime/stopping.py; the ranges `rule_from_config` accepts).
   "stop.min_improvement": _F(V.NONNEG),  # 0: off
   "stop.window": _F(V.Rule("fraction")),
   "stop.min_steps": _F(V.NONNEG),

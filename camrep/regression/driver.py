@@ -68,12 +68,12 @@ import numpy as np
 
 from camrep import pose_inputs
 from camrep.data import sources
-from camrep.regression import learner, scoring, stopping
+from camrep.regression import learner, scoring
 from camrep.regression import tables as tables_lib
 from camrep.regression import targets as T
 from camrep.regression import views as views_lib
 from camrep.runtime import progress as progress_lib
-from camrep.runtime import runconfig, writers
+from camrep.runtime import runconfig, stopping, writers
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime.runconfig import ConfigError
 from camrep.synthesis import components, restore

@@ -40,6 +40,7 @@ SYNTHESIS_RESUMABLE = (
   "optax.anneal_steps",
   "data.dir",
   "model.dtype",
+  "stop.",
 )
 # Fields that change only speed or where output goes: they differ silently (still recorded).
 FREE = (

@@ -72,6 +72,10 @@ SCHEMA: dict[str, V.Field] = {
   # Retention that keeps no checkpoint would lose the run: refused.
   "ckpt_every_steps": _F(V.POSITIVE),
   "max_to_keep": _F(V.POSITIVE),
+  # The plateau stopping rule (camrep/runtime/stopping.py; the ranges `rule_from_config` accepts).
+  "stop.min_improvement": _F(V.NONNEG),  # 0: off
+  "stop.window": _F(V.Rule("fraction")),
+  "stop.min_steps": _F(V.NONNEG),
   "data.source": _F(V.one_of(sources.SOURCES)),
   "data.preset": _F(V.ANY),  # procedural: checked by `check_data`; prepared: a builder config
   "data.dir": _F(V.optional(V.Rule("dir"))),

@@ -1,8 +1,10 @@
-"""When a pose-regression run stops: a plateau rule on the periodic validation score.
+"""When a training run stops: a plateau rule on its periodic validation score (issue 29).
 
-Evaluated at each periodic validation (every `eval_every_steps`) by the driver: with the scores
-s(t_1), ..., s(t_k) so far (lower is better; `tables.validation_score`-style, so one number per
-evaluation), at step t = t_k
+Both stages use it, each on its own validation-like score, one number per evaluation, lower is
+better: pose regression (`camrep.regression.driver`) on `tables.validation_score` of its
+validation split; view synthesis (`camrep.synthesis.train`) on the held-out-view MSE
+10^(-eval/psnr / 10) (`psnr_score`). Evaluated at each periodic evaluation (every
+`eval_every_steps`): with the scores s(t_1), ..., s(t_k) so far, at step t = t_k
 
   best_now    = min over t_i <= t of s(t_i)
   best_before = min over t_i <= (1 - window) * t of s(t_i)
@@ -90,3 +92,10 @@ def check(rule: Rule, curve: Sequence[tuple[int, float]]) -> tuple[bool, str]:
       f"{100 * rule.min_improvement:.3g}%"
     )
   return False, f"improved by {100 * improvement:.2f}% over the last {rule.window:g} of the steps"
+
+
+def psnr_score(psnr: float) -> float:
+  """The view-synthesis stopping score of a mean held-out PSNR (dB, images in [0, 1]):
+  10^(-psnr / 10), the geometric mean over the evaluated images of their MSE; lower is better,
+  and a relative improvement x of it is a gain of -10 log10(1 - x) dB (2% ~ 0.088 dB)."""
+  return float(10.0 ** (-float(psnr) / 10.0))
