@@ -13,7 +13,8 @@ band from their minimum to their maximum. Issue 16 part 2: the rooms regression'
       --png /tmp/curve/rooms.png --md /tmp/curve/rooms.md
 
 With --bands (issue 29: a figure per setting, one line per representation, bands over seeds),
-runs are grouped by representation (their config.json): each table cell is "mean [min, max]" over
+runs are grouped by representation (their config.json; view-synthesis runs by their pose input,
+rep.kind, e.g. the eval/psnr curves of a converge launch's synthesis seeds): each table cell is "mean [min, max]" over
 the group's runs logged at that step, and the figure draws each group's mean with its min and
 max as a band, e.g. the validation curves
 (`eval/validation/score`, logged by every regression run with eval_every_steps) of a converge
@@ -120,9 +121,16 @@ def from_markdown(text: str) -> tuple[list[str], list[str], list[list[dict[int, 
 
 
 def group_of(workdir: str) -> str:
-  """A run's group under --bands: its representation, else its label."""
+  """A run's group under --bands: its representation (regression); a view-synthesis run's pose
+  input (rep.kind: grid, lowdim, mlp; "convdraw" for GQN's generator); else its label."""
   config = workdir_lib.read_stored_config(workdir) or {}
-  return config.get("representation") or label_of(workdir)
+  if config.get("representation"):
+    return config["representation"]
+  if config.get("model", {}).get("kind") == "convdraw":
+    return "convdraw"
+  if isinstance(config.get("rep"), dict) and config["rep"].get("kind"):
+    return config["rep"]["kind"]
+  return label_of(workdir)
 
 
 def bands(groups: Sequence[str], curves: Sequence[dict[int, float]]):

@@ -13,8 +13,11 @@
 steps); lr grids of three values, phase 1 trying up to two more (half a decade beyond the edge)
 while seed 0's choice sits at its grid's edge; one view-synthesis run per seed for "ours" (and
 the MLP embedding, and the GQN noise runs), `synthesis/<name>_seed<k>`, regression seed k of
-"ours" regressing synthesis seed k's pose system. Estimates come from per-step times measured on
-the shared 2-core CPU (CONVERGE_* constants). `--max_hours H` starts no run after H hours (the
+"ours" regressing synthesis seed k's pose system; every view-synthesis run but GQN's ConvDRAW is
+trained to its own plateau (the trainer's `--config.stop.*` rule at its held-out evaluations,
+capped at 4x its quick steps, CONVERGE_SYNTHESIS_CAPS; its curve in final_metrics.json
+"stopping" and DIR/curve_synthesis_<column>.{png,md}). Estimates come from per-step times
+measured on the shared 2-core CPU and from guessed shares of the caps (CONVERGE_* constants). `--max_hours H` starts no run after H hours (the
 running one finishes); rerunning the same command resumes, skipping finished runs.
 `--data car_NAME=SOURCE:DIR` (repeatable) adds a capture column "car_NAME": a capture prepared
 by `python -m camrep.data.prepare --source SOURCE --input CAPTURE --data_dir DIR --preset small`
@@ -129,28 +132,51 @@ class Plan:
   synthesis_flags: tuple[str, ...] = ()
   paired_synthesis: bool = False
   extend_grid: int = 0
+  # converge: view-synthesis runs to their own plateau (the trainer's `stop` rule at its held-out
+  # evaluations), capped at these steps per synthesis config ("gqn_convdraw": GQN's generator);
+  # a config not named keeps its own total_steps and no rule. Empty: no rule anywhere.
+  synthesis_caps: dict[str, int] = dataclasses.field(default_factory=dict)
 
 
-# Measured per-step times at quick size on this 2-core CPU, shared with other jobs (load average
-# 3-9 at the time; at load ~18 the same steps took 3-9x longer), /work/wt/notes/stats.md:
-# regressions of quat, 100 and 400 steps (car) / 50 and 250 steps (gqn), data cached: car
-# train_seconds 9.2 / 12.1 s -> 9.7 ms a step, gqn 30.4 / 55.3 s -> 125 ms a step (4 rooms x 10
-# views and the context encoder); gibson and seven_scenes scaled from the car by the older quick
-# estimates (regression_s / total_steps: 1.3x and 1.1x the car's), not measured. ~30 s a run of
-# start-up, compilation and evaluation. A car view-synthesis run of 120 steps: 0.38 s a step
-# (steps 20-120), 91 s wall (~45 s start-up, data, evaluations).
+# Per-step times at quick size on this 2-core CPU, shared with other jobs (load average 3-9 at
+# the time; at load ~18 the same steps took 3-9x longer), BUILD_NOTES "Issue 29".
+# MEASURED: regressions of quat, 100 and 400 steps (car) / 50 and 250 steps (gqn), data cached:
+# car train_seconds 9.2 / 12.1 s -> 9.7 ms a step, gqn 30.4 / 55.3 s -> 125 ms a step (4 rooms x
+# 10 views and the context encoder). A car view-synthesis run of 120 steps: 0.38 s a step (steps
+# 20-120), 91 s wall (~45 s start-up, data, evaluations). The GQN decoder's quick step: 2.5-3.0
+# steps/s alone (BUILD_NOTES "quick GQN"), i.e. 0.33-0.4 s: 0.38 s taken. GQN's ConvDRAW quick
+# step: 2.0-2.4 steps/s at load ~10 (BUILD_NOTES "ConvDRAW"): 0.45 s taken.
+# NOT MEASURED (scaled or guessed): gibson and seven_scenes regression steps (the car's x 1.3 and
+# x 1.1, from the older quick estimates); gibson and seven_scenes synthesis steps (the car's
+# 0.38 s); ~30 s a regression run of start-up, compilation and evaluation; ~3 s per held-out
+# evaluation of a synthesis run (20 of them under the plateau rule).
 CONVERGE_REG_STEP_S = {"car": 0.0097, "gqn": 0.125, "gibson": 0.0126, "seven_scenes": 0.0107}
 CONVERGE_REG_OVERHEAD_S = 30.0
-CONVERGE_SYNTHESIS_STEP_S = 0.38
-CONVERGE_SYNTHESIS_OVERHEAD_S = 45.0
-CONVERGE_SYNTHESIS_STEPS = 600  # the :quick view-synthesis runs' own total_steps
-# Regression caps (steps) and the stopping rule (camrep/regression/stopping.py) at converge size:
+CONVERGE_SYNTHESIS_STEP_S = {"gqn": 0.38, "car": 0.38, "gibson": 0.38, "seven_scenes": 0.38}
+CONVERGE_CONVDRAW_STEP_S = 0.45
+CONVERGE_SYNTHESIS_OVERHEAD_S = 45.0 + 20 * 3.0
+# The :quick view-synthesis runs' own total_steps (configs/<setting>.py:quick, gqn_convdraw.py).
+QUICK_SYNTHESIS_STEPS = {"gqn": 2000, "car": 600, "gibson": 600, "seven_scenes": 600}
+QUICK_CONVDRAW_STEPS = 2000
+# View synthesis to its own plateau (issue 29 part 3): capped at 4x the quick steps, held-out
+# evaluation every cap / 20 steps, the same rule as the regressions (2% over the last quarter of
+# the steps, on the held-out MSE 10^(-PSNR/10): ~0.09 dB), not before the quick length (so no
+# converge pose system is trained less than the quick one). GQN's ConvDRAW (noise figure only)
+# is left at its quick length without the rule: its learning-rate, sigma and KL schedules are
+# fractions of that length (configs/gqn_convdraw.py), which a cap or an early stop would cut.
+CONVERGE_SYNTHESIS_CAPS = {s: 4 * n for s, n in QUICK_SYNTHESIS_STEPS.items()}
+# Expected steps trained as a share of the cap, for the estimates only (the rules decide).
+# GUESSED, not measured: no converge run has been made; update them from the "stopping" records
+# ("steps") of the first finished runs (regression results.json, synthesis final_metrics.json).
+CONVERGE_SYNTHESIS_EXPECTED_SHARE = 0.6
+# Regression caps (steps) and the stopping rule (camrep/runtime/stopping.py) at converge size:
 # rooms to 8,000 steps (results/curve_rooms.md: ours still improving at 8,000), the others 6,000
 # (4x quick); validation every cap / 20 steps; stop when the best validation score improved by
 # less than 2% over the last quarter of the steps, not before a quarter of the cap.
 CONVERGE_CAPS = {"gqn": 8_000, "car": 6_000, "gibson": 6_000, "seven_scenes": 6_000}
 CONVERGE_MIN_IMPROVEMENT = 0.02
-# Expected steps trained as a share of the cap (for the estimate only; the stopping rule decides).
+# Expected steps trained as a share of the cap (for the estimate only; the stopping rule decides;
+# GUESSED, see CONVERGE_SYNTHESIS_EXPECTED_SHARE).
 CONVERGE_EXPECTED_SHARE = 0.6
 
 
@@ -163,7 +189,11 @@ def _converge_plan() -> Plan:
     s: CONVERGE_REG_OVERHEAD_S + CONVERGE_EXPECTED_SHARE * CONVERGE_CAPS[s] * t
     for s, t in CONVERGE_REG_STEP_S.items()
   }
-  syn = CONVERGE_SYNTHESIS_STEPS * CONVERGE_SYNTHESIS_STEP_S + CONVERGE_SYNTHESIS_OVERHEAD_S
+  syn = {
+    s: CONVERGE_SYNTHESIS_OVERHEAD_S
+    + CONVERGE_SYNTHESIS_EXPECTED_SHARE * CONVERGE_SYNTHESIS_CAPS[s] * t
+    for s, t in CONVERGE_SYNTHESIS_STEP_S.items()
+  }
   return Plan(
     variant="quick",
     seeds=(0, 1, 2),
@@ -174,7 +204,7 @@ def _converge_plan() -> Plan:
       "gibson": (1e-3, 3e-3, 1e-2),
       "seven_scenes": (1e-4, 3e-4, 1e-3),
     },
-    synthesis_s={s: syn for s in SETTINGS},
+    synthesis_s={**syn, "gqn_convdraw": 45.0 + QUICK_CONVDRAW_STEPS * CONVERGE_CONVDRAW_STEP_S},
     regression_s=reg_s,
     data_s={"gqn": 45, "car": 30, "gibson": 30, "seven_scenes": 20},
     evaluate_s=120,
@@ -184,7 +214,24 @@ def _converge_plan() -> Plan:
     ),
     paired_synthesis=True,
     extend_grid=2,
+    synthesis_caps=dict(CONVERGE_SYNTHESIS_CAPS),
   )
+
+
+def synthesis_flags(plan: Plan, setting: str, kind: str = "") -> list[str]:
+  """The plan's plateau flags of a view-synthesis run of `setting` with pose input `kind`
+  ("convdraw": GQN's generator, not capped), none without `synthesis_caps`."""
+  key = f"{setting}_convdraw" if kind == "convdraw" else setting
+  cap = plan.synthesis_caps.get(key)
+  if not cap:
+    return []
+  return [
+    f"--config.total_steps={cap}",
+    f"--config.eval_every_steps={cap // 20}",
+    f"--config.stop.min_improvement={CONVERGE_MIN_IMPROVEMENT:g}",
+    "--config.stop.window=0.25",
+    f"--config.stop.min_steps={cap // 4}",
+  ]
 
 
 def regression_flags(plan: Plan, setting: str) -> list[str]:
@@ -335,8 +382,8 @@ def synthesis_jobs(
       argv.append("--config.data.scenes_per_device=1")
     if seed:
       argv.append(f"--config.seed={seed}")
-    argv += list(plan.synthesis_flags)
-    est = plan.synthesis_s[setting]
+    argv += list(plan.synthesis_flags) + synthesis_flags(plan, setting, kind)
+    est = plan.synthesis_s.get(f"{setting}_{kind}", plan.synthesis_s[setting])
     jobs.append(Job(f"synthesis_{full}", argv, os.path.join(wd, "final_metrics.json"), est))
   return jobs
 
@@ -731,6 +778,12 @@ def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -
       "[~5s each] experiments/learning_curve.py --bands --metrics eval/validation/score per "
       f"column, runs at the chosen lr -> {L.out}/curve_<column>.{{png,md}}"
     )
+  if plan.synthesis_caps:
+    print(
+      "[~5s each] experiments/learning_curve.py --bands --metrics eval/psnr per column, its "
+      f"view-synthesis runs -> {L.out}/curve_synthesis_<column>.{{png,md}} (each run's plateau "
+      'record: final_metrics.json "stopping")'
+    )
   for j in L.tables + L.figures:
     print(f"[~{progress_lib.format_duration(j.estimate_s)}] {j.command()}")
 
@@ -779,11 +832,13 @@ def execute(launch: Launch, *, at_once: int = 1, deadline: float | None = None) 
 def curve_jobs(launch: Launch) -> list[Job]:
   """With a stopping rule (converge): per column, the validation curves of every representation's
   runs at its chosen lr, bands over seeds (experiments/learning_curve.py --bands) into
-  DIR/curve_<column>.{png,md}."""
+  DIR/curve_<column>.{png,md}; with the synthesis plateau rule, per setting (and capture column)
+  the held-out PSNR curves of its view-synthesis runs, one line per pose input with a band over
+  seeds, into DIR/curve_synthesis_<column>.{png,md}."""
   L = launch
+  jobs = synthesis_curve_jobs(L)
   if not L.plan.regression_flags:
-    return []
-  jobs = []
+    return jobs
   for col in sorted({c for c, _ in map(_group, L.first)}):
     runs = []
     for rep in sorted({r for c, r in map(_group, L.first) if c == col}):
@@ -798,6 +853,35 @@ def curve_jobs(launch: Launch) -> list[Job]:
     argv += ["--png", os.path.join(L.out, f"curve_{col}.png")]
     argv += ["--md", os.path.join(L.out, f"curve_{col}.md")]
     jobs.append(Job(f"curve_{col}", argv, "", 5))
+  return jobs
+
+
+def synthesis_column(name: str, data: dict | None = None) -> str:
+  """The column of a view-synthesis run's name ("car_mlp_seed1" -> "car"; a capture column's
+  "car_chair_seed0" -> "car_chair")."""
+  base = name.partition("_seed")[0]
+  if data and isinstance(data.get(base), tuple):
+    return base
+  return next(x for x in SETTINGS if base == x or base.startswith(f"{x}_"))
+
+
+def synthesis_curve_jobs(launch: Launch) -> list[Job]:
+  """The held-out PSNR curves of the view-synthesis runs, per column (see `curve_jobs`)."""
+  L = launch
+  if not L.plan.synthesis_caps:
+    return []
+  by_column: dict[str, list[str]] = {}
+  for j in L.synth:
+    name = j.name.removeprefix("synthesis_")
+    wd = os.path.join(L.out, "synthesis", name)
+    if os.path.isdir(wd):
+      by_column.setdefault(synthesis_column(name, L.data), []).append(wd)
+  jobs = []
+  for col, runs in sorted(by_column.items()):
+    argv = [L.python, "experiments/learning_curve.py", "--bands", "--metrics", "eval/psnr"]
+    argv += ["--runs", *runs, "--png", os.path.join(L.out, f"curve_synthesis_{col}.png")]
+    argv += ["--md", os.path.join(L.out, f"curve_synthesis_{col}.md")]
+    jobs.append(Job(f"curve_synthesis_{col}", argv, "", 5))
   return jobs
 
 

@@ -88,3 +88,29 @@ def test_bands_over_seeds_per_representation(tmp_path, capsys):
   assert "| 100 | 2 [1, 3] | 4 [4, 4] |" in text and "| 200 | 1 [0.5, 1.5] | 2 [2, 2] |" in text
   assert cv2.imread(str(png)) is not None
   capsys.readouterr()
+
+
+def test_bands_group_view_synthesis_runs_by_pose_input(tmp_path, capsys):
+  """Synthesis workdirs (no representation) are grouped by rep.kind; GQN's ConvDRAW (whose
+  rep.kind is lowdim) by its model.kind, not with the low-dim decoder."""
+  lc = load_experiment("learning_curve")
+  runs = []
+  for name, rep, model, psnr in (
+    ("car_seed0", "grid", "decoder", 20.0),
+    ("car_seed1", "grid", "decoder", 22.0),
+    ("car_lowdim_seed0", "lowdim", "decoder", 18.0),
+    ("car_convdraw_seed0", "lowdim", "convdraw", 19.0),
+  ):
+    wd = tmp_path / name
+    wd.mkdir()
+    config = {"rep": {"kind": rep}, "model": {"kind": model}}
+    (wd / "config.json").write_text(json.dumps(config))
+    (wd / "metrics.jsonl").write_text(json.dumps({"step": 120, "eval/psnr": psnr}) + "\n")
+    runs.append(str(wd))
+  md = tmp_path / "s.md"
+  args = ["--bands", "--runs", *runs, "--metrics", "eval/psnr", "--png", str(tmp_path / "s.png")]
+  assert lc.main([*args, "--md", str(md)]) == 0
+  text = md.read_text()
+  assert "| step | grid (2 runs) | lowdim (1 runs) | convdraw (1 runs) |" in text
+  assert "| 120 | 21 [20, 22] | 18 [18, 18] | 19 [19, 19] |" in text
+  capsys.readouterr()

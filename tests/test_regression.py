@@ -8,6 +8,7 @@ built from fabricated results.json files.
 from __future__ import annotations
 
 import copy
+import importlib
 import json
 import os
 import subprocess
@@ -23,7 +24,7 @@ from camrep.regression import tables as C
 from camrep.regression import views as views_lib
 from camrep.runtime import runconfig
 from camrep.runtime import workdir as workdir_lib
-from camrep.synthesis import components, train
+from camrep.synthesis import components, config_schema, train
 from tests.utils import load_experiment, snapshot
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -470,3 +471,48 @@ def test_run_comparison_converge_plan(tmp_path, capsys):
   assert rc.run_jobs([job], str(tmp_path / "logs"), at_once=1, label="", deadline=0.0) == []
   assert "not started (--max_hours)" in capsys.readouterr().out
   assert not os.path.exists(tmp_path / "logs" / "never.log")
+
+
+def _synthesis_quick(rc, setting):
+  module = rc.SYNTHESIS_CONFIGS[setting].removeprefix("configs/").removesuffix(".py")
+  return importlib.import_module(f"camrep.configs.{module}").get_config("quick")
+
+
+def test_run_comparison_converge_synthesis_to_its_plateau(tmp_path, capsys):
+  """--size converge (issue 29 part 3): every view-synthesis run but GQN's ConvDRAW gets a cap
+  of 4x its quick steps and the plateau rule, flags its config accepts; the held-out PSNR
+  curves of each column's synthesis runs are drawn with bands over seeds."""
+  rc = load_experiment("run_comparison")
+  out = str(tmp_path / "cmp")
+  args = ["--size", "converge", "--out", out, "--dry_run", "--noise_runs"]
+  assert rc.main(args) == 0
+  assert "curve_synthesis_<column>" in capsys.readouterr().out
+  launch = rc.make_launch(rc._parse_args(args))
+  flags = {j.name: {a.split("=")[0]: a.split("=")[1] for a in j.argv[4:]} for j in launch.synth}
+  assert flags["synthesis_car_seed2"]["--config.total_steps"] == "2400"
+  assert flags["synthesis_car_mlp_seed0"]["--config.stop.min_steps"] == "600"
+  g = flags["synthesis_gqn_lowdim_seed1"]
+  assert g["--config.total_steps"] == "8000" and g["--config.eval_every_steps"] == "400"
+  assert g["--config.stop.min_improvement"] == "0.02" and g["--config.seed"] == "1"
+  assert "--config.total_steps" not in flags["synthesis_gqn_convdraw_seed0"]
+  # The flags fit the configs they go with: caps 4x their quick steps, the rule accepted.
+  for name in rc.SETTINGS:
+    c = _synthesis_quick(rc, name)
+    assert rc.CONVERGE_SYNTHESIS_CAPS[name] == 4 * c.total_steps
+    plateau = dict(
+      a.removeprefix("--config.").split("=") for a in rc.synthesis_flags(launch.plan, name)
+    )
+    for k, v in plateau.items():
+      section, _, field = k.rpartition(".")
+      node = c[section] if section else c
+      node[field] = float(v) if isinstance(node[field], float) else int(v)
+    config_schema.validate(c, overridden=set(plateau))
+    assert components.stopping_rule(c).active
+  # Curves: one job per column over its synthesis workdirs that exist.
+  for name in ("car_seed0", "car_seed1", "car_mlp_seed0", "gqn_seed0"):
+    os.makedirs(os.path.join(out, "synthesis", name))
+  jobs = {j.name: j.argv for j in rc.curve_jobs(launch)}
+  car = jobs["curve_synthesis_car"]
+  assert "eval/psnr" in car and "--bands" in car
+  assert sum(a.startswith(os.path.join(out, "synthesis", "car")) for a in car) == 3
+  assert "curve_synthesis_gqn" in jobs and "curve_synthesis_gibson" not in jobs
