@@ -8,9 +8,12 @@ is added to every element of the query pose input, beta_i being the element's st
 grid (camrep.synthesis.evaluate.grid_betas), alpha = 0 .. 0.3. A run of configs/gqn_convdraw.py
 (GQN's own generator, noised on its 7-D pose vector) is drawn as a fourth kind, "convdraw".
 
-Writes the figure (PSNR and SSIM against alpha, one curve per kind of pose input; runs of the
-same kind, e.g. several seeds, are drawn as their mean with a band from their minimum to their
-maximum) as a PNG and a PDF twin, and a Markdown table (one column per run):
+Runs are grouped by pose input (each run's config.json: rep.kind, or model.kind "convdraw");
+runs of one pose input are its seeds (issue 29 part 5: 3 seeds per pose input). Writes the figure
+(PSNR and SSIM against alpha, one curve per pose input: the mean over its seeds with a band from
+their minimum to their maximum, the band being the range of 3 seeds rather than an interval a few
+seeds cannot support) as a PNG and a PDF twin, and a Markdown table (one column per pose input,
+each cell "mean [min, max]" over its seeds, a plain value for one run):
 
   .venv/bin/python experiments/noise_figure.py --runs /tmp/cmp/synthesis/gqn_grid \\
       /tmp/cmp/synthesis/gqn_lowdim /tmp/cmp/synthesis/gqn_mlp \\
@@ -28,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 
 import numpy as np
@@ -66,19 +70,34 @@ def load(workdir: str) -> dict:
   }
 
 
+def _cell(values: np.ndarray, fmt: str) -> str:
+  """One seed: the value; several: "mean [min, max]" over them."""
+  if len(values) == 1:
+    return format(float(values[0]), fmt)
+  lo, hi = float(np.min(values)), float(np.max(values))
+  return f"{float(np.mean(values)):{fmt}} [{lo:{fmt}}, {hi:{fmt}}]"
+
+
 def markdown(runs: list[dict]) -> str:
+  """The table: a column per pose input (label), a row per noise level, "PSNR / SSIM" cells as
+  `_cell` over the label's seeds; then the PSNR each loses from the first to the last level and
+  the runs read."""
   alphas = runs[0]["alphas"]
-  head = "| alpha | " + " | ".join(f"{r['label']} PSNR / SSIM" for r in runs) + " |"
-  lines = [head, "|---" * (len(runs) + 1) + "|"]
+  psnr, ssim = by_label(runs, "psnr"), by_label(runs, "ssim")
+  labels = list(psnr)
+  heads = [
+    f"{k} PSNR / SSIM" + (f" ({len(psnr[k])} seeds)" if len(psnr[k]) > 1 else "") for k in labels
+  ]
+  lines = ["| alpha | " + " | ".join(heads) + " |", "|---" * (len(labels) + 1) + "|"]
   for j, a in enumerate(alphas):
-    cells = [f"{r['psnr'][j]:.2f} / {r['ssim'][j]:.3f}" for r in runs]
+    cells = [f"{_cell(psnr[k][:, j], '.2f')} / {_cell(ssim[k][:, j], '.3f')}" for k in labels]
     lines.append(f"| {a:.3f} | " + " | ".join(cells) + " |")
-  drop = [r["psnr"][0] - r["psnr"][-1] for r in runs]
+  drop = {k: psnr[k][:, 0] - psnr[k][:, -1] for k in labels}
   lines += [
     "",
     "PSNR lost from alpha = 0 to alpha = "
     + f"{alphas[-1]:g}: "
-    + ", ".join(f"{r['label']} {d:.2f} dB" for r, d in zip(runs, drop, strict=True)),
+    + ", ".join(f"{k} {_cell(d, '.2f')} dB" for k, d in drop.items()),
     "",
     "Runs: "
     + "; ".join(
@@ -89,34 +108,47 @@ def markdown(runs: list[dict]) -> str:
   return "\n".join(lines) + "\n"
 
 
+_HEAD = re.compile(r"^(?P<label>.*) PSNR / SSIM(?: \((?P<seeds>\d+) seeds\))?$")
+_VALUE = re.compile(r"^(?P<mean>\S+)(?: \[(?P<lo>\S+), (?P<hi>\S+)\])?$")
+
+
 def from_markdown(text: str, setting: str = "") -> list[dict]:
-  """The runs of a table `markdown` wrote: [{label, alphas, psnr, ssim, setting}] per column."""
+  """The columns of a table `markdown` wrote: [{label, alphas, psnr, ssim, setting}] per column
+  (psnr, ssim: the means), with "seeds" and the ranges "psnr_band" / "ssim_band" ((lo, hi)
+  lists) for a column of several seeds."""
   rows = [line for line in text.splitlines() if line.startswith("|")]
-  head = [c.strip() for c in rows[0].strip("|").split("|")]
-  labels = [h.removesuffix(" PSNR / SSIM") for h in head[1:]]
+  head = [_HEAD.match(c.strip()) for c in rows[0].strip("|").split("|")[1:]]
   alphas, cells = [], []
   for line in rows[2:]:
     parts = [c.strip() for c in line.strip("|").split("|")]
     alphas.append(float(parts[0]))
-    cells.append([tuple(float(v) for v in c.split(" / ")) for c in parts[1:]])
-  return [
-    {
-      "label": label,
-      "setting": setting,
-      "alphas": alphas,
-      "psnr": [row[i][0] for row in cells],
-      "ssim": [row[i][1] for row in cells],
-    }
-    for i, label in enumerate(labels)
-  ]
+    cells.append([[_VALUE.match(v.strip()) for v in c.split(" / ")] for c in parts[1:]])
+  out = []
+  for i, h in enumerate(head):
+    run = {"label": h["label"], "setting": setting, "alphas": alphas}
+    for k, key in enumerate(("psnr", "ssim")):
+      run[key] = [float(row[i][k]["mean"]) for row in cells]
+      if h["seeds"]:
+        lo = [float(row[i][k]["lo"]) for row in cells]
+        run[f"{key}_band"] = (lo, [float(row[i][k]["hi"]) for row in cells])
+    if h["seeds"]:
+      run["seeds"] = int(h["seeds"])
+    out.append(run)
+  return out
 
 
 def by_label(runs: list[dict], key: str) -> dict[str, np.ndarray]:
-  """{label: (seeds, n) values of `key`}: runs that share a label (seeds) are stacked."""
+  """{label: (seeds, n) values of `key`}: runs that share a label (seeds) are stacked, labels in
+  the order they first appear."""
   out: dict[str, list] = {}
   for r in runs:
     out.setdefault(r["label"], []).append(r[key])
   return {label: np.asarray(v, np.float64) for label, v in out.items()}
+
+
+def _bands(runs: list[dict], key: str) -> dict[str, tuple]:
+  """The ranges a table gave (`from_markdown` columns of several seeds), for `plots.Panel`."""
+  return {r["label"]: (*r[f"{key}_band"], r["seeds"]) for r in runs if f"{key}_band" in r}
 
 
 def figure(runs: list[dict]) -> plots.Figure:
@@ -124,8 +156,16 @@ def figure(runs: list[dict]) -> plots.Figure:
   setting = runs[0]["setting"]
   suffix = f" ({setting})" if setting else ""
   panels = [
-    plots.Panel(f"PSNR vs pose noise{suffix}", "PSNR (dB)", by_label(runs, "psnr"), "alpha"),
-    plots.Panel(f"SSIM vs pose noise{suffix}", "SSIM", by_label(runs, "ssim"), "alpha"),
+    plots.Panel(
+      f"PSNR vs pose noise{suffix}",
+      "PSNR (dB)",
+      by_label(runs, "psnr"),
+      "alpha",
+      bands=_bands(runs, "psnr"),
+    ),
+    plots.Panel(
+      f"SSIM vs pose noise{suffix}", "SSIM", by_label(runs, "ssim"), "alpha", _bands(runs, "ssim")
+    ),
   ]
   return plots.curves_figure(runs[0]["alphas"], panels)
 

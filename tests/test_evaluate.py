@@ -242,3 +242,63 @@ def test_noise_figure_script(tmp_path):
   # A run without its noise curve is a clear error.
   (tmp_path / "grid" / "eval" / "noise.json").unlink()
   assert nf.main(["--runs", *runs, "--png", str(png), "--md", str(md)]) == 2
+
+
+def test_noise_figure_groups_seeds_by_pose_input_with_a_band(tmp_path):
+  """Issue 29 part 5: runs are grouped by their config's pose input (not their order or
+  directory), each group drawn as its mean with a min-max band and tabled as "mean [min, max]";
+  the table redraws the same band."""
+  nf = load_experiment("noise_figure")
+  alphas = [0.0, 0.3]
+  runs = []
+  for name, config, psnr in (
+    ("a", {"rep": {"kind": "grid"}}, [20.0, 19.0]),
+    ("b", {"rep": {"kind": "lowdim"}}, [21.0, 15.0]),
+    ("c", {"rep": {"kind": "grid"}}, [22.0, 20.0]),
+    ("d", {"rep": {"kind": "grid"}}, [21.0, 18.0]),
+    ("e", {"rep": {"kind": "lowdim"}, "model": {"kind": "convdraw"}}, [19.0, 18.5]),
+    ("f", {"rep": {"kind": "lowdim"}}, [20.0, 13.0]),
+  ):
+    wd = tmp_path / name
+    (wd / "eval").mkdir(parents=True)
+    (wd / "config.json").write_text(json.dumps(config))
+    noise = {"setting": "gqn", "step": 10, "alphas": alphas, "psnr": psnr, "num_images": 4}
+    noise["ssim"] = [0.5, psnr[1] / 100]
+    (wd / "eval" / "noise.json").write_text(json.dumps(noise))
+    runs.append(str(wd))
+  png, md = tmp_path / "out" / "noise.png", tmp_path / "out" / "noise.md"
+  assert nf.main(["--runs", *runs, "--png", str(png), "--md", str(md)]) == 0
+  text = md.read_text()
+  head = (
+    "| alpha | ours (learned) PSNR / SSIM (3 seeds) | GQN low-dim pose PSNR / SSIM (2 seeds) "
+    "| GQN (ConvDRAW) PSNR / SSIM |"
+  )
+  assert head in text
+  row = (
+    "| 0.300 | 19.00 [18.00, 20.00] / 0.190 [0.180, 0.200] | 14.00 [13.00, 15.00] / "
+    "0.140 [0.130, 0.150] | 18.50 / 0.185 |"
+  )
+  assert row in text
+  assert "ours (learned) 2.00 [1.00, 3.00] dB, GQN low-dim pose 6.50 [6.00, 7.00] dB" in text
+  assert "GQN (ConvDRAW) 0.50 dB" in text
+  # The figure: one line per pose input, a filled band for each group of seeds.
+  fig = nf.figure([nf.load(w) for w in runs])
+  ax = fig.axes[0]
+  assert [line.get_label() for line in ax.lines] == [
+    "ours (learned) (mean of 3 seeds)",
+    "GQN low-dim pose (mean of 2 seeds)",
+    "GQN (ConvDRAW)",
+  ]
+  np.testing.assert_allclose(ax.lines[0].get_ydata(), [21.0, 19.0])
+  assert len(ax.collections) == 2
+  band = ax.collections[0].get_paths()[0].vertices[:, 1]
+  assert band.min() == pytest.approx(18.0) and band.max() == pytest.approx(22.0)
+  # Redrawn from the table: the same means and bands.
+  back = nf.from_markdown(text, "gqn")
+  assert back[0]["seeds"] == 3 and back[0]["psnr"] == [21.0, 19.0]
+  assert back[0]["psnr_band"] == ([20.0, 18.0], [22.0, 20.0]) and "seeds" not in back[2]
+  again = nf.figure(back).axes[0]
+  assert [line.get_label() for line in again.lines] == [line.get_label() for line in ax.lines]
+  np.testing.assert_allclose(
+    again.collections[0].get_paths()[0].vertices, ax.collections[0].get_paths()[0].vertices
+  )

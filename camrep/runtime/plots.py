@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -31,12 +31,16 @@ class Panel:
   series: {label: (n,) values, or (seeds, n) values of several seeds}; several seeds are drawn
     as their mean with a band from their minimum to their maximum. Points where no seed is
     finite are left out (the line joins their neighbours).
+  bands: {label: ((n,) low, (n,) high, seeds)}: a band given as it is (e.g. read back from a
+    table of means and ranges, where `series` holds the (n,) means), drawn instead of the
+    seeds' range and named "mean of <seeds> seeds".
   """
 
   title: str
   ylabel: str
   series: Mapping[str, np.ndarray]
   xlabel: str = ""
+  bands: Mapping[str, tuple] = field(default_factory=dict)
 
 
 def _as_seeds(values) -> np.ndarray:
@@ -76,6 +80,9 @@ def curves_figure(x, panels: Sequence[Panel], *, suptitle: str = "") -> Figure:
   for ax, panel in zip(axes, panels, strict=True):
     for i, (label, values) in enumerate(panel.series.items()):
       mean, low, high, seeds = mean_and_band(values)
+      if label in panel.bands:
+        low, high, seeds = panel.bands[label]
+        low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
       color = COLORS[i % len(COLORS)]
       name = f"{label} (mean of {seeds} seeds)" if seeds > 1 else label
       ok = np.isfinite(mean)
