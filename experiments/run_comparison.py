@@ -6,7 +6,8 @@
   python experiments/run_comparison.py --size quick --settings seven_scenes \
       --data seven_scenes=PREPARED_DIR --out DIR     # Table 2 from prepared real 7-Scenes
   python experiments/run_comparison.py --size converge --out DIR --max_hours 2 \
-      [--data car_chair=nerf:PREPARED_DIR ...] [--noise_runs] [--dry_run]   # issue 29, 2 CPU cores
+      [--data car_chair=nerf:PREPARED_DIR ...] [--noise_runs] [--crossed car] [--dry_run]
+      # issue 29, 2 CPU cores
 
 `--size converge` (issue 29): the quick sizes with 3 seeds per cell; every regression run capped
 (CONVERGE_CAPS) and stopped by the stopping rule (`--config.stop.*`, validation every cap / 20
@@ -19,6 +20,11 @@ capped at 4x its quick steps, CONVERGE_SYNTHESIS_CAPS; its curve in final_metric
 "stopping" and DIR/curve_synthesis_<column>.{png,md}). Estimates come from per-step times
 measured on the shared 2-core CPU and from guessed shares of the caps (CONVERGE_* constants). `--max_hours H` starts no run after H hours (the
 running one finishes); rerunning the same command resumes, skipping finished runs.
+`--crossed COLUMN` (converge, off by default) adds, after phase 2, the crossed runs of that
+column's "ours": every regression seed k on every other synthesis seed j's pose system, at the
+lr seed 0 chose, into DIR/crossed/<column>/<lr>_seed<k>_syn<j> (outside regression/, so never
+tabled with the paired runs), then experiments/seed_spread.py --decode over them and the paired
+runs -> DIR/seed_spread_<column>.md (where ours' seed spread comes from).
 `--data car_NAME=SOURCE:DIR` (repeatable) adds a capture column "car_NAME": a capture prepared
 by `python -m camrep.data.prepare --source SOURCE --input CAPTURE --data_dir DIR --preset small`
 (SOURCE nerf, llff or colmap), regressed in the car setting into regression/car_NAME and tabled
@@ -428,6 +434,64 @@ def regression_job(
   return Job(name, argv, os.path.join(wd, C.RESULTS_FILE), plan.regression_s[setting])
 
 
+def crossed_job(
+  out: str,
+  plan: Plan,
+  column: str,
+  lr: float | None,
+  seed: int,
+  synthesis_seed: int,
+  py: str,
+  data: dict[str, str] | None = None,
+) -> Job:
+  """A crossed "ours" run (`--crossed`): regression seed `seed` on the pose system of synthesis
+  seed `synthesis_seed` (another seed than its own), into DIR/crossed/<column>/<lr>_seed<k>_syn<j>
+  (outside regression/, so the tables never pool it with the paired runs)."""
+  job = regression_job(out, plan, column, "ours", lr, seed, py, data)
+  tag = "lr<LR>" if lr is None else lr_tag(lr)
+  wd = os.path.join(out, "crossed", column, f"{tag}_seed{seed}_syn{synthesis_seed}")
+  syn = os.path.join(out, "synthesis", f"{column}_seed{synthesis_seed}")
+  argv = [
+    f"--workdir={wd}"
+    if a.startswith("--workdir=")
+    else f"--config.synthesis_workdir={syn}"
+    if a.startswith("--config.synthesis_workdir=")
+    else a
+    for a in job.argv
+  ]
+  name = f"crossed_{column}_{tag}_seed{seed}_syn{synthesis_seed}"
+  return Job(name, argv, os.path.join(wd, C.RESULTS_FILE), job.estimate_s)
+
+
+def crossed_jobs(launch: Launch, lr: float | None) -> list[Job]:
+  """Every (regression seed k, synthesis seed j != k) run of the `--crossed` column at `lr`
+  (None: the placeholder of --dry_run); the paired runs (j = k) are the launch's own."""
+  L = launch
+  if not L.crossed:
+    return []
+  seeds = L.plan.seeds
+  return [
+    crossed_job(L.out, L.plan, L.crossed, lr, k, j, L.python, L.data)
+    for k in seeds
+    for j in seeds
+    if j != k
+  ]
+
+
+def seed_spread_job(launch: Launch, lr: float) -> Job:
+  """experiments/seed_spread.py over the crossed runs and the paired ones at `lr`, with the
+  decoding error of each pose system, into DIR/seed_spread_<column>.md."""
+  L = launch
+  col = L.crossed
+  runs = [
+    os.path.join(L.out, "crossed", col, f"{lr_tag(lr)}_seed*_syn*"),
+    os.path.join(L.out, "regression", col, "ours", f"{lr_tag(lr)}_seed*"),
+  ]
+  argv = [L.python, "experiments/seed_spread.py", "--decode", "--runs", *runs]
+  argv += ["--md", os.path.join(L.out, f"seed_spread_{col}.md")]
+  return Job(f"seed_spread_{col}", argv, "", 60)
+
+
 def extension_lr(out: str, column: str, rep: str, plan: Plan) -> float | None:
   """Phase 1 of a plan with `extend_grid`: the next lr (x3 beyond the edge) to try with seed 0
   when the lr chosen so far is the lowest or highest of those run, within `extend_grid` lrs
@@ -633,6 +697,13 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     "--jobs", type=int, default=1, help="subprocesses at once within each step (GPU: 4 for medium)"
   )
   p.add_argument(
+    "--crossed",
+    default="",
+    metavar="COLUMN",
+    help="converge size: also cross the seeds of COLUMN's ours (every regression seed on every "
+    "other synthesis seed, at the chosen lr) and write DIR/seed_spread_COLUMN.md",
+  )
+  p.add_argument(
     "--noise_kinds",
     default="lowdim,mlp,convdraw",
     help="with --noise_runs: which other GQN pose inputs / generators to train (subset of "
@@ -673,6 +744,12 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
       p.error(f"--data {item}: {path} is not a directory (prepare it with camrep.data.prepare)")
     data[setting] = os.path.abspath(path)
   args.data = data
+  if args.crossed:
+    if not PLANS[args.size].paired_synthesis:
+      p.error("--crossed needs a size with one synthesis run per seed (--size converge)")
+    columns = args.settings + [c for c in data if c not in SETTINGS]
+    if args.crossed not in columns or setting_of(args.crossed) not in args.settings:
+      p.error(f"--crossed {args.crossed}: not a column of this launch ({columns})")
   return args
 
 
@@ -691,6 +768,7 @@ class Launch:
   tables: list[Job]
   figures: list[Job]
   data: dict[str, str] = dataclasses.field(default_factory=dict)
+  crossed: str = ""  # --crossed: the column whose ours seeds are crossed
 
 
 def make_launch(args: argparse.Namespace) -> Launch:
@@ -719,7 +797,10 @@ def make_launch(args: argparse.Namespace) -> Launch:
   first, later = plan_regression(out, plan, settings, reps, py, full_grid=args.full_grid, data=data)
   tables = table_jobs(out, py, settings)
   figures = [] if args.skip_figures else figure_jobs(out, plan, synth, py)
-  return Launch(plan, out, py, settings, synth, first, later, tables, figures, data)
+  crossed = getattr(args, "crossed", "")
+  if crossed and "ours" not in reps.get(crossed, ()):
+    raise SystemExit(f"--crossed {crossed}: the launch runs no ours there (--representations)")
+  return Launch(plan, out, py, settings, synth, first, later, tables, figures, data, crossed)
 
 
 def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -> None:
@@ -763,6 +844,14 @@ def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -
     else:
       where = "its procedural family (configs/regression.py settings)"
     print(f"  data of {s}: {where}", flush=True)
+  crossed = crossed_jobs(L, None)
+  if crossed:
+    est_s = len(crossed) * plan.regression_s[setting_of(L.crossed)] + 60
+    print(
+      f"  crossed seeds of {L.crossed}'s ours: {len(crossed)} more regression runs, estimated "
+      f"{progress_lib.format_duration(est_s)} (not in the estimate above)",
+      flush=True,
+    )
   if not commands:
     return
   for j in L.synth + L.first:
@@ -773,6 +862,14 @@ def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -
     est_s = plan.regression_s[setting_of(s)]
     print(f"[~{progress_lib.format_duration(est_s)}, phase 2] {job.command()}")
   print("  (phase 2: <LR> = the lr chosen on seed 0's validation errors)")
+  for job in crossed_jobs(L, None):
+    est_s = plan.regression_s[setting_of(L.crossed)]
+    print(f"[~{progress_lib.format_duration(est_s)}, crossed] {job.command()}")
+  if L.crossed:
+    print(
+      f"[~1min] experiments/seed_spread.py --decode over {L.out}/crossed/{L.crossed} and the "
+      f"paired ours runs at <LR> -> {L.out}/seed_spread_{L.crossed}.md"
+    )
   if plan.regression_flags:
     print(
       "[~5s each] experiments/learning_curve.py --bands --metrics eval/validation/score per "
@@ -821,6 +918,14 @@ def execute(launch: Launch, *, at_once: int = 1, deadline: float | None = None) 
       continue
     later.append(regression_job(L.out, L.plan, s, rep, lr, seed, L.python, L.data))
   failed += run_jobs(later, logs, label="phase 2: ", **kw)
+  if L.crossed:
+    lr = chosen_lr(L.out, L.crossed, "ours", L.plan)
+    if lr is None:
+      print(f"[crossed] {L.crossed}/ours: no phase-1 results; skipped", flush=True)
+      failed.append(f"crossed_{L.crossed}")
+    else:
+      failed += run_jobs(crossed_jobs(L, lr), logs, label="crossed: ", **kw)
+      failed += run_jobs([seed_spread_job(L, lr)], logs, at_once=1, label="", deadline=deadline)
   failed += run_jobs(L.tables + curve_jobs(L), logs, at_once=1, label="", deadline=deadline)
   evaluations = [j for j in L.figures if j.name.startswith("evaluate_")]
   failed += run_jobs(evaluations, logs, label="evaluate: ", **kw)

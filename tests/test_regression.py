@@ -516,3 +516,31 @@ def test_run_comparison_converge_synthesis_to_its_plateau(tmp_path, capsys):
   assert "eval/psnr" in car and "--bands" in car
   assert sum(a.startswith(os.path.join(out, "synthesis", "car")) for a in car) == 3
   assert "curve_synthesis_gqn" in jobs and "curve_synthesis_gibson" not in jobs
+
+
+def test_run_comparison_crossed_seeds(tmp_path, capsys):
+  """--crossed COLUMN (issue 29 part 3): every regression seed of ours on every other synthesis
+  seed, outside regression/ (never tabled), then experiments/seed_spread.py; off by default."""
+  rc = load_experiment("run_comparison")
+  out = str(tmp_path / "cmp")
+  args = ["--size", "converge", "--out", out, "--dry_run", "--settings", "car,gqn"]
+  assert rc.main([*args, "--crossed", "car"]) == 0
+  text = capsys.readouterr().out
+  assert "crossed seeds of car's ours: 6 more regression runs" in text
+  launch = rc.make_launch(rc._parse_args([*args, "--crossed", "car"]))
+  jobs = rc.crossed_jobs(launch, 1e-3)
+  assert len(jobs) == 6 and len({j.name for j in jobs}) == 6
+  job = next(j for j in jobs if j.name == "crossed_car_lr1e-3_seed0_syn2")
+  assert f"--workdir={os.path.join(out, 'crossed', 'car', 'lr1e-3_seed0_syn2')}" in job.argv
+  assert f"--config.synthesis_workdir={os.path.join(out, 'synthesis', 'car_seed2')}" in job.argv
+  assert "--config.seed=0" in job.argv and "--config.representation=ours" in job.argv
+  assert "--config.optax.lr=0.001" in job.argv and "--config.stop.min_improvement=0.02" in job.argv
+  spread = rc.seed_spread_job(launch, 1e-3)
+  assert "experiments/seed_spread.py" in spread.argv and "--decode" in spread.argv
+  assert os.path.join(out, "regression", "car", "ours", "lr1e-3_seed*") in spread.argv
+  # Off by default; refused where the sizes do not pair seeds or the column is not launched.
+  assert rc.crossed_jobs(rc.make_launch(rc._parse_args(args)), 1e-3) == []
+  for bad in (["--size", "quick", "--crossed", "car"], [*args, "--crossed", "gibson"]):
+    with pytest.raises(SystemExit) as e:
+      rc._parse_args([*bad, "--out", out] if bad[1] == "quick" else bad)
+    assert e.value.code == 2
