@@ -22,7 +22,6 @@ from absl import flags
 from camrep.configs import gqn, regression
 from camrep.data import fingerprint, prepare, procedural
 from camrep.regression import driver as R
-from camrep.runtime import checkpoint as ckpt_lib
 from camrep.runtime import cli, runconfig, writers
 from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import components, train
@@ -192,17 +191,6 @@ def test_regression_ours_refuses_a_pose_system_learned_on_other_rooms(gqn_smoke_
     )
 
 
-def test_regression_workdirs_record_their_fingerprint(tmp_path):
-  config = regression.get_config("smoke")
-  config.setting, config.representation = "gqn", "quat"
-  config.total_steps = 1
-  wd = str(tmp_path / "reg")
-  R.run(config, wd, log=lambda s: None)
-  record = workdir_lib.read_record(wd)
-  assert record["data"] == R.data_record(R.resolve_config(config))
-  assert "pose_spec" not in record  # a baseline has no pose system
-
-
 def test_non_finite_stop_says_whether_the_restored_checkpoint_was_verified(run_copy):
   config = _resume_config(total_steps=8)
   config.optax.lr_model = float("nan")
@@ -213,7 +201,5 @@ def test_non_finite_stop_says_whether_the_restored_checkpoint_was_verified(run_c
     "this run restored from step 2, not verified (written before checkpoints had checksums)"
   )
   assert "started from step 0" in train.restored_from(None)
-  # A step without its manifest (written by an older camrep) restores unverified, and says so.
-  os.remove(run_copy / "checkpoints" / "4" / ckpt_lib.MANIFEST_NAME)
-  with pytest.raises(FloatingPointError, match="restored from step 4, not verified"):
-    train.train_and_evaluate(config, str(run_copy), log=lambda s: None)
+  # (A step without its manifest restores unverified: `Checkpointer.restored`, in
+  # tests/test_checkpoint.py::test_checkpoint_without_manifest_restores.)

@@ -14,6 +14,12 @@ final_metrics.json is written atomically, and `begin` marks an existing one `"co
 before an extended run writes anything else, so a killed run never leaves a record that says it
 completed; `read_final` / `is_complete` read it back.
 
+The checks on entry, when the workdir holds checkpoints: a config.json must be there (a workdir
+without one is refused, never resumed unchecked); the config against it
+(`runconfig.check_changes`); the caller's `record` (what decides the data and the pose system,
+library defaults included) against the workdir's record.json (`workdir.check_record`; none
+there: one warning, and `begin` writes it); the topology (`workdir.check_topology`).
+
 Several processes: every process enters the session with the same workdir; only the lead
 (process 0) takes the lock and writes (the others get a `writers.NullWriter`).
 """
@@ -76,6 +82,7 @@ class Session:
   Attributes:
     workdir, config: as given.
     lead: whether this process writes (process 0).
+    record: what this start records in record.json (None: nothing recorded or checked).
     changes: {field: (old, new)} between the workdir's stored config and this one.
     writer: the metric writer (after `begin`; None before).
   """

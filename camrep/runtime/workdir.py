@@ -8,6 +8,12 @@ Files this module owns in a workdir:
                         running) is stale and is taken over with a warning.
   config_history.jsonl  one line per start: {"step", "time", "host", "pid", "changes":
                         {field: [old, new]}}; `changes` is empty for a fresh start.
+  record.json           what decides the run's data and model beyond config.json (which stays
+                        the user's config): written at each start by the caller's record
+                        (view synthesis: `synthesis.components.run_record`, the family's
+                        resolved parameters, the pose spec, the data fingerprint), checked at
+                        resume by `check_record`. A workdir written before camrep kept one
+                        resumes unchecked, with a warning, and gains it.
 """
 
 from __future__ import annotations

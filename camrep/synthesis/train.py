@@ -40,10 +40,11 @@ def train_and_evaluate(
 ) -> dict[str, float]:
   """Trains and evaluates as the config says; resumes from the workdir's latest checkpoint.
 
-  Writes to `workdir`: config.json, config_history.jsonl, metrics.jsonl, checkpoints/, images/,
-  tensorboard/, and final_metrics.json ({"complete": true, "step": total_steps, ...}) once the
-  run is complete. The same command on a complete workdir changes nothing; with a larger
-  `total_steps` (named in `allow_changes`) it extends the run.
+  Writes to `workdir`: config.json, record.json (`components.run_record`, checked at resume),
+  config_history.jsonl, metrics.jsonl, checkpoints/, images/, tensorboard/, and
+  final_metrics.json ({"complete": true, "step": total_steps, ...}) once the run is complete.
+  The same command on a complete workdir changes nothing; with a larger `total_steps` (named in
+  `allow_changes`) it extends the run.
 
   Several processes (jax.distributed): each runs this with the same config and workdir; each
   reads its own shard of the scenes, the pmapped step averages gradients over every device of
