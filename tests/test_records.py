@@ -203,3 +203,16 @@ def test_non_finite_stop_says_whether_the_restored_checkpoint_was_verified(run_c
   assert "started from step 0" in train.restored_from(None)
   # (A step without its manifest restores unverified: `Checkpointer.restored`, in
   # tests/test_checkpoint.py::test_checkpoint_without_manifest_restores.)
+
+
+def test_record_differences_accept_gained_fields_and_name_changed_ones():
+  old = components.run_record(gqn.get_config("smoke"))
+  new = json.loads(json.dumps(old))
+  new["data"]["family"]["fog"] = 0.0  # a parameter camrep gained: its default keeps the images
+  new["data"]["fingerprint"] = new["data"]["world"] = "sha256:other"  # follows from it
+  new["version"] = 2
+  refused, accepted = workdir_lib.record_differences(old, new)
+  assert refused == {} and set(accepted) == {"data.family.fog", "data.world", "version"}
+  new["data"]["family"]["pitch"] = -0.2
+  refused, _ = workdir_lib.record_differences(old, new)
+  assert refused == {"data.family.pitch": (-0.3, -0.2)}

@@ -315,9 +315,10 @@ def check_topology(workdir: str, now: Mapping[str, int], *, allowed: bool) -> di
 # What decides a run's data and model beyond its config.json (library defaults): written at each
 # start, checked at resume (`check_record`).
 RECORD_FILE = "record.json"
-# Record fields that may differ at resume: where a prepared dataset lies (a moved copy keeps
-# its fingerprint) and the "world" fingerprint (derived from the fields compared one by one).
-_RECORD_FREE = ("data.dataset", "data.world")
+# Record fields that may differ at resume: the record's format version, where a prepared
+# dataset lies (a moved copy keeps its fingerprint) and the "world" fingerprint (derived from
+# the fields compared one by one).
+_RECORD_FREE = ("version", "data.dataset", "data.world")
 
 
 def read_record(workdir: str) -> dict[str, Any] | None:
