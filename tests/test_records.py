@@ -109,6 +109,18 @@ def test_a_changed_library_default_at_resume_is_refused_and_changes_nothing(
   assert _snapshot(run_copy) == before
 
 
+def test_a_restore_for_evaluation_refuses_a_changed_library_default(run_copy, monkeypatch):
+  from camrep.synthesis import evaluate, restore
+
+  small = {**procedural.SMALL_OVERRIDES["rooms"], "wall_style": "distinct"}
+  monkeypatch.setitem(procedural.SMALL_OVERRIDES, "rooms", small)
+  with pytest.raises(runconfig.ConfigError, match="data.family.wall_style: 'tinted' -> 'distinct'"):
+    restore.load_run(str(run_copy))
+  before = _snapshot(run_copy)
+  assert evaluate.main([f"--workdir={run_copy}", "--what=gram"]) == 2
+  assert _snapshot(run_copy) == before
+
+
 def test_checkpoints_without_config_json_are_refused(run_copy, capsys):
   os.remove(run_copy / writers.CONFIG_FILE)
   before = _snapshot(run_copy)

@@ -383,9 +383,16 @@ def record_differences(
   return refused, accepted
 
 
-def check_record(workdir: str, now: Mapping[str, Any]) -> dict[str, Any] | None:
+def check_record(
+  workdir: str, now: Mapping[str, Any], *, what: str = "resume in"
+) -> dict[str, Any] | None:
   """Refuses a resume whose data or pose system differ from the workdir's record.json, where
   config.json may show no difference (a library default changed, a prepared dataset replaced).
+
+  Args:
+    workdir: the workdir (its record.json).
+    now: the record of this start (`synthesis.components.run_record`).
+    what: the message's verb ("resume in", "restore").
 
   Returns:
     None when the workdir has no record (written before camrep kept one: the caller warns and
@@ -406,7 +413,7 @@ def check_record(workdir: str, now: Mapping[str, Any]) -> dict[str, Any] | None:
     (field, (a, b)), n = next(iter(refused.items())), len(refused)
     more = f" (and {n - 1} more)" if n > 1 else ""
     lines = [
-      f"cannot resume in {workdir}: {field}: {a!r} -> {b!r}{more}: what decides its data or "
+      f"cannot {what} {workdir}: {field}: {a!r} -> {b!r}{more}: what decides its data or "
       f"pose system differs from its {RECORD_FILE}, though config.json may not show it (a "
       "library default or the data itself changed)"
     ]
