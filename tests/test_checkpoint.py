@@ -447,8 +447,14 @@ def test_checkpoint_without_manifest_restores(tmp_path, caplog):
       warnings.simplefilter("error")
       with caplog.at_level("INFO"):
         restored, extra, step = c.restore(_make_state(0))
+        assert c.restored == {"step": 2, "verified": False}  # the non-finite stop says so
         c.restore(_make_state(0), step=1)
   _assert_bit_exact(restored, state)
   assert (extra, step) == ({"data_step": 2}, 2)
   notes = [r for r in caplog.records if ckpt_lib.MANIFEST_NAME in r.getMessage()]
   assert len(notes) == 1  # at most one note, no warning
+  with ckpt_lib.Checkpointer(tmp_path) as c:
+    c.save(3, state, extra={"data_step": 3})
+    c.wait_until_finished()
+    c.restore(_make_state(0))
+    assert c.restored == {"step": 3, "verified": True}

@@ -69,6 +69,9 @@ def test_baseline_end_to_end(tmp_path, cache):
   results = R.run(config, wd, log=lambda s: None)
   with open(os.path.join(wd, "results.json")) as f:
     assert json.load(f) == json.loads(json.dumps(results))
+  # record.json: the data's fingerprint (a baseline has no pose system to record).
+  record = workdir_lib.read_record(wd)
+  assert record["data"] == R.data_record(R.resolve_config(config)) and "pose_spec" not in record
   assert (results["setting"], results["representation"], results["seed"]) == ("car", "euler", 1)
   assert results["lr"] == 3e-3 and results["steps"] == 3 and results["params"] > 0
   assert results["variant"] == "smoke" and results["representation_params"]["source"] == "none"

@@ -50,6 +50,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+# Bumped whenever a change here (or in the procedural families' scenery) alters a rendered
+# pixel: it is part of a procedural dataset's fingerprint (`camrep.data.fingerprint`), so a
+# workdir trained on the old images refuses to resume on the new ones.
+RENDERER_VERSION = 1
 _EPS = 1e-4
 _INF = 1e10
 

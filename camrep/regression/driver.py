@@ -6,6 +6,9 @@ pose regressor (`learner`) for one (setting, representation, learning rate, seed
 writes into DIR:
 
   config.json        the resolved config (per-setting sizes filled in)
+  record.json        what identifies its data and pose system beyond the config
+                     (`data_record`: the family's resolved parameters or the prepared dataset's
+                     identity, their fingerprints; the pose spec of a learned representation)
   metrics.jsonl      train/* every log_every_steps, eval/validation/* (with the lr-selection
                      score eval/validation/score: the validation curve) every eval_every_steps,
                      every split's at the end
@@ -227,6 +230,7 @@ def check_same_data(workdir: str, syn_config, config) -> None:
       + (f" data.dir={our_dir}" if our_dir else " (procedural)")
       + ': "ours" must regress a pose system learned on the same data'
     )
+  check_same_world(workdir, syn_config, config)
   if not our_dir:
     return
   from camrep.data import storage
@@ -245,6 +249,86 @@ def check_same_data(workdir: str, syn_config, config) -> None:
       f"synthesis_workdir {workdir} was trained on the prepared dataset {theirs_path}, this "
       f"regression reads {ours_path} (pass --config.data.dataset_config to pick the same one)"
     )
+
+
+def data_record(config) -> dict[str, Any]:
+  """`fingerprint.data_record` of the data this (resolved) regression reads: its prepared
+  dataset (`views.open_dataset`) or the setting's procedural family. Renders nothing.
+
+  Raises:
+    ConfigError: the dataset cannot be found, or the family refuses its parameters.
+  """
+  from camrep.data import fingerprint
+  from camrep.data.errors import DataError
+
+  if config.data.get("dir", ""):
+    path, _ = views_lib.open_dataset(config)
+    return fingerprint.prepared_record(path)
+  try:
+    return fingerprint.procedural_record(config.data, sources.procedural_of(config.setting))
+  except DataError as e:
+    raise ConfigError(f"data.family: {e}") from None
+
+
+def _synthesis_data_record(workdir: str, syn_config) -> dict[str, Any] | None:
+  """The data record of a view-synthesis workdir: its record.json's, or (a workdir written
+  before camrep kept one) computed from its config.json with today's library defaults, with a
+  warning; None when neither is possible (its prepared dataset is gone)."""
+  import sys
+
+  from camrep.data import fingerprint
+  from camrep.data.errors import DataError
+
+  record = workdir_lib.read_record(workdir)
+  if record is not None and isinstance(record.get("data"), dict):
+    return record["data"]
+  try:
+    data = fingerprint.data_record(syn_config.data)
+  except DataError:
+    return None
+  print(
+    f"warning: synthesis_workdir {workdir} has no {workdir_lib.RECORD_FILE} (an older camrep): "
+    "its data is identified from its config.json with today's library defaults",
+    file=sys.stderr,
+    flush=True,
+  )
+  return data
+
+
+def check_same_world(workdir: str, syn_config, config) -> None:
+  """Refuses a view-synthesis run whose data fingerprint ("world": the family's parameters apart
+  from scene and view counts and image resolution, or the prepared dataset's identity and
+  content) differs from this regression's, e.g. rooms of another wall style, light or seed.
+
+  Raises:
+    ConfigError: the first differing parameter (or the fingerprints) named, synthesis value ->
+      this regression's.
+  """
+  from camrep.data import fingerprint
+
+  theirs = _synthesis_data_record(workdir, syn_config)
+  if theirs is None:
+    return  # its dataset is gone: data.source and data.dir were compared
+  ours = data_record(config)
+  if theirs.get("world") == ours.get("world"):
+    return
+  a, b = theirs.get("family") or {}, ours.get("family") or {}
+  fields = [
+    f"data.family.{k}: {a.get(k)!r} -> {b.get(k)!r}"
+    for k in sorted(set(a) | set(b))
+    if k not in fingerprint.EXTENT_FIELDS and a.get(k) != b.get(k)
+  ]
+  if theirs.get("renderer") != ours.get("renderer"):
+    fields.append(f"data.renderer: {theirs.get('renderer')!r} -> {ours.get('renderer')!r}")
+  what = "; ".join(fields) or (
+    f"data.fingerprint: {theirs.get('fingerprint')} -> {ours.get('fingerprint')}"
+  )
+  raise ConfigError(
+    f"synthesis_workdir {workdir} learned its pose system on other data than this regression "
+    f'reads ({what}; synthesis -> regression): "ours" must regress a pose system learned on '
+    "the same data (the same family parameters apart from scene and view counts and image "
+    "size, or the same prepared dataset)"
+  )
 
 
 def load_pose_system(workdir: str, setting: str, *, config=None) -> dict[str, Any]:
@@ -597,15 +681,23 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
   lock.acquire()
   try:
     try:
+      record = {"version": 1, "data": data_record(config)}
       setup = prepare(config, log=log)
     except BaseException:
       if not existed:
         shutil.rmtree(workdir, ignore_errors=True)  # holds nothing but the lock
       raise
+    if setup.spec is not None:
+      record["pose_spec"] = components.spec_record(setup.spec)
+    old_record = workdir_lib.read_record(workdir) if stored is not None else None
+    if old_record is not None:  # a rerun starts over: a changed record is recorded, not refused
+      refused, accepted = workdir_lib.record_differences(old_record, record)
+      changes.update({f"record.{k}": v for k, v in {**refused, **accepted}.items()})
     clear_outputs(workdir)
     writer = writers.MetricWriter(workdir)
     writer.truncate_after(0)
     writer.write_config(config)
+    workdir_lib.write_record(workdir, record)
     workdir_lib.append_history(workdir, 0, changes, what="rerun" if stored else "start")
     predict_fn = jax.jit(learner.predict_poses)
     eval_sets = {k: views_lib.eval_batches(config, e) for k, e in setup.data.evals.items()}

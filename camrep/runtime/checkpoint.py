@@ -298,6 +298,8 @@ class Checkpointer:
 
   Attributes:
     directory: the checkpoint directory, `workdir/checkpoints`.
+    restored: the last successful `restore`, {"step": int, "verified": bool (its checksum
+      manifest matched; False: a step written before camrep kept manifests)}; None before.
   """
 
   def __init__(
@@ -333,6 +335,8 @@ class Checkpointer:
     self._pending_step: int | None = None
     self._unhashed_step: int | None = None  # saved (maybe still in flight), no manifest yet
     self._noted_unverified = False
+    # The last successful `restore`: {"step", "verified" (against its checksum manifest)}.
+    self.restored: dict[str, Any] | None = None
     if read_only:
       if not os.path.isdir(self.directory):
         raise CheckpointError(f"Checkpoint directory {self.directory} does not exist.")
@@ -601,7 +605,7 @@ class Checkpointer:
     failures = []
     for s in candidates:
       try:
-        self._verify(s)
+        verified = self._verify(s)
         restored = self._manager.restore(
           s,
           args=ocp.args.Composite(
@@ -642,24 +646,28 @@ class Checkpointer:
         )
       if s != candidates[0]:
         logging.warning("Restored checkpoint step %d from %s (fallback).", s, self.directory)
+      self.restored = {"step": s, "verified": verified}
       return state, extra, s
     raise CheckpointError(
       f"No usable checkpoint in {self.directory}: all of steps {steps} are unreadable. "
       + "; ".join(failures)
     )
 
-  def _verify(self, step: int) -> None:
-    """Checks step `step` against its checksum manifest (raises `_ChecksumMismatch`)."""
-    if not verify_manifest(os.path.join(self.directory, str(step))):
-      if not self._noted_unverified:
-        self._noted_unverified = True
-        logging.info(
-          "Checkpoint step %d in %s has no %s (written by an older camrep): restored "
-          "without checksum verification.",
-          step,
-          self.directory,
-          MANIFEST_NAME,
-        )
+  def _verify(self, step: int) -> bool:
+    """Checks step `step` against its checksum manifest (raises `_ChecksumMismatch`); False
+    when the step has no manifest (restored unverified)."""
+    if verify_manifest(os.path.join(self.directory, str(step))):
+      return True
+    if not self._noted_unverified:
+      self._noted_unverified = True
+      logging.info(
+        "Checkpoint step %d in %s has no %s (written by an older camrep): restored "
+        "without checksum verification.",
+        step,
+        self.directory,
+        MANIFEST_NAME,
+      )
+    return False
 
   def _template_mismatch(self, step: int, abstract: PyTree) -> str | None:
     """Describes how `abstract` differs from checkpoint `step`'s metadata.

@@ -14,6 +14,12 @@ final_metrics.json is written atomically, and `begin` marks an existing one `"co
 before an extended run writes anything else, so a killed run never leaves a record that says it
 completed; `read_final` / `is_complete` read it back.
 
+The checks on entry, when the workdir holds checkpoints: a config.json must be there (a workdir
+without one is refused, never resumed unchecked); the config against it
+(`runconfig.check_changes`); the caller's `record` (what decides the data and the pose system,
+library defaults included) against the workdir's record.json (`workdir.check_record`; none
+there: one warning, and `begin` writes it); the topology (`workdir.check_topology`).
+
 Several processes: every process enters the session with the same workdir; only the lead
 (process 0) takes the lock and writes (the others get a `writers.NullWriter`).
 """
@@ -76,6 +82,7 @@ class Session:
   Attributes:
     workdir, config: as given.
     lead: whether this process writes (process 0).
+    record: what this start records in record.json (None: nothing recorded or checked).
     changes: {field: (old, new)} between the workdir's stored config and this one.
     writer: the metric writer (after `begin`; None before).
   """
@@ -86,10 +93,12 @@ class Session:
     config: Any,
     *,
     resumable: Iterable[str] | None,
+    record: Mapping[str, Any] | None = None,
     lead: bool = True,
     log: Callable[[str], None] = print,
   ):
     self.workdir, self.config, self.lead, self.log = workdir, config, lead, log
+    self.record = None if record is None else dict(record)
     self._resumable = resumable
     self.changes: dict[str, tuple[Any, Any]] = {}
     self.writer: Any = None
@@ -103,19 +112,40 @@ class Session:
     )
 
   def __enter__(self) -> Session:
-    """Checks the workdir (writable; its stored config against this one) and takes its lock.
+    """Checks the workdir (writable; its stored config and record against this one's) and
+    takes its lock.
 
     Raises:
-      ConfigError: the config differs from the workdir's in a field that may not change.
-      WorkdirError: the workdir cannot be written or another process is writing it.
+      ConfigError: the config differs from the workdir's in a field that may not change, or
+        the data or pose system differ from its record.json (`workdir.check_record`).
+      WorkdirError: the workdir cannot be written, another process is writing it, or it holds
+        checkpoints without a config.json.
     """
     workdir_lib.check_workdir(self.workdir)
     stored = workdir_lib.read_stored_config(self.workdir)
-    if stored is not None and has_checkpoints(self.workdir):
+    resuming = has_checkpoints(self.workdir)
+    if resuming and stored is None:
+      raise workdir_lib.WorkdirError(
+        f"cannot resume in {self.workdir}: it holds checkpoints but no "
+        f"{writers.CONFIG_FILE}, so nothing can check this config against the one that trained "
+        f"them. Put its {writers.CONFIG_FILE} back, use a new --workdir, or remove "
+        f"{os.path.join(self.workdir, CHECKPOINT_SUBDIR)} to start over (nothing changed)"
+      )
+    if resuming:
       self.changes = runconfig.check_changes(
         stored, self.config, resumable=self._resumable, workdir=self.workdir
       )
-    if has_checkpoints(self.workdir):  # another device count changes the global batch: refused
+    if resuming and self.record is not None:  # library defaults, the data itself
+      record_changes = workdir_lib.check_record(self.workdir, self.record)
+      if record_changes is None and self.lead:
+        self.log(
+          f"warning: {self.workdir} has no {workdir_lib.RECORD_FILE} (written by a camrep "
+          "that kept none): its data and pose system cannot be checked against this start's; "
+          f"resuming, and recording them in {workdir_lib.RECORD_FILE} from now on"
+        )
+      elif record_changes:
+        self.changes.update(record_changes)
+    if resuming:  # another device count changes the global batch: refused
       allowed = workdir_lib.GLOBAL_BATCH in runconfig.parse_allow_changes(
         self.config.get("allow_changes", "")
       )
@@ -138,6 +168,8 @@ class Session:
     self.writer = writers.MetricWriter(self.workdir)
     self.writer.truncate_after(start)
     self.writer.write_config(self.config)
+    if self.record is not None:
+      workdir_lib.write_record(self.workdir, self.record)
     workdir_lib.append_history(
       self.workdir,
       start,

@@ -8,6 +8,12 @@ Files this module owns in a workdir:
                         running) is stale and is taken over with a warning.
   config_history.jsonl  one line per start: {"step", "time", "host", "pid", "changes":
                         {field: [old, new]}}; `changes` is empty for a fresh start.
+  record.json           what decides the run's data and model beyond config.json (which stays
+                        the user's config): written at each start by the caller's record
+                        (view synthesis: `synthesis.components.run_record`, the family's
+                        resolved parameters, the pose spec, the data fingerprint), checked at
+                        resume by `check_record`. A workdir written before camrep kept one
+                        resumes unchecked, with a warning, and gains it.
 """
 
 from __future__ import annotations
@@ -304,3 +310,122 @@ def check_topology(workdir: str, now: Mapping[str, int], *, allowed: bool) -> di
       f"--config.allow_changes={GLOBAL_BATCH} to record the change in config_history.jsonl"
     )
   return {"topology": [dict(old), dict(now)]}
+
+
+# What decides a run's data and model beyond its config.json (library defaults): written at each
+# start, checked at resume (`check_record`).
+RECORD_FILE = "record.json"
+# Record fields that may differ at resume: the record's format version, where a prepared
+# dataset lies (a moved copy keeps its fingerprint) and the "world" fingerprint (derived from
+# the fields compared one by one).
+_RECORD_FREE = ("version", "data.dataset", "data.world")
+
+
+def read_record(workdir: str) -> dict[str, Any] | None:
+  """workdir/record.json, or None when the workdir has none (written before camrep kept one).
+
+  Raises:
+    WorkdirError: the file exists but is not a JSON object.
+  """
+  path = os.path.join(workdir, RECORD_FILE)
+  if not os.path.exists(path):
+    return None
+  try:
+    with open(path, encoding="utf-8") as f:
+      record = json.load(f)
+  except (OSError, json.JSONDecodeError) as e:
+    raise WorkdirError(f"{path} cannot be read as JSON: {e}") from e
+  if not isinstance(record, dict):
+    raise WorkdirError(f"{path} holds no JSON object")
+  return record
+
+
+def write_record(workdir: str, record: Mapping[str, Any]) -> None:
+  """Writes workdir/record.json atomically."""
+  text = json.dumps(record, indent=1, sort_keys=True, default=str)
+  writers.write_text_atomic(os.path.join(workdir, RECORD_FILE), text)
+
+
+def flatten_record(tree: Any, prefix: str = "") -> dict[str, Any]:
+  """{"a": {"b": 1}, "c": [{"d": 2}]} -> {"a.b": 1, "c.0.d": 2} (lists of scalars stay whole)."""
+  if isinstance(tree, Mapping) and tree:
+    items = tree.items()
+  elif isinstance(tree, list | tuple) and tree and all(isinstance(x, Mapping) for x in tree):
+    items = ((str(i), x) for i, x in enumerate(tree))
+  else:
+    return {prefix[:-1]: tree} if prefix else {}
+  out = {}
+  for k, v in items:
+    out.update(flatten_record(v, f"{prefix}{k}."))
+  return out
+
+
+def record_differences(
+  old: Mapping[str, Any], new: Mapping[str, Any], *, free: tuple[str, ...] = _RECORD_FREE
+) -> tuple[dict[str, tuple[Any, Any]], dict[str, tuple[Any, Any]]]:
+  """(refused, accepted) differences {field: (old, new)} between two records.
+
+  Accepted: the `free` fields, and fields the old record lacks (camrep gained them after it was
+  written; their defaults keep the old behaviour, as `runconfig.check_changes` treats config
+  fields). A procedural "data.fingerprint" is compared through the fields it hashes (named one
+  by one, and a gained field does not refuse the resume); a prepared dataset's is compared as is.
+  """
+  a, b = flatten_record(dict(old)), flatten_record(dict(new))
+  procedural = a.get("data.kind") == b.get("data.kind") == "procedural"
+  refused, accepted = {}, {}
+  for k in sorted(set(a) | set(b)):
+    if a.get(k) == b.get(k) or (procedural and k == "data.fingerprint"):
+      continue
+    if k in free or k not in a:
+      accepted[k] = (a.get(k), b.get(k))
+    else:
+      refused[k] = (a.get(k), b.get(k))
+  return refused, accepted
+
+
+def check_record(
+  workdir: str, now: Mapping[str, Any], *, what: str = "resume in"
+) -> dict[str, Any] | None:
+  """Refuses a resume whose data or pose system differ from the workdir's record.json, where
+  config.json may show no difference (a library default changed, a prepared dataset replaced).
+
+  Args:
+    workdir: the workdir (its record.json).
+    now: the record of this start (`synthesis.components.run_record`).
+    what: the message's verb ("resume in", "restore").
+
+  Returns:
+    None when the workdir has no record (written before camrep kept one: the caller warns and
+    writes it); else {"record.FIELD": [old, new]} of the accepted differences (a moved dataset,
+    a field camrep gained), to record in config_history.jsonl.
+
+  Raises:
+    ConfigError: a field differs; the first line names the first one (old -> new), the next
+      lines every one and the way out.
+  """
+  from camrep.runtime.runconfig import ConfigError
+
+  old = read_record(workdir)
+  if old is None:
+    return None
+  refused, accepted = record_differences(old, now)
+  if refused:
+    (field, (a, b)), n = next(iter(refused.items())), len(refused)
+    more = f" (and {n - 1} more)" if n > 1 else ""
+    lines = [
+      f"cannot {what} {workdir}: {field}: {a!r} -> {b!r}{more}: what decides its data or "
+      f"pose system differs from its {RECORD_FILE}, though config.json may not show it (a "
+      "library default or the data itself changed)"
+    ]
+    lines += [f"  {k}: {x!r} -> {y!r}" for k, (x, y) in refused.items()]
+    if "data.fingerprint" in refused and now.get("data", {}).get("kind") == "prepared":
+      lines.append(
+        f"the prepared dataset {now['data'].get('dataset')} is not the one this workdir was "
+        f"trained on ({old.get('data', {}).get('dataset')}): only a moved copy of the same "
+        "dataset may replace it"
+      )
+    lines.append(
+      "resume with the camrep version and data that wrote the workdir, or use a new --workdir"
+    )
+    raise ConfigError("\n".join(lines))
+  return {f"record.{k}": [a, b] for k, (a, b) in accepted.items()}

@@ -11,7 +11,7 @@ import math
 import jax
 
 from camrep import pose as P
-from camrep.data import batches, sources
+from camrep.data import batches, fingerprint, sources
 from camrep.data import pipeline as pipeline_lib
 from camrep.data.errors import DataError
 from camrep.runtime import stopping
@@ -104,6 +104,32 @@ def pose_spec(config) -> P.PoseSystemSpec:
     exp_method=r.exp_method,
     n_steps=r.n_steps,
   )
+
+
+def spec_record(spec: P.PoseSystemSpec) -> dict:
+  """A pose-system spec as JSON values: its fields, each DOF's with its class ("kind")."""
+  fields = {f.name: getattr(spec, f.name) for f in dataclasses.fields(spec) if f.name != "dofs"}
+  dofs = [{"kind": type(d).__name__, **dataclasses.asdict(d)} for d in spec.dofs]
+  return fingerprint.plain({**fields, "dofs": dofs})
+
+
+RECORD_VERSION = 1
+
+
+def run_record(config) -> dict:
+  """What decides a run's data and model beyond its config (the workdir's record.json, checked
+  at resume by `runtime.workdir.check_record`): {"version", "data": `fingerprint.data_record`
+  (the family's resolved parameters or the prepared dataset's identity, and their
+  fingerprint), "pose_spec": `spec_record` of the resolved pose system}. Renders nothing.
+
+  Raises:
+    DataError: the data cannot be found or its family built.
+  """
+  return {
+    "version": RECORD_VERSION,
+    "data": fingerprint.data_record(config.data),
+    "pose_spec": spec_record(pose_spec(config)),
+  }
 
 
 def make_model(config, num_scenes: int) -> synthesizers.Synthesizer:

@@ -68,12 +68,17 @@ def load_run(workdir: str, *, step: int | None = None) -> Run:
 
   Raises:
     FileNotFoundError: no workdir, no config.json, or no checkpoint.
+    ConfigError: the data or pose system the config rebuilds today differ from the workdir's
+      record.json (a changed library default).
     camrep.runtime.checkpoint.CheckpointError: the requested step is missing, or no checkpoint is
       readable or matches the config's model.
   """
   from camrep.runtime import checkpoint as ckpt_lib
 
   config = workdir_lib.read_config(workdir)
+  # Today's defaults must rebuild the data and pose system that trained it (record.json; a
+  # workdir written before camrep kept one is not checked).
+  workdir_lib.check_record(workdir, components.run_record(config), what="restore")
   try:
     checkpointer = ckpt_lib.Checkpointer(workdir, read_only=True)
   except ckpt_lib.CheckpointError:

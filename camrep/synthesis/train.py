@@ -42,10 +42,11 @@ def train_and_evaluate(
 ) -> dict[str, float]:
   """Trains and evaluates as the config says; resumes from the workdir's latest checkpoint.
 
-  Writes to `workdir`: config.json, config_history.jsonl, metrics.jsonl, checkpoints/, images/,
-  tensorboard/, and final_metrics.json ({"complete": true, "step": total_steps, ...}) once the
-  run is complete. The same command on a complete workdir changes nothing; with a larger
-  `total_steps` (named in `allow_changes`) it extends the run.
+  Writes to `workdir`: config.json, record.json (`components.run_record`, checked at resume),
+  config_history.jsonl, metrics.jsonl, checkpoints/, images/, tensorboard/, and
+  final_metrics.json ({"complete": true, "step": total_steps, ...}) once the run is complete.
+  The same command on a complete workdir changes nothing; with a larger `total_steps` (named in
+  `allow_changes`) it extends the run.
 
   With the plateau rule on (`config.stop.min_improvement > 0`), each held-out evaluation adds
   (step, 10^(-eval/psnr / 10)) to the validation curve (the curve of a resumed run is read back
@@ -79,8 +80,11 @@ def train_and_evaluate(
   components.check_config(config)
   lead = jax.process_index() == 0  # several processes: only process 0 logs, evaluates, writes
   resumable = runconfig.SYNTHESIS_RESUMABLE
+  record = components.run_record(config)  # the data and pose system, library defaults included
   with (
-    session_lib.Session(workdir, config, resumable=resumable, lead=lead, log=log) as session,
+    session_lib.Session(
+      workdir, config, resumable=resumable, record=record, lead=lead, log=log
+    ) as session,
     ckpt_lib.Checkpointer(workdir, max_to_keep=config.max_to_keep) as ckpt,
   ):
     rule = components.stopping_rule(config)
@@ -95,6 +99,7 @@ def train_and_evaluate(
     state, start = step_lib.from_state_dict(init, state_d), restored or 0
     if restored is not None:
       log(f"resumed from step {start} in {workdir}")
+    origin = restored_from(ckpt.restored if restored is not None else None)
     session.begin(start)
     curve = recorded_curve(workdir, start) if lead and rule.active else []
 
@@ -126,7 +131,7 @@ def train_and_evaluate(
         stopped = stop_requested(signals)
         save = progress_lib.itstime(step, config.ckpt_every_steps, total) or stopped
         if progress_lib.itstime(step, config.log_every_steps, total) or save:
-          raise_if_not_finite(session.writer, pending, workdir)  # host reads only here
+          raise_if_not_finite(session.writer, pending, workdir, origin)  # host reads only here
           pending = []
         if progress_lib.itstime(step, config.log_every_steps, total):
           host = step_lib.to_host(metrics)
@@ -261,9 +266,25 @@ def stopping_record(rule, curve, step: int, total: int, stopped_early: bool, rea
   }
 
 
-def raise_if_not_finite(writer, pending: list[tuple[int, Mapping]], workdir: str) -> None:
+def restored_from(restored: Mapping | None) -> str:
+  """How a run began, for the non-finite stop's message: `Checkpointer.restored` or None."""
+  if restored is None:
+    return "this run started from step 0 (no checkpoint restored)"
+  how = (
+    "checksum verified"
+    if restored.get("verified")
+    else "not verified (written before checkpoints had checksums)"
+  )
+  return f"this run restored from step {restored['step']}, {how}"
+
+
+def raise_if_not_finite(
+  writer, pending: list[tuple[int, Mapping]], workdir: str, origin: str = ""
+) -> None:
   """Raises FloatingPointError naming the first of the `pending` (step, metrics) that flagged
-  non-finite losses or gradients (the step skipped its updates), after logging its values."""
+  non-finite losses or gradients (the step skipped its updates), after logging its values;
+  `origin` (`restored_from`) says which checkpoint the run began from and whether it was
+  verified."""
   for step, metrics in pending:
     if float(np.asarray(metrics["train/finite"])[0]) >= 1:
       continue
@@ -272,8 +293,8 @@ def raise_if_not_finite(writer, pending: list[tuple[int, Mapping]], workdir: str
     writer.write_scalars(step, host)
     raise FloatingPointError(
       f"non-finite training values at step {step} ({', '.join(bad) or 'gradients'}); "
-      f"updates of this step were skipped; the last checkpoint is kept in {workdir} and a resume "
-      "verifies its checksums before using it"
+      f"updates of this step were skipped; {origin + '; ' if origin else ''}the last checkpoint "
+      f"is kept in {workdir} and a resume verifies its checksums before using it"
     )
 
 
