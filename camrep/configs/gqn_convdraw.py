@@ -56,8 +56,6 @@ def get_config(arg: str | None = None):
   # pushes information out of the latents into the pose-conditioned path.
   c.loss.kl_weight_initial = 1.0
   c.loss.kl_anneal_steps = 0
-  # GQN's learning-rate schedule is common.base()'s "linear" one (optax.final_scale 0.1 over
-  # optax.anneal_steps 1.6M), switched on below.
   c.model.gamma_init_one = False  # (decoder option, unused by the generator)
   c.rep.kind = "lowdim"
   # No pose-system parameters: no rotation losses.
@@ -65,6 +63,8 @@ def get_config(arg: str | None = None):
   c.loss.rot_weight = 0.0
   c.loss.dir_weight = 0.0
   c.optax.lr_model = 5e-4
+  # GQN's learning-rate decay: common.base()'s "linear" schedule (optax.final_scale 0.1 over
+  # optax.anneal_steps 1.6M; a schedule any model may use, so its fields stay in the base).
   c.optax.schedule = "linear"
   if arg == "quick":
     # 2 cores: 4 generation steps and 3 context + 2 query views per scene (configs/gqn.py:quick
