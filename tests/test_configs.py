@@ -82,9 +82,12 @@ def test_configs_resolve_as_before():
   name in `camrep.configs.NAMES` and each variant in ("", "quick", "medium", "smoke") whose
   `get_config` does not raise ValueError, `json.loads(json.dumps(get_config(v).to_dict(),
   sort_keys=True))`, stored as {name: {variant or "paper": dict}}; the view-synthesis configs'
-  `stop` section (issue 29, defaults: off) was added to their entries since. A workdir's
-  config.json is compared with the requested config on resume (`runconfig.check_changes`), so a
-  field that changed or disappeared here would refuse to resume existing runs.
+  `stop` section (issue 29, defaults: off) was added to their entries since, and the ConvDRAW
+  fields (`runconfig.RETIRED`) were deleted from every config but gqn_convdraw, when they moved
+  from `common.base()` to `gqn_convdraw.py` (nothing else changed). A workdir's config.json is
+  compared with the requested config on resume (`runconfig.check_changes`), so a field that
+  changed or disappeared here would refuse to resume existing runs (a RETIRED field excepted:
+  tests/test_workdir.py resumes a workdir that still has them).
   """
   reference = json.loads(REFERENCE.read_text())
   assert sorted(reference) == sorted(configs.NAMES)

@@ -16,7 +16,9 @@ from camrep.models import convdraw
 from camrep.runtime import runconfig
 from camrep.synthesis import components, noise, restore, train
 
-pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
+# The fast tier (`-m "not slow"`) keeps the schedules, the KL and the configs; the model and the
+# training loop run in the whole suite.
+pytestmark = pytest.mark.usefixtures("fast_compile")
 
 S, C, Q, P = 2, 2, 2, 7
 
@@ -39,6 +41,7 @@ def tiny():
   return model, params
 
 
+@pytest.mark.slow
 def test_shapes_and_elbo_terms(tiny):
   model, params = tiny
   ctx, cvec, qvec, qimg = _inputs()
@@ -78,6 +81,7 @@ def test_pixel_sigma_schedule():
   assert sig(1_000_000) == pytest.approx(0.7)
 
 
+@pytest.mark.slow
 def test_sampling_deterministic_given_the_key(tiny):
   model, params = tiny
   ctx, cvec, qvec, _ = _inputs()
@@ -94,6 +98,7 @@ def test_sampling_deterministic_given_the_key(tiny):
   np.testing.assert_array_equal(d[1], c[1])
 
 
+@pytest.mark.slow
 def test_prior_mean_temperature(tiny):
   model, params = tiny
   ctx, cvec, qvec, _ = _inputs()
@@ -136,6 +141,7 @@ def test_config_variants_build():
     components.check_config(c)
 
 
+@pytest.mark.slow
 def test_smoke_run_trains_evaluates_restores_and_takes_the_noise_test(tmp_path):
   workdir = str(tmp_path / "run")
   last = train.train_and_evaluate(gqn_convdraw.get_config("smoke"), workdir)

@@ -168,6 +168,11 @@ def test_cli_writes_all_files(workdir, tmp_path, capsys):
   for bad in ("0,x", "-1", ","):
     assert ev.main(["--workdir", workdir, "--alphas", bad]) == 2
     assert "error: --alphas takes" in capsys.readouterr().err
+  # A decoder has no latents: GQN's generator's flag is refused, not silently ignored.
+  out3 = str(tmp_path / "temperature")
+  assert ev.main(["--workdir", workdir, "--draw_temperature", "0", "--out", out3]) == 2
+  assert "error: --draw_temperature: the run in" in capsys.readouterr().err
+  assert not os.path.exists(out3)
 
 
 @pytest.mark.parametrize("kind", ["lowdim", "mlp"])

@@ -2,9 +2,10 @@
 user mistake or resource fault ends in exit 2 with one `error:` line and no traceback, and leaves
 the workdir or dataset as it was (or in a state the next start accepts).
 
-The sweep over every `--config.` field of configs/gqn.py:smoke and configs/regression.py:smoke
-runs in this process through `camrep.runtime.cli.call` (the same flag parsing, validation and exit
-codes as `python -m`); a handful of real subprocesses check that the command lines behave alike.
+The sweep over every `--config.` field of configs/gqn.py:smoke, configs/gqn_convdraw.py:smoke and
+configs/regression.py:smoke runs in this process through `camrep.runtime.cli.call` (the same flag
+parsing, validation and exit codes as `python -m`); a handful of real subprocesses check that the
+command lines behave alike.
 """
 
 from __future__ import annotations
@@ -126,6 +127,11 @@ def _sweep_cases(config, schema, free_text):
 
 _SWEEPS = {
   "gqn": ("configs/gqn.py:smoke", synthesis_schema, {"allow_changes", "data.preset"}),
+  "gqn_convdraw": (
+    "configs/gqn_convdraw.py:smoke",
+    synthesis_schema,
+    {"allow_changes", "data.preset"},
+  ),
   "regression": (
     "configs/regression.py:smoke",
     regression_schema,
@@ -160,9 +166,15 @@ def test_fields_the_run_does_not_use_are_refused_when_set(capsys):
   argv = ["--config=configs/gqn.py:smoke", "--config.model.image_size=128"]
   assert cli.call(define, body, argv) == 2
   _assert_one_error(capsys.readouterr().err, "this run does not use config.model.image_size")
-  # The same value from the config file (not the command line) is the config's business.
+  # GQN's generator's fields are configs/gqn_convdraw.py's only: on the decoder's config the
+  # flag names an unknown field.
+  argv = ["--config=configs/gqn.py:smoke", "--config.model.draw_steps=3"]
+  assert cli.call(define, body, argv) == 2
+  _assert_one_error(capsys.readouterr().err, "--config.model.draw_steps=3", "no field")
+  assert cli.call(define, body, ["--config=configs/gqn_convdraw.py:smoke", argv[1]]) == 0
+  # The same value from a config file (not the command line) is the config's business.
   config = gqn.get_config("smoke")
-  config.model.draw_steps = 3  # convdraw only; the GQN decoder ignores it
+  config.model.draw_steps = 3  # a user's file that adds it: the GQN decoder ignores it
   synthesis_schema.validate(config)
   with pytest.raises(runconfig.ConfigError, match="model.kind='convdraw'"):
     synthesis_schema.validate(config, overridden={"model.draw_steps"})

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from camrep.configs import gqn, shapenet_car
+from camrep.configs import gqn, gqn_convdraw, shapenet_car
 from camrep.models import fastconv
 from camrep.models.composite import GQNSynthesis, TableSynthesis
 from camrep.runtime import runconfig
@@ -139,9 +139,9 @@ def test_model_dtype_config_checks():
   c.model.dtype = "float16"
   with pytest.raises(runconfig.ConfigError, match="model.dtype"):
     components.check_config(c)
-  c = gqn.get_config("smoke")
-  c.model.kind, c.rep.kind, c.model.dtype = "convdraw", "lowdim", "bfloat16"
-  with pytest.raises(runconfig.ConfigError, match="convdraw"):
+  c = gqn_convdraw.get_config("smoke")
+  c.model.dtype = "bfloat16"
+  with pytest.raises(runconfig.ConfigError, match="model.kind='decoder' only"):
     components.check_config(c)
   c = shapenet_car.get_config("smoke")
   c.model.dtype = "bfloat16"

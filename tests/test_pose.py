@@ -292,6 +292,7 @@ def test_pair_sampling_ranges():
   assert float(jnp.linalg.norm(p1 - p0, axis=-1).max()) <= 2.0 * 0.1 + 1e-6
 
 
+@pytest.mark.slow
 def test_rotation_loss_zero_on_consistent_system():
   with x64():
     spec = P.PoseSystemSpec(dofs=SPEC_1D.dofs, n_blocks=2, block_size=4)
@@ -522,14 +523,15 @@ GQN_SMALL = P.PoseSystemSpec(
   "method, variant",
   [
     ("taylor2", "binned"),
-    ("expm", "continuous"),
-    ("spectral", "binned"),
+    pytest.param("expm", "continuous", marks=pytest.mark.slow),
+    pytest.param("spectral", "binned", marks=pytest.mark.slow),
     ("spectral", "continuous"),
   ],
 )
 def test_nan_pose_decodes_to_nan_not_a_grid_corner(method, variant):
   """The issue's example: decode(embed([[nan, -0.3, 1.0]])) used to give a finite grid corner.
-  NaN values embed to NaN vectors and decode to NaN; the other DOFs are untouched."""
+  NaN values embed to NaN vectors and decode to NaN; the other DOFs are untouched. Jitted, as the
+  runs call them (eager decoding dispatches op by op, several times slower here)."""
   spec = P.PoseSystemSpec(
     dofs=(dataclasses.replace(GQN_SMALL.dofs[0], variant=variant), GQN_SMALL.dofs[1]),
     n_blocks=2,
@@ -538,11 +540,12 @@ def test_nan_pose_decodes_to_nan_not_a_grid_corner(method, variant):
   )
   params = P.init(jax.random.key(15), spec)
   poses = jnp.asarray([[np.nan, -0.3, 1.0], [0.2, -0.3, np.nan], [0.2, -0.3, 1.0]], jnp.float32)
-  v = P.embed(params, spec, poses)
+  decode = jax.jit(P.decode, static_argnums=1, static_argnames="refine_steps")
+  v = jax.jit(P.embed, static_argnums=1)(params, spec, poses)
   assert np.all(np.isnan(np.asarray(v["xy"][0]))) and np.all(np.isfinite(np.asarray(v["yaw"][0])))
   assert np.all(np.isnan(np.asarray(v["yaw"][1]))) and np.all(np.isfinite(np.asarray(v["xy"][1])))
   for refine in (0, 1):
-    out = np.asarray(P.decode(params, spec, v, refine_steps=refine))
+    out = np.asarray(decode(params, spec, v, refine_steps=refine))
     assert np.all(np.isnan(out[0, :2])) and np.isfinite(out[0, 2])
     assert np.all(np.isfinite(out[1, :2])) and np.isnan(out[1, 2])
     assert np.all(np.isfinite(out[2]))
@@ -553,8 +556,9 @@ def test_nan_vector_decodes_to_nan_1d(name):
   params = P.init(jax.random.key(16), SPEC_1D)
   v = P.embed_dof(params, SPEC_1D, name, jnp.asarray([0.3, 0.6]))
   v = v.at[0, 3].set(jnp.nan)
+  decode = jax.jit(P.decode_dof, static_argnums=(1, 2), static_argnames="refine_steps")
   for refine in (0, 1):
-    out = np.asarray(P.decode_dof(params, SPEC_1D, name, v, refine_steps=refine))
+    out = np.asarray(decode(params, SPEC_1D, name, v, refine_steps=refine))
     assert np.isnan(out[0]) and np.isfinite(out[1])
 
 
@@ -619,6 +623,7 @@ def _config(kind, source="rooms", family=None):
   return c
 
 
+@pytest.mark.slow  # ~10 s of compiles; the fast tier keeps the factory's lowdim test below
 def test_pose_inputs_one_interface_one_factory():
   spec = GQN_SMALL
   kinds = {"grid": pose_inputs.GridPoseInput, "lowdim": pose_inputs.LowDimPoseInput}
@@ -632,13 +637,14 @@ def test_pose_inputs_one_interface_one_factory():
     params = pi.init(jax.random.key(0))
     v = jax.jit(lambda p, x, pi=pi: pi.embed(p, x))(params, poses)
     assert set(v) == {"xy", "yaw"}
-    assert pi.decode(params, v).shape == poses.shape
+    assert jax.jit(lambda p, v, pi=pi: pi.decode(p, v))(params, v).shape == poses.shape
   with pytest.raises(ValueError, match="rep.kind"):
     pose_inputs.from_config(_config("spline"), spec)
   grid = pose_inputs.GridPoseInput(spec, refine_steps=0)
   params = grid.init(jax.random.key(1))
   v = grid.embed(params, poses)
-  assert_close(grid.decode(params, v), P.decode(params, spec, v, refine_steps=0), atol=0)
+  want = jax.jit(P.decode, static_argnums=1, static_argnames="refine_steps")
+  assert_close(jax.jit(grid.decode)(params, v), want(params, spec, v, refine_steps=0), atol=0)
 
 
 def test_lowdim_takes_explicit_constants_and_inverts():

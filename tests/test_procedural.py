@@ -7,6 +7,7 @@ import pytest
 
 from camrep.data import procedural, seven_scenes, sources
 from camrep.data.records import RECORD_KEYS
+from tests.utils import slow_except
 
 SIZE = 16
 TWO_PI = 2 * np.pi
@@ -32,7 +33,7 @@ def records(name: str, split: str) -> list[dict]:
   return list(family(name).iter_views(split))
 
 
-@pytest.mark.parametrize("name", procedural.FAMILIES)
+@pytest.mark.parametrize("name", slow_except(procedural.FAMILIES, ["rooms", "scene6dof"]))
 def test_records_follow_the_contract(name):
   fam = family(name)
   assert fam.pose_names == sources.get(name).pose_names and fam.image_size == SIZE
@@ -122,7 +123,7 @@ def test_splits_are_disjoint():
     fam.poses("test_scenes", 0)
 
 
-@pytest.mark.parametrize("name", procedural.FAMILIES)
+@pytest.mark.parametrize("name", slow_except(procedural.FAMILIES, ["rooms", "scene6dof"]))
 def test_determinism(name):
   fam = family(name)
   again = procedural.make_family(name, "small", image_size=SIZE, batch_size=8)

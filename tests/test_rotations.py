@@ -17,7 +17,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from camrep import rotations as rot
-from tests.utils import BATCH_SHAPES, assert_close, x64
+from tests.utils import BATCH_SHAPES, FAST_BATCH_SHAPE, assert_close, slow_except, x64
 
 TWO_PI = 2 * math.pi
 BACKENDS = ("numpy", "jax")
@@ -85,7 +85,7 @@ def test_quaternion_matrix_conversions_match_scipy(xp):
   assert_close(xp.check(rot.standardise_quat(xp(-3.0 * q))), q, atol=1e-12)
 
 
-@pytest.mark.parametrize("shape", BATCH_SHAPES)
+@pytest.mark.parametrize("shape", slow_except(BATCH_SHAPES, [FAST_BATCH_SHAPE]))
 def test_conversions_broadcast_over_leading_axes(xp, shape):
   r = _rotations(10, seed=4)
   R, q, rv = (

@@ -187,6 +187,31 @@ def test_allowed_change_is_recorded_with_its_step(trained, tmp_path):
   assert json.loads(open(os.path.join(wd, "config.json")).read())["optax"]["lr_model"] == 5e-4
 
 
+def test_a_workdir_written_with_the_retired_fields_resumes(trained, tmp_path):
+  """A GQN workdir whose config.json still has the ConvDRAW fields of the old base config
+  resumes with today's config (which lacks them); the history records them (old -> None) and
+  config.json becomes today's config."""
+  wd = tmp_path / "w"
+  shutil.copytree(trained, wd)
+  stored = json.loads((wd / "config.json").read_text())
+  assert "draw_steps" not in stored["model"]
+  for field, value in runconfig.RETIRED.items():
+    section, name = field.split(".")
+    stored[section][name] = value
+  (wd / "config.json").write_text(json.dumps(stored, indent=2))
+  c = gqn.get_config("smoke")
+  c.total_steps, c.allow_changes = 6, "total_steps"
+  train.train_and_evaluate(c, str(wd))
+  start, resume = workdir_lib.read_history(str(wd))
+  assert resume["step"] == 4 and resume["event"] == "resume"
+  assert resume["changes"] == {
+    "total_steps": [4, 6],
+    **{f: [v, None] for f, v in runconfig.RETIRED.items()},
+  }
+  assert json.loads((wd / "final_metrics.json").read_text())["step"] == 6
+  assert "draw_steps" not in json.loads((wd / "config.json").read_text())["model"]
+
+
 def test_failed_start_in_a_new_workdir_leaves_nothing(tmp_path):
   c = gqn.get_config("smoke")
   c.data.in_memory, c.data.dir = False, str(tmp_path / "no_such_data")

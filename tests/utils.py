@@ -17,6 +17,15 @@ from camrep import lie
 
 BATCH_SHAPES = ((), (1,), (3, 1, 2))
 REGIMES = ("normal", "large", "near_zero")
+# The batch shape that the fast tier (`-m "not slow"`) runs (the most general: several leading
+# axes, one of size 1); the whole suite (CI) runs every one of BATCH_SHAPES.
+FAST_BATCH_SHAPE = (3, 1, 2)
+
+
+def slow_except(values, fast) -> list:
+  """`values` for `pytest.mark.parametrize`, those not in `fast` marked slow: the fast tier runs
+  the `fast` cases of a parametrised test, the whole suite every case (ids unchanged)."""
+  return [v if v in fast else pytest.param(v, marks=pytest.mark.slow) for v in values]
 
 
 @contextlib.contextmanager
@@ -69,10 +78,11 @@ def jac_numerical(f, x, eps=1e-6):
 
 
 def general_lie_test(f):
-  """Parametrise a test over exp methods x batch shapes x sampling regimes, run in float64."""
+  """Parametrise a test over exp methods x batch shapes x sampling regimes, run in float64 (the
+  fast tier: every method and regime at FAST_BATCH_SHAPE)."""
 
   @pytest.mark.parametrize("method", lie.EXP_METHODS)
-  @pytest.mark.parametrize("batch", BATCH_SHAPES)
+  @pytest.mark.parametrize("batch", slow_except(BATCH_SHAPES, [FAST_BATCH_SHAPE]))
   @pytest.mark.parametrize("regime", REGIMES)
   @functools.wraps(f)
   def wrapper(method, batch, regime):

@@ -71,17 +71,12 @@ def base() -> ml_collections.ConfigDict:
   c.model.gamma_init_one = False
   # The view-synthesis model: "decoder" (camrep's decoders, trained on L_rec) or "convdraw" (GQN's
   # generator, Eslami et al. 2018: tower + ConvDRAW, trained on its ELBO; task "gqn", rep.kind
-  # "lowdim"). convdraw only: generation steps L and latent channels per step.
+  # "lowdim"; its own fields are configs/gqn_convdraw.py's).
   c.model.kind = "decoder"
   # Dtype of the decoder model's computation: "float32" (default) or "bfloat16" (mixed precision,
   # meant for GPUs: parameters, optimiser state, pose system and losses stay float32; on the CPU
   # it is slower, BUILD_NOTES "Mixed precision"). model.kind "decoder" only.
   c.model.dtype = "float32"
-  c.model.draw_steps = 12
-  c.model.z_channels = 3
-  # convdraw prediction (held-out eval, noise test): latents z = mu_p + T sigma_p eps of the prior;
-  # T = 1 is GQN's sample, T = 0 the prior mean (deterministic; camrep option).
-  c.model.draw_temperature = 1.0
 
   c.rep = ml_collections.ConfigDict()
   # The decoder's pose input: "grid" (the paper's learned system), or for comparisons "lowdim"
@@ -110,16 +105,6 @@ def base() -> ml_collections.ConfigDict:
   c.loss.dir_weight = 0.8  # lambda_4 (binned polar systems)
   c.loss.n_pairs = 4000  # extra rotation-loss pairs per DOF per step
   c.loss.data_pairs = False  # also use the batch's image pairs (0.5 / 0.5 mix)
-  # model.kind "convdraw" only: the ELBO's pixel std, annealed linearly from sigma_initial to
-  # sigma_final over sigma_anneal_steps (GQN: 2.0 -> 0.7 over 200k steps, pixels in [0, 1]).
-  c.loss.sigma_initial = 2.0
-  c.loss.sigma_final = 0.7
-  c.loss.sigma_anneal_steps = 200_000
-  # model.kind "convdraw" only, camrep option (GQN: 1.0, the plain ELBO): the KL term's weight
-  # beta, annealed linearly from kl_weight_initial to 1 over kl_anneal_steps (0: beta = 1 from the
-  # start). beta > 1 early pushes information out of the latents into the pose-conditioned path.
-  c.loss.kl_weight_initial = 1.0
-  c.loss.kl_anneal_steps = 0
 
   c.optax = ml_collections.ConfigDict()
   c.optax.lr_model = 1e-4

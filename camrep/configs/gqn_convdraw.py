@@ -39,9 +39,23 @@ def get_config(arg: str | None = None):
   common.parse_arg(arg, common.NO_MEDIUM)  # no `:medium` size for the generator yet
   c = gqn.get_config(arg)  # data, layout and durations of the GQN-rooms setting and variant
   c.model.kind = "convdraw"
-  # GQN's paper-size generator and schedules are common.base()'s (model.draw_steps 12,
-  # model.z_channels 3, loss.sigma_* 2.0 -> 0.7 over 200k steps, optax.final_scale 0.1 over
-  # optax.anneal_steps 1.6M): only what differs from configs/gqn.py is set here.
+  # The generator's own fields (no other config has them; the decoders never read them).
+  # Generation steps L and latent channels per step (GQN's paper size: 12 and 3).
+  c.model.draw_steps = 12
+  c.model.z_channels = 3
+  # Prediction (held-out eval, noise test): latents z = mu_p + T sigma_p eps of the prior; T = 1 is
+  # GQN's sample, T = 0 the prior mean (deterministic; camrep option).
+  c.model.draw_temperature = 1.0
+  # The ELBO's pixel std, annealed linearly from sigma_initial to sigma_final over
+  # sigma_anneal_steps (GQN: 2.0 -> 0.7 over 200k steps, pixels in [0, 1]).
+  c.loss.sigma_initial = 2.0
+  c.loss.sigma_final = 0.7
+  c.loss.sigma_anneal_steps = 200_000
+  # camrep option (GQN: 1.0, the plain ELBO): the KL term's weight beta, annealed linearly from
+  # kl_weight_initial to 1 over kl_anneal_steps (0: beta = 1 from the start). beta > 1 early
+  # pushes information out of the latents into the pose-conditioned path.
+  c.loss.kl_weight_initial = 1.0
+  c.loss.kl_anneal_steps = 0
   c.model.gamma_init_one = False  # (decoder option, unused by the generator)
   c.rep.kind = "lowdim"
   # No pose-system parameters: no rotation losses.
@@ -49,6 +63,8 @@ def get_config(arg: str | None = None):
   c.loss.rot_weight = 0.0
   c.loss.dir_weight = 0.0
   c.optax.lr_model = 5e-4
+  # GQN's learning-rate decay: common.base()'s "linear" schedule (optax.final_scale 0.1 over
+  # optax.anneal_steps 1.6M; a schedule any model may use, so its fields stay in the base).
   c.optax.schedule = "linear"
   if arg == "quick":
     # 2 cores: 4 generation steps and 3 context + 2 query views per scene (configs/gqn.py:quick

@@ -42,6 +42,24 @@ SYNTHESIS_RESUMABLE = (
   "model.dtype",
   "stop.",
 )
+# Retired fields: {field: the value every config had} for fields that `configs/common.py:base`
+# gave every run and that now live only in the config whose code reads them. A workdir written
+# before the move stores them in config.json; a requested config without them resumes it, the
+# difference recorded (old -> None in config_history.jsonl), whatever the stored value: the
+# runs whose configs lack a retired field never read it (the fields below are read by
+# model.kind "convdraw" only, configs/gqn_convdraw.py, and a convdraw workdir resumed with
+# another model.kind is refused on model.kind itself). A requested config that has the field
+# compares it as any other. The values are base()'s, kept as the record of what those runs held.
+RETIRED = {
+  "model.draw_steps": 12,
+  "model.z_channels": 3,
+  "model.draw_temperature": 1.0,
+  "loss.sigma_initial": 2.0,
+  "loss.sigma_final": 0.7,
+  "loss.sigma_anneal_steps": 200_000,
+  "loss.kl_weight_initial": 1.0,
+  "loss.kl_anneal_steps": 0,
+}
 # Fields that change only speed or where output goes: they differ silently (still recorded).
 FREE = (
   "allow_changes",
@@ -109,7 +127,8 @@ def check_changes(
     what: the verb of the message ("resume", "rerun").
 
   Returns:
-    {field: (old, new)} of every difference (allowed and free ones).
+    {field: (old, new)} of every difference (allowed and free ones, fields the stored config
+    lacks, and `RETIRED` fields the requested config lacks: (stored value, None)).
 
   Raises:
     ConfigError: some field differs that is not free and not allowed; the message names each
@@ -117,6 +136,7 @@ def check_changes(
   """
   diffs = differences(old, new)
   old_fields = flatten(as_plain(old))
+  new_fields = flatten(as_plain(new))
   diffs.pop("allow_changes", None)  # the permission itself is not a change of the run
   allowed = parse_allow_changes(as_plain(new).get("allow_changes", ""))
   sections = tuple(a + "." for a in allowed)  # a section name allows its fields
@@ -128,6 +148,8 @@ def check_changes(
       # A field camrep gained after the workdir was written: its default keeps the old
       # behaviour, so it is recorded, not refused (setting it on resume is still recorded).
       continue
+    if field in RETIRED and field not in new_fields:
+      continue  # moved out of the base config; this run never reads it (RETIRED): recorded
     if resumable is not None and not _covered(field, resumable):
       refused.append(f"  {field}: {a!r} -> {b!r}")
     elif not (_covered(field, allowed) or _covered(field, sections)):

@@ -1,7 +1,9 @@
 """The view-synthesis config's validation pass (`camrep.runtime.validate`): a rule per field of
-`configs/common.py:base`, which fields each task, model and data source uses, and the data-model
-checks (image size) made against the family's or the prepared dataset's own record before any
-data is read or anything compiled.
+`configs/common.py:base` and of GQN's generator (`configs/gqn_convdraw.py` adds them; on another
+config `--config.model.draw_steps=...` is an unknown field, refused when the flag is parsed),
+which fields each task, model and data source uses, and the data-model checks (image size) made
+against the family's or the prepared dataset's own record before any data is read or anything
+compiled.
 
 `validate(config, overridden=...)` is what `python -m camrep.main` runs first; it raises
 `ConfigError` (or `DataError` for a prepared directory that cannot be found).

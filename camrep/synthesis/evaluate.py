@@ -142,6 +142,11 @@ def _evaluate(fv: flags.FlagValues, out: str, alphas, what, log) -> int:
   if fv.num_scenes is not None:
     run_.config.evals.num_scenes = fv.num_scenes
   if fv.draw_temperature is not None:
+    if run_.model.temperature is None:  # a decoder: no latents to draw
+      raise cli.UsageError(
+        f"--draw_temperature: the run in {fv.workdir} has no generative model (model.kind "
+        f"{run_.config.model.get('kind', 'decoder')!r}); the flag is for GQN's generator only"
+      )
     run_.config.model.draw_temperature = fv.draw_temperature
   log(f"restored step {run_.step} of {fv.workdir} ({components.setting(run_.config)})")
   result = None

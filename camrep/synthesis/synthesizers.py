@@ -43,6 +43,20 @@ AXIS = "batch"  # the pmapped step's device axis
 # config.model.kind: camrep's decoders (trained on L_rec) or GQN's generator (trained on its ELBO).
 MODEL_KINDS = ("decoder", "convdraw")
 
+# The fields GQN's generator reads and no other model does: set by configs/gqn_convdraw.py, absent
+# from configs/common.py:base (a workdir written before they moved stores them:
+# runconfig.RETIRED).
+GENERATOR_FIELDS = (
+  "model.draw_steps",
+  "model.z_channels",
+  "model.draw_temperature",
+  "loss.sigma_initial",
+  "loss.sigma_final",
+  "loss.sigma_anneal_steps",
+  "loss.kl_weight_initial",
+  "loss.kl_anneal_steps",
+)
+
 # config.model.dtype -> the models' `dtype` (None: float32, Flax's inference from the parameters).
 COMPUTE_DTYPES = {"float32": None, "bfloat16": jnp.bfloat16}
 
@@ -396,6 +410,14 @@ def check_config(config) -> None:
       f"pose vector; the ELBO trains the model group only), got task={config.task!r}, "
       f"rep.kind={kind!r}"
     )
+  if mkind == "convdraw":
+    missing = [f for f in GENERATOR_FIELDS if _field(config, f) is None]
+    if missing:
+      raise ConfigError(
+        f"model.kind='convdraw' (GQN's generator) reads config.{', config.'.join(missing)}, "
+        "which this config lacks: derive it from configs/gqn_convdraw.py, which sets them "
+        "(configs/common.py:base does not)"
+      )
   if mkind == "convdraw" and dtype is not None:
     raise ConfigError(
       f"model.dtype={config.model.dtype!r} is implemented for model.kind='decoder' only; "
@@ -406,6 +428,12 @@ def check_config(config) -> None:
       "loss.data_pairs reads the batch's views as (anchor, partner) pairs: it needs "
       f"data.mode='pairs', got {d.mode!r} (GQN rooms: leave data_pairs off)"
     )
+
+
+def _field(config, path: str):
+  """config's value at "section.name", None where absent."""
+  section, _, name = path.rpartition(".")
+  return config.get(section, {}).get(name) if section else config.get(name)
 
 
 def reads_context(config) -> bool:
