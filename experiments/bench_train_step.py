@@ -37,6 +37,8 @@ Commands (2-core CPU):
     --dtype=float32,bfloat16                                                 # ~3 min
   .venv/bin/python experiments/bench_train_step.py --width=quick --scenes=8 --grad_modes=xla \
     --end_to_end=configs/gqn.py:quick                                        # ~4 min
+  .venv/bin/python experiments/bench_train_step.py --skip_synthesis --regression gqn,car \
+    --regression_grad_modes matmul,by_channels --steps 5 --repeats 4         # ~3 min + data
 
 On a GPU (mixed precision is meant for it; conv weight gradients from XLA / cuDNN):
 
