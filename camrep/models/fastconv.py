@@ -20,7 +20,7 @@ Which weight gradient is used is decided when the step is traced:
     `MATMUL_MIN_CHANNELS` output channels, XLA's gradient for narrower ones and on other backends.
     With few output channels the k^2 strided input copies P_ij cost more than the tap matmuls
     (a copy of rows x Cin floats per rows x Cin x Cout multiply-adds), and XLA's own gradient is
-    faster: the pose-regression step at the quick width (eighth width, 8-32 channels) ran 2.4x
+    faster: the pose-regression step at the quick width (eighth width, 8-32 channels) ran 2.3x
     faster with it, while at paper width (128-256 channels) the matmuls stay 1.4x faster
     (BUILD_NOTES "The regression step's speed"). The regression learner traces its step so;
   "matmul" / "xla": forced, e.g. by `experiments/bench_train_step.py` to compare the two.

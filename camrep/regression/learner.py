@@ -148,7 +148,7 @@ class Regressor:
       "imagenet" ((x / 255 - mean) / std, torchvision's, for ImageNet-pretrained weights).
     weight_grad: the conv kernel gradients `train_step` traces (`camrep.models.fastconv` modes):
       "by_channels" (matmuls on a CPU for convs of 128 or more output channels, XLA's own for
-      narrower ones: 2.4x faster at the quick width's GQN step than all matmuls, the same at
+      narrower ones: 2.3x faster at the quick width's GQN step than all matmuls, the same at
       paper width). The same math, summed in another order.
   """
 
