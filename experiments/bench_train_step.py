@@ -37,6 +37,8 @@ Commands (2-core CPU):
     --dtype=float32,bfloat16                                                 # ~3 min
   .venv/bin/python experiments/bench_train_step.py --width=quick --scenes=8 --grad_modes=xla \
     --end_to_end=configs/gqn.py:quick                                        # ~4 min
+  .venv/bin/python experiments/bench_train_step.py --skip_synthesis --regression gqn,car \
+    --regression_grad_modes matmul,by_channels --steps 5 --repeats 4         # ~3 min + data
 
 On a GPU (mixed precision is meant for it; conv weight gradients from XLA / cuDNN):
 
@@ -48,6 +50,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import os
 import resource
@@ -82,6 +85,15 @@ def _parse(argv=None):
   )
   p.add_argument("--regression_variant", default="quick", help="configs/regression.py variant")
   p.add_argument("--regression_cache", default="/tmp/camrep_bench_regression_cache")
+  p.add_argument(
+    "--regression_grad_modes",
+    default="",
+    help="conv weight gradients of the regression steps to compare (e.g. matmul,by_channels; "
+    "fastconv modes); empty: the regressor's own (learner.Regressor.weight_grad)",
+  )
+  p.add_argument(
+    "--regression_width", type=float, default=None, help="model.width of the regression steps"
+  )
   p.add_argument("--skip_synthesis", action="store_true", help="time only --regression steps")
   p.add_argument("--tables", action="store_true", help="batch / image size / device tables")
   p.add_argument("--breakdown", action="store_true", help="time encoder, decoder, rotation loss")
@@ -225,10 +237,13 @@ class RegressionTimer(StepTimer):
   """The pose-regression train step (`camrep.regression.learner.train_step`, jitted as the driver
   runs it) of `configs/regression.py:<variant>` for one setting and representation, on the
   setting's real training batch (rendered once, cached in `cache_dir`). `images` counts every
-  image the step's network sees (GQN: the context and query views of each scene)."""
+  image the step's network sees (GQN: the context and query views of each scene). `weight_grad`
+  replaces the regressor's conv kernel gradients (`learner.Regressor.weight_grad`), `width` the
+  config's model.width."""
 
   def __init__(self, setting: str, *, variant: str = "quick", representation: str = "quat",
-               cache_dir: str = "", log=print):  # fmt: skip
+               cache_dir: str = "", weight_grad: str = "", width: float | None = None,
+               log=print):  # fmt: skip
     self._context = contextlib.nullcontext
     import jax
     import jax.numpy as jnp
@@ -243,11 +258,18 @@ class RegressionTimer(StepTimer):
     config = regression.get_config(variant)
     config.setting, config.representation = setting, representation
     config.data.cache_dir = cache_dir
+    if width is not None:
+      config.model.width = width
     config = driver.resolve_config(config)
     setup = driver.prepare(config, log=log)
-    b0 = views_lib.train_batch_fn(config, setup.data.train)(0)
+    pipe = views_lib.train_pipeline(config, setup.data.train)
+    b0 = views_lib.learner_batch(config, setup.data.train, pipe.batch(0))
     batch = {k: jnp.asarray(v) for k, v in b0.items()}
-    state = learner.init(jax.random.key(0), setup.reg, batch, rep_params=setup.rep_params)
+    reg = setup.reg
+    if weight_grad:
+      reg = dataclasses.replace(reg, weight_grad=weight_grad)
+    self.weight_grad = reg.weight_grad
+    state = learner.init(jax.random.key(0), reg, batch, rep_params=setup.rep_params)
     self.flops = flops_lib.count_flops(learner.train_step, state, batch)
     self.xla_flops = float("nan")
     step = jax.jit(learner.train_step, donate_argnums=0)
@@ -533,11 +555,20 @@ def main(argv=None) -> None:
       timer = StepTimer(config, context=lambda m=mode: fastconv.weight_grad(m))
       timers[f"{dtype} weight grad {mode}"] = (timer, dtype)
   settings = [x for x in args.regression.split(",") if x]
+  reg_modes = [x for x in args.regression_grad_modes.split(",") if x] or [""]
+  regression_rows = []
   for setting in settings:
-    timer = RegressionTimer(
-      setting, variant=args.regression_variant, cache_dir=args.regression_cache
-    )
-    timers[f"regression {setting}"] = (timer, "float32")
+    for mode in reg_modes:
+      timer = RegressionTimer(
+        setting,
+        variant=args.regression_variant,
+        cache_dir=args.regression_cache,
+        weight_grad=mode,
+        width=args.regression_width,
+      )
+      name = f"regression {setting}" + (f" weight grad {mode}" if mode else "")
+      timers[name] = (timer, "float32")
+      regression_rows.append((setting, name, timer.weight_grad))
   # Peaks and steps timed in turn, --repeats rounds: MFU per round against that round's peak.
   inter = interleaved(timers, rounds=args.repeats, steps=args.steps)
   for dtype in dtypes:
@@ -556,10 +587,11 @@ def main(argv=None) -> None:
     "round's MFU against the same round's peak",
     flush=True,
   )
-  for setting in settings:
-    r = inter[f"regression {setting}"]
+  for setting, name, mode in regression_rows:
+    r = inter[name]
     print(
-      f"  regression step, {setting} ({args.regression_variant}, quat, {r['images']} images/step):"
+      f"  regression step, {setting} ({args.regression_variant}, quat, {r['images']} images/step, "
+      f"weight grad {mode}):"
       f" s/step {format_spread(r['sec'])}  images/s {format_spread(r['images_per_s'], '.1f')}  "
       f"{r['flops'] / 1e9:.2f} GFLOP/step (XLA's count {r['xla_flops'] / 1e9:.2f})  GFLOP/s "
       f"{format_spread(r['flops_per_s'], '.1f', 1e-9)}  MFU {format_spread(r['mfu'])} (per CPU "

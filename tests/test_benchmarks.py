@@ -53,3 +53,20 @@ def test_lie_apply_ratio_is_measured_per_round():
   assert len(r["ratios"]) == len(r["taylor2"]) == len(r["spectral"]) == 2
   np.testing.assert_allclose(r["ratios"], np.array(r["spectral"]) / np.array(r["taylor2"]))
   assert min(r["taylor2"]) > 0 and min(r["spectral"]) > 0
+
+
+@pytest.mark.slow
+def test_regression_timer_builds_and_times_the_learners_step(tmp_path):
+  """`RegressionTimer` builds the driver's training batch and step of a setting (GQN, :smoke) with
+  the regressor's conv gradients replaced as asked, and times it."""
+  bts = load_experiment("bench_train_step")
+  timer = bts.RegressionTimer(
+    "gqn", variant="smoke", cache_dir=str(tmp_path), weight_grad="matmul", log=lambda *_: None
+  )
+  assert timer.weight_grad == "matmul"
+  assert timer.images == 2 * (3 + 2)  # :smoke gqn: 2 scenes x (3 context + 2 query) views
+  assert timer.flops > 0 and timer.finite == 1.0
+  times = timer.times(2)
+  assert len(times) == 2 and all(t > 0 for t in times)
+  default = bts.RegressionTimer("gqn", variant="smoke", cache_dir=str(tmp_path))
+  assert default.weight_grad == "by_channels"

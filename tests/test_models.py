@@ -358,6 +358,40 @@ def test_fastconv_gradients_match_xla(kernel, stride, padding):
       assert_close(got[k], want[k], atol=1e-10, rtol=1e-10)
 
 
+def test_fastconv_by_channels_chooses_per_layer():
+  """The "by_channels" mode computes kernel gradients as matmuls (one per tap) only for convs with
+  at least MATMUL_MIN_CHANNELS output channels on the CPU, XLA's own for narrower ones; both
+  equal XLA's gradients."""
+  from camrep.models import fastconv
+
+  def grads(cout):
+    rng = np.random.default_rng(cout)
+    x = jnp.asarray(rng.normal(size=(2, 6, 6, 3)), jnp.float32)
+    w = jnp.asarray(rng.normal(size=(3, 3, 3, cout)), jnp.float32)
+
+    def loss(w_):
+      y = fastconv.conv_general_dilated(
+        x, w_, (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+      )
+      return jnp.sum(jnp.sin(y))
+
+    return str(jax.make_jaxpr(jax.grad(loss))(w)), jax.jit(jax.grad(loss))(w)
+
+  wide = fastconv.MATMUL_MIN_CHANNELS
+  with fastconv.weight_grad("xla"):
+    want = {c: grads(c)[1] for c in (wide - 1, wide)}
+  with fastconv.weight_grad("by_channels"):
+    assert fastconv.get_weight_grad() == "by_channels"
+    assert fastconv.get_weight_grad(wide - 1) == "xla"
+    assert fastconv.get_weight_grad(wide) == "matmul"
+    narrow_jaxpr, narrow = grads(wide - 1)
+    wide_jaxpr, wide_g = grads(wide)
+  assert "dot_general" not in narrow_jaxpr  # XLA's conv gradient
+  assert wide_jaxpr.count("dot_general") == 9  # one matmul per tap of the 3 x 3 kernel
+  assert_close(narrow, want[wide - 1], atol=1e-4, rtol=1e-5)
+  assert_close(wide_g, want[wide], atol=1e-4, rtol=1e-5)
+
+
 def test_fastconv_mode_and_fallbacks():
   from camrep.models import fastconv
 

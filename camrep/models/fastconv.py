@@ -16,6 +16,13 @@ equals XLA's own gradient up to float round-off (summation order; tests/test_mod
 Which weight gradient is used is decided when the step is traced:
   "auto" (default): matmuls on the CPU backend, XLA's own conv gradient elsewhere (GPU/TPU conv
     libraries compute it well);
+  "by_channels": per layer, matmuls on the CPU backend for convs with at least
+    `MATMUL_MIN_CHANNELS` output channels, XLA's gradient for narrower ones and on other backends.
+    With few output channels the k^2 strided input copies P_ij cost more than the tap matmuls
+    (a copy of rows x Cin floats per rows x Cin x Cout multiply-adds), and XLA's own gradient is
+    faster: the pose-regression step at the quick width (eighth width, 8-32 channels) ran 2.3x
+    faster with it, while at paper width (128-256 channels) the matmuls stay 1.4x faster
+    (BUILD_NOTES "The regression step's speed"). The regression learner traces its step so;
   "matmul" / "xla": forced, e.g. by `experiments/bench_train_step.py` to compare the two.
 Set it with `weight_grad("xla")` as a context manager around tracing, or `set_weight_grad`.
 Layouts other than NHWC / HWIO, dilations and feature groups fall back to XLA's conv.
@@ -37,20 +44,32 @@ from jax import lax
 
 Array = jax.Array
 
-WEIGHT_GRAD_MODES = ("auto", "matmul", "xla")
+WEIGHT_GRAD_MODES = ("auto", "by_channels", "matmul", "xla")
+MATMUL_MIN_CHANNELS = 128
+"""Output channels from which "by_channels" computes a conv's kernel gradient as matmuls."""
 _mode = "auto"
 
 
 def set_weight_grad(mode: str) -> None:
-  """Chooses the kernel gradient of convs traced from now on: "auto", "matmul" or "xla"."""
+  """Chooses the kernel gradient of convs traced from now on: "auto", "by_channels", "matmul" or
+  "xla"."""
   global _mode
   if mode not in WEIGHT_GRAD_MODES:
     raise ValueError(f"weight_grad must be one of {WEIGHT_GRAD_MODES}, got {mode!r}")
   _mode = mode
 
 
-def get_weight_grad() -> str:
-  """The mode in force, with "auto" resolved for the default backend: "matmul" or "xla"."""
+def get_weight_grad(out_channels: int | None = None) -> str:
+  """The mode in force, resolved for the default backend: "matmul" or "xla".
+
+  "by_channels" needs the conv's `out_channels` to resolve; without them it is returned as is.
+  """
+  if _mode == "by_channels":
+    if jax.default_backend() != "cpu":
+      return "xla"
+    if out_channels is None:
+      return _mode
+    return "matmul" if out_channels >= MATMUL_MIN_CHANNELS else "xla"
   if _mode == "auto":
     return "matmul" if jax.default_backend() == "cpu" else "xla"
   return _mode
@@ -158,7 +177,7 @@ def conv_general_dilated(
     and batch_group_count == 1
     and preferred_element_type is None
   )
-  if not plain or get_weight_grad() == "xla":
+  if not plain or get_weight_grad(rhs.shape[-1]) == "xla":
     return lax.conv_general_dilated(
       lhs,
       rhs,
