@@ -6,6 +6,7 @@ import errno
 import json
 import os
 import signal
+import threading
 import warnings
 
 import jax
@@ -129,9 +130,15 @@ def test_max_to_keep(tmp_path):
 
 
 def test_save_not_newer_is_skipped_unless_forced(ckpt):
+  stderr_before = os.fstat(2)
   assert ckpt.save(5, {"x": jnp.asarray(1)})
   assert not ckpt.save(5, {"x": jnp.asarray(2)})
   assert not ckpt.save(4, {"x": jnp.asarray(2)})
+  # A skipped save gives stderr back (it held fd 2 in a pipe for the rest of the process, so a
+  # later crash's message was lost).
+  after = os.fstat(2)
+  assert (after.st_dev, after.st_ino) == (stderr_before.st_dev, stderr_before.st_ino)
+  assert not [t for t in threading.enumerate() if t.name == "held_stderr"]
   assert ckpt.save(5, {"x": jnp.asarray(3)}, force=True)
   restored, _, _ = ckpt.restore({"x": jnp.asarray(0)})
   assert int(restored["x"]) == 3 and ckpt.all_steps() == [5]

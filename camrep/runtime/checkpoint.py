@@ -441,6 +441,7 @@ class Checkpointer:
       if force and step in self._manager.all_steps():
         self._manager.delete(step)
       if not force and (latest := self._manager.latest_step()) is not None and step <= latest:
+        held.release()  # (every path out of this method gives fd 2 back)
         logging.info("Checkpoint step %d not saved: not newer than step %d.", step, latest)
         return False
       self._pending_step = step
