@@ -25,6 +25,16 @@ column's "ours": every regression seed k on every other synthesis seed j's pose 
 lr seed 0 chose, into DIR/crossed/<column>/<lr>_seed<k>_syn<j> (outside regression/, so never
 tabled with the paired runs), then experiments/seed_spread.py --decode over them and the paired
 runs -> DIR/seed_spread_<column>.md (where ours' seed spread comes from).
+`--archive DIR` (e.g. results/converge, committed): each finished run's records (config.json,
+record.json, results.json or final_metrics.json, metrics.jsonl, errors_*.npz, eval/noise.json;
+never checkpoints) and the launch's tables and figures are copied into DIR as soon as the run
+ends, and a launch starts by restoring the runs DIR holds into --out: a launch cut short resumes
+on another machine, losing only the runs in flight. A view-synthesis run restored without its
+checkpoints is trained again (runs are deterministic: the same numbers) only while a run that
+reads them (its seed's "ours" / MLP regressions, its noise evaluation, crossed runs) is missing.
+With one synthesis run per seed (converge) the launch goes seed by seed, so that a cut loses
+little: seed 0's synthesis runs and their evaluations, phase 1, then for each later seed its
+synthesis runs, their evaluations and its phase-2 runs.
 `--data car_NAME=SOURCE:DIR` (repeatable) adds a capture column "car_NAME": a capture prepared
 by `python -m camrep.data.prepare --source SOURCE --input CAPTURE --data_dir DIR --preset small`
 (SOURCE nerf, llff or colmap), regressed in the car setting into regression/car_NAME and tabled
@@ -83,10 +93,11 @@ import glob
 import math
 import os
 import shlex
+import shutil
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from camrep.regression import tables as C
 from camrep.runtime import progress as progress_lib
@@ -609,11 +620,18 @@ def job_env(jobs: int) -> dict[str, str] | None:
 
 
 def run_jobs(
-  jobs: Sequence[Job], logs: str, *, at_once: int, label: str, deadline: float | None = None
+  jobs: Sequence[Job],
+  logs: str,
+  *,
+  at_once: int,
+  label: str,
+  deadline: float | None = None,
+  after: Callable[[Job], None] | None = None,
 ) -> list[str]:
   """Runs the jobs that are not done, `at_once` subprocesses at a time (they must not depend on
   each other); none is started after `deadline` (time.monotonic(); --max_hours), and those are
-  not failures (a rerun starts them). Returns the names of those that failed."""
+  not failures (a rerun starts them); `after(job)` is called once a job has succeeded (the
+  archive's copy, `--archive`). Returns the names of those that failed."""
   todo = [j for j in jobs if not j.done()]
   for j in jobs:
     if j not in todo:
@@ -626,6 +644,8 @@ def run_jobs(
       print(f"[{label}{i + 1}/{len(todo)}] {job.name}: not started (--max_hours)", flush=True)
       return None
     ok = run_job(job, logs, index=f"{label}{i + 1}/{len(todo)}", env=env)
+    if ok and after is not None:
+      after(job)
     return None if ok else job.name
 
   if at_once <= 1:
@@ -712,6 +732,14 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     "other synthesis seed, at the chosen lr) and write DIR/seed_spread_COLUMN.md",
   )
   p.add_argument(
+    "--archive",
+    default="",
+    metavar="DIR",
+    help="keep each finished run's records (configs, results, curves, errors, noise "
+    "evaluations; no checkpoints) in DIR, e.g. results/converge, and start by restoring the runs "
+    "DIR holds: a launch cut short resumes on another machine",
+  )
+  p.add_argument(
     "--noise_kinds",
     default="lowdim,mlp,convdraw",
     help="with --noise_runs: which other GQN pose inputs / generators to train (subset of "
@@ -777,6 +805,7 @@ class Launch:
   figures: list[Job]
   data: dict[str, str] = dataclasses.field(default_factory=dict)
   crossed: str = ""  # --crossed: the column whose ours seeds are crossed
+  archive: str = ""  # --archive: where each finished run's records are kept
 
 
 def make_launch(args: argparse.Namespace) -> Launch:
@@ -808,7 +837,10 @@ def make_launch(args: argparse.Namespace) -> Launch:
   crossed = getattr(args, "crossed", "")
   if crossed and "ours" not in reps.get(crossed, ()):
     raise SystemExit(f"--crossed {crossed}: the launch runs no ours there (--representations)")
-  return Launch(plan, out, py, settings, synth, first, later, tables, figures, data, crossed)
+  archive = os.path.abspath(args.archive) if getattr(args, "archive", "") else ""
+  return Launch(
+    plan, out, py, settings, synth, first, later, tables, figures, data, crossed, archive
+  )
 
 
 def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -> None:
@@ -894,38 +926,44 @@ def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -
 
 
 def execute(launch: Launch, *, at_once: int = 1, deadline: float | None = None) -> list[str]:
-  """Runs what is not done yet, in order: view synthesis, phase 1 (extended while a chosen lr
-  sits at its grid's edge, when the plan allows), phase 2 at the chosen lr, tables, figures;
-  `at_once` subprocesses at a time within each of these steps; no run is started after
-  `deadline` (time.monotonic()).
+  """Runs what is not done yet, seed by seed: seed 0's view-synthesis runs (with their
+  noise / Gram evaluations), phase 1 (extended while a chosen lr sits at its grid's edge, when
+  the plan allows), then for each later seed its view-synthesis runs and its phase-2 runs at the
+  chosen lr; then the crossed runs, tables, curves and noise figures. A plan without one
+  synthesis run per seed trains all of them first. `at_once` subprocesses at a time within each
+  of these steps; no run is started after `deadline` (time.monotonic()). With an archive
+  (`--archive`), each finished run's records are copied into it as soon as the run ends, so a
+  launch cut short loses at most the runs in flight, and a view-synthesis run is only needed
+  while a run that reads its checkpoints is not done.
 
   Returns:
     The names of the jobs that failed.
   """
   L = launch
   logs = os.path.join(L.out, "logs")
-  kw = dict(at_once=at_once, deadline=deadline)
-  failed = run_jobs(L.synth, logs, label="synthesis: ", **kw)
+  after = (lambda job: sync_archive(L.out, L.archive)) if L.archive else None
+  kw = dict(at_once=at_once, deadline=deadline, after=after)
+  seeds = L.plan.seeds
+  failed = run_synthesis(L, synthesis_of_seed(L, seeds[0]), logs, kw)
   failed += run_jobs(L.first, logs, label="phase 1: ", **kw)
-  groups = sorted({(s, rep) for s, rep, _ in L.later} | {_group(j) for j in L.first})
   for _ in range(L.plan.extend_grid):
-    ext = []
-    for col, rep in groups:
-      lr = extension_lr(L.out, col, rep, L.plan)
-      if lr is not None:
-        ext.append(regression_job(L.out, L.plan, col, rep, lr, L.plan.seeds[0], L.python, L.data))
+    ext = extension_jobs(L)
     if not ext:
       break
     failed += run_jobs(ext, logs, label="phase 1, lr grid extended: ", **kw)
-  later = []
-  for s, rep, seed in L.later:
-    lr = chosen_lr(L.out, s, rep, L.plan)
-    if lr is None:
-      print(f"[phase 2] {s}/{rep} seed {seed}: no phase-1 results; skipped", flush=True)
-      failed.append(f"regression_{s}_{rep}_seed{seed}")
-      continue
-    later.append(regression_job(L.out, L.plan, s, rep, lr, seed, L.python, L.data))
-  failed += run_jobs(later, logs, label="phase 2: ", **kw)
+  for seed in seeds[1:]:
+    failed += run_synthesis(L, synthesis_of_seed(L, seed), logs, kw)
+    later = []
+    for s, rep, k in L.later:
+      if k != seed:
+        continue
+      lr = chosen_lr(L.out, s, rep, L.plan)
+      if lr is None:
+        print(f"[phase 2] {s}/{rep} seed {k}: no phase-1 results; skipped", flush=True)
+        failed.append(f"regression_{s}_{rep}_seed{k}")
+        continue
+      later.append(regression_job(L.out, L.plan, s, rep, lr, k, L.python, L.data))
+    failed += run_jobs(later, logs, label=f"phase 2, seed {seed}: ", **kw)
   if L.crossed:
     lr = chosen_lr(L.out, L.crossed, "ours", L.plan)
     if lr is None:
@@ -933,13 +971,179 @@ def execute(launch: Launch, *, at_once: int = 1, deadline: float | None = None) 
       failed.append(f"crossed_{L.crossed}")
     else:
       failed += run_jobs(crossed_jobs(L, lr), logs, label="crossed: ", **kw)
-      failed += run_jobs([seed_spread_job(L, lr)], logs, at_once=1, label="", deadline=deadline)
-  failed += run_jobs(L.tables + curve_jobs(L), logs, at_once=1, label="", deadline=deadline)
-  evaluations = [j for j in L.figures if j.name.startswith("evaluate_")]
-  failed += run_jobs(evaluations, logs, label="evaluate: ", **kw)
-  rest = [j for j in L.figures if j not in evaluations]
-  failed += run_jobs(rest, logs, at_once=1, label="", deadline=deadline)
+      failed += run_jobs([seed_spread_job(L, lr)], logs, label="", **{**kw, "at_once": 1})
+  rest = [j for j in L.figures if not j.name.startswith("evaluate_")]
+  failed += run_jobs(L.tables + curve_jobs(L) + rest, logs, label="", **{**kw, "at_once": 1})
+  if L.archive:
+    sync_archive(L.out, L.archive)
   return failed
+
+
+def synthesis_of_seed(launch: Launch, seed: int) -> list[Job]:
+  """The view-synthesis jobs trained before seed `seed`'s regressions: those named
+  "<name>_seed<seed>" with one synthesis run per seed, else all of them with the first seed."""
+  L = launch
+  if not L.plan.paired_synthesis:
+    return list(L.synth) if seed == L.plan.seeds[0] else []
+  return [j for j in L.synth if j.name.endswith(f"_seed{seed}")]
+
+
+def extension_jobs(launch: Launch) -> list[Job]:
+  """Phase 1's next grid extension: one seed-0 run per (column, representation) whose chosen lr
+  sits at its grid's edge (`extension_lr`)."""
+  L = launch
+  groups = sorted({(s, rep) for s, rep, _ in L.later} | {_group(j) for j in L.first})
+  jobs = []
+  for col, rep in groups:
+    lr = extension_lr(L.out, col, rep, L.plan)
+    if lr is not None:
+      jobs.append(regression_job(L.out, L.plan, col, rep, lr, L.plan.seeds[0], L.python, L.data))
+  return jobs
+
+
+def run_synthesis(launch: Launch, jobs: Sequence[Job], logs: str, kw: dict) -> list[str]:
+  """Trains the view-synthesis `jobs` that are not done, then their noise / Gram evaluations.
+
+  A run whose records came from the archive (complete, without checkpoints) is trained again
+  (from scratch, to the same result: runs are deterministic) only while a job that reads its
+  checkpoints is not done (`pending_synthesis`), else skipped."""
+  L = launch
+  pending = pending_synthesis(L)
+  todo = []
+  for j in jobs:
+    wd = os.path.dirname(j.done_file)
+    if not archived_only(wd):
+      todo.append(j)
+    elif wd in pending:
+      print(
+        f"[synthesis] {j.name}: its record is from the archive and a run still needs its "
+        "checkpoints; training it again",
+        flush=True,
+      )
+      shutil.rmtree(wd)
+      todo.append(j)
+    else:
+      print(f"[synthesis: skipped] {j.name}: archived, nothing left needs it", flush=True)
+  failed = run_jobs(todo, logs, label="synthesis: ", **kw)
+  names = {j.name.removeprefix("synthesis_") for j in jobs}
+  evaluations = [j for j in L.figures if j.name.removeprefix("evaluate_") in names]
+  failed += run_jobs(evaluations, logs, label="evaluate: ", **kw)
+  return failed
+
+
+def pending_synthesis(launch: Launch) -> set[str]:
+  """The view-synthesis workdirs that a job not yet done reads (its pose system, noise
+  evaluation, crossed runs); a phase-2 run whose lr phase 1 has not chosen yet counts."""
+  L = launch
+  jobs = list(L.first) + extension_jobs(L)
+  for s, rep, seed in L.later:
+    lr = chosen_lr(L.out, s, rep, L.plan)
+    jobs.append(regression_job(L.out, L.plan, s, rep, lr, seed, L.python, L.data))
+  if L.crossed:
+    jobs += crossed_jobs(L, chosen_lr(L.out, L.crossed, "ours", L.plan))
+  need = set()
+  for j in jobs:
+    if not j.done():
+      flag = "--config.synthesis_workdir="
+      need |= {a.removeprefix(flag) for a in j.argv if a.startswith(flag)}
+  for j in L.figures:
+    if j.name.startswith("evaluate_") and not j.done():
+      need.add(j.argv[j.argv.index("--workdir") + 1])
+  return need
+
+
+# --------------------------------------------------------------------------------------------
+# The archive (--archive DIR, e.g. results/converge): what a launch keeps of each finished run,
+# small enough for git, so that a launch cut short resumes on another machine.
+
+# Files kept per run (paths inside its workdir); never checkpoints, images or TensorBoard files.
+ARCHIVED_FILES = (
+  "config.json",
+  "record.json",
+  C.RESULTS_FILE,
+  session.FINAL_FILE,
+  "metrics.jsonl",
+  os.path.join("eval", "noise.json"),
+)
+ARCHIVED_PATTERNS = ("errors_*.npz",)
+# Run workdirs inside a launch's DIR, and the launch's own tables and figures.
+RUN_PATTERNS = ("synthesis/*", "regression/*/*/*", "crossed/*/*")
+TOP_PATTERNS = ("*.md", "*.png", "*.pdf")
+
+
+def has_checkpoint(workdir: str) -> bool:
+  """Whether a view-synthesis workdir holds a checkpoint (a step directory)."""
+  ckpt = os.path.join(workdir, "checkpoints")
+  return os.path.isdir(ckpt) and any(n.isdigit() for n in os.listdir(ckpt))
+
+
+def archived_only(workdir: str) -> bool:
+  """A view-synthesis run restored from the archive: complete, without checkpoints."""
+  return session.is_complete(workdir) and not has_checkpoint(workdir)
+
+
+def run_finished(workdir: str) -> bool:
+  """A regression run with its results, or a complete view-synthesis run."""
+  return os.path.exists(os.path.join(workdir, C.RESULTS_FILE)) or session.is_complete(workdir)
+
+
+def archived_files(workdir: str) -> list[str]:
+  """The files of `workdir` an archive keeps, as paths relative to it."""
+  names = [f for f in ARCHIVED_FILES if os.path.isfile(os.path.join(workdir, f))]
+  for pattern in ARCHIVED_PATTERNS:
+    names += sorted(os.path.basename(p) for p in glob.glob(os.path.join(workdir, pattern)))
+  return names
+
+
+def _copy_if_changed(src: str, dst: str) -> bool:
+  """Copies src to dst (through a temporary file and a rename) unless dst has the same bytes."""
+  with open(src, "rb") as f:
+    data = f.read()
+  if os.path.exists(dst):
+    with open(dst, "rb") as f:
+      if f.read() == data:
+        return False
+  os.makedirs(os.path.dirname(dst), exist_ok=True)
+  tmp = f"{dst}.tmp{os.getpid()}"
+  with open(tmp, "wb") as f:
+    f.write(data)
+  os.replace(tmp, dst)
+  return True
+
+
+def sync_archive(out: str, archive: str) -> int:
+  """Copies into `archive` the kept files of every finished run in `out` and the launch's tables
+  and figures, where missing or changed; returns how many files it wrote."""
+  n = 0
+  for pattern in RUN_PATTERNS:
+    for wd in sorted(glob.glob(os.path.join(out, pattern))):
+      if os.path.isdir(wd) and run_finished(wd):
+        rel = os.path.relpath(wd, out)
+        for f in archived_files(wd):
+          n += _copy_if_changed(os.path.join(wd, f), os.path.join(archive, rel, f))
+  for pattern in TOP_PATTERNS:
+    for path in sorted(glob.glob(os.path.join(out, pattern))):
+      n += _copy_if_changed(path, os.path.join(archive, os.path.basename(path)))
+  return n
+
+
+def restore_archive(archive: str, out: str) -> int:
+  """Copies into `out` every archived run that `out` does not hold finished (a view-synthesis
+  run only where `out` has no workdir of that name: a partial run there resumes from its own
+  checkpoints); returns how many runs it restored."""
+  n = 0
+  for pattern in RUN_PATTERNS:
+    for src in sorted(glob.glob(os.path.join(archive, pattern))):
+      rel = os.path.relpath(src, archive)
+      dst = os.path.join(out, rel)
+      if not os.path.isdir(src) or run_finished(dst):
+        continue
+      if rel.startswith("synthesis") and os.path.exists(dst):
+        continue
+      for f in archived_files(src):
+        _copy_if_changed(os.path.join(src, f), os.path.join(dst, f))
+      n += 1
+  return n
 
 
 def curve_jobs(launch: Launch) -> list[Job]:
@@ -1015,6 +1219,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # `--dry_run | head -1`: the reader has what it wanted
       os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 0
+  if launch.archive:
+    n = restore_archive(launch.archive, launch.out)
+    print(f"restored {n} finished runs from the archive {launch.archive}", flush=True)
   print_plan(launch, args.size, commands=False, at_once=args.jobs)
   t0 = time.perf_counter()
   deadline = time.monotonic() + 3600 * args.max_hours if args.max_hours > 0 else None

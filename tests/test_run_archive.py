@@ -1,0 +1,150 @@
+"""Tests of experiments/run_comparison.py's archive (`--archive DIR`) and its seed-by-seed order.
+
+A converge launch is hours of 2-core CPU time, longer than a machine is kept: the archive holds
+each finished run's records (no checkpoints) in the repository, and a launch on a new machine
+restores them and trains only what is missing. The runs here are fabricated by a stand-in for
+`run_job` (no JAX): it writes the files a real run writes and the launcher reads.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from tests.utils import load_experiment
+
+
+@pytest.fixture
+def rc():
+  return load_experiment("run_comparison")
+
+
+def _args(out, archive, *extra):
+  return [
+    "--size",
+    "converge",
+    "--settings",
+    "car",
+    "--representations",
+    "ours,quat",
+    "--skip_figures",
+    "--out",
+    str(out),
+    "--archive",
+    str(archive),
+    *extra,
+  ]
+
+
+def _flag(argv, name):
+  return next(a.split("=", 1)[1] for a in argv if a.startswith(f"--config.{name}="))
+
+
+def _summary(err):
+  return {"all": {"rotation_error_deg": {"mean": err, "median": err / 2}}}
+
+
+def fake_run_job(rc, ran):
+  """A `run_job` that writes what a finished run leaves, and records the order of the runs.
+  Regression: validation error lowest at lr 1e-3 (inside the grid: no extension)."""
+
+  def run_job(job, logs, *, index, env=None):
+    if not job.done_file:  # tables and curves: scripts over the runs, not runs
+      return True
+    ran.append(job.name)
+    wd = os.path.dirname(job.done_file)
+    os.makedirs(wd, exist_ok=True)
+    with open(os.path.join(wd, "config.json"), "w") as f:
+      json.dump({"argv": job.argv}, f)
+    with open(os.path.join(wd, "metrics.jsonl"), "w") as f:
+      f.write('{"step": 1, "eval/psnr": 15.0}\n')
+    if job.name.startswith("synthesis_"):
+      os.makedirs(os.path.join(wd, "checkpoints", "8"))
+      os.makedirs(os.path.join(wd, "tensorboard"))
+      open(os.path.join(wd, "tensorboard", "events.out"), "w").close()
+      with open(job.done_file, "w") as f:
+        json.dump({"complete": True, "step": 8}, f)
+      return True
+    lr, seed = float(_flag(job.argv, "optax.lr")), int(_flag(job.argv, "seed"))
+    val = 1.0 + abs(np.log10(lr) + 3)
+    r = dict(setting="car", representation=_flag(job.argv, "representation"), lr=lr, seed=seed)
+    r.update(steps=10, variant="quick", validation=_summary(val), test=_summary(2 * val))
+    with open(job.done_file, "w") as f:
+      json.dump(r, f)
+    np.savez(os.path.join(wd, "errors_test.npz"), rotation_error_deg=np.full(4, val))
+    return True
+
+  return run_job
+
+
+def test_a_launch_goes_seed_by_seed_and_archives_each_run(rc, tmp_path, monkeypatch):
+  """Seed k's synthesis runs come just before its regressions, and every finished run's records
+  (never checkpoints or TensorBoard files) are in the archive as soon as it ends."""
+  ran = []
+  monkeypatch.setattr(rc, "run_job", fake_run_job(rc, ran))
+  out, archive = tmp_path / "out", tmp_path / "archive"
+  launch = rc.make_launch(rc._parse_args(_args(out, archive)))
+  copies = []
+  real_sync = rc.sync_archive
+  monkeypatch.setattr(rc, "sync_archive", lambda o, a: copies.append(len(ran)) or real_sync(o, a))
+  assert rc.execute(launch) == []
+  syn = [n for n in ran if n.startswith("synthesis_")]
+  assert syn == ["synthesis_car_seed0", "synthesis_car_seed1", "synthesis_car_seed2"]
+  pos = {n: i for i, n in enumerate(ran)}
+  phase1 = [n for n in ran if n.endswith("_seed0") and n.startswith("regression_")]
+  assert len(phase1) == 2 * 3 and max(pos[n] for n in phase1) < pos["synthesis_car_seed1"]
+  for k in (1, 2):
+    mine = [n for n in ran if n.startswith("regression_") and n.endswith(f"_seed{k}")]
+    assert mine and all(pos[f"synthesis_car_seed{k}"] < pos[n] for n in mine)
+    assert all(n.startswith("regression_car_") and "lr1e-3" in n for n in mine)
+  assert copies[: len(ran)] == list(range(1, len(ran) + 1))  # after every run, at once
+  assert len(copies) > len(ran)  # and after the tables and curves
+  kept = sorted(
+    os.path.relpath(os.path.join(d, f), archive) for d, _, fs in os.walk(archive) for f in fs
+  )
+  assert "synthesis/car_seed1/final_metrics.json" in kept
+  assert "regression/car/ours/lr1e-3_seed2/errors_test.npz" in kept
+  assert not [p for p in kept if "checkpoints" in p or "tensorboard" in p]
+  assert rc.sync_archive(str(out), str(archive)) == 0  # nothing changed: nothing written
+
+
+def test_a_new_machine_restores_the_archive_and_trains_only_what_is_missing(
+  rc, tmp_path, monkeypatch, capsys
+):
+  """On another machine (an empty DIR) the archived runs are restored and skipped; a
+  view-synthesis run whose record came from the archive is trained again only while a run that
+  reads its checkpoints is missing, and a partial run in DIR resumes from its own checkpoints."""
+  ran = []
+  monkeypatch.setattr(rc, "run_job", fake_run_job(rc, ran))
+  first, archive = tmp_path / "first", tmp_path / "archive"
+  assert rc.execute(rc.make_launch(rc._parse_args(_args(first, archive)))) == []
+  # Lose seed 2's phase-2 ours run: it must be trained again, and so must its pose system.
+  lost = archive / "regression" / "car" / "ours" / "lr1e-3_seed2"
+  for f in os.listdir(lost):
+    os.remove(lost / f)
+  os.rmdir(lost)
+  ran.clear()
+  out = tmp_path / "second"
+  os.makedirs(out / "synthesis" / "car_seed1" / "checkpoints" / "4")  # a partial run here
+  assert rc.main(_args(out, archive)) == 0
+  # The partial seed-1 run resumes from its own checkpoints (restoring never overwrites it).
+  assert ran == [
+    "synthesis_car_seed1",
+    "synthesis_car_seed2",
+    "regression_car_ours_lr1e-3_seed2",
+  ]
+  text = capsys.readouterr().out
+  assert "restored" in text and "archived, nothing left needs it" in text
+  assert "synthesis_car_seed0: archived" in text
+  assert (out / "synthesis" / "car_seed1" / "checkpoints" / "4").is_dir()
+  assert (archive / "regression" / "car" / "ours" / "lr1e-3_seed2" / "results.json").exists()
+  # The archived synthesis record of seed 0 came back without checkpoints and stays so.
+  assert rc.archived_only(str(out / "synthesis" / "car_seed0"))
+  assert rc.has_checkpoint(str(out / "synthesis" / "car_seed2"))
+  # A third launch finds nothing to do.
+  ran.clear()
+  assert rc.main(_args(tmp_path / "third", archive)) == 0
+  assert ran == []
