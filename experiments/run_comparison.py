@@ -62,7 +62,8 @@ stopped):
      validation errors chose (`camrep.regression.tables.select`), or at every lr with --full_grid;
      a run with results.json is done. Rendered data and restored pose systems are cached in
      DIR/cache;
-  3. tables: experiments/table1.py -> DIR/table1.md, experiments/table2.py -> DIR/table2.md;
+  3. tables: experiments/table1.py -> DIR/table1.md, experiments/table2.py -> DIR/table2.md,
+     experiments/lead_table.py -> DIR/lead_table.md (every column in one table);
   4. figures: `python -m camrep.synthesis.evaluate --workdir DIR/synthesis/<name>` (noise robustness
      and Gram maps into each workdir's eval/), then, if experiments/noise_figure.py exists, one
      noise figure per setting with several pose inputs: DIR/noise_car.{png,md} (learned system
@@ -555,6 +556,9 @@ def table_jobs(out: str, py: str, settings: Sequence[str]) -> list[Job]:
     jobs.append(
       Job(f"table1_{col}", [py, "experiments/table1.py", "--runs", runs, "--out", md], "", 3)
     )
+  # Every column in one table: paper, best hand-designed, ours, paired ratio, verdict.
+  lead = [py, "experiments/lead_table.py", "--runs", os.path.join(out, "regression")]
+  jobs.append(Job("lead_table", [*lead, "--out", os.path.join(out, "lead_table.md")], "", 3))
   return jobs
 
 

@@ -1,0 +1,182 @@
+"""The comparison in one table: per column, the paper's numbers, camrep's best hand-designed
+representation and ours with 95% intervals, their paired ratio and a verdict.
+
+  python experiments/lead_table.py --runs results/converge/regression --out results/lead_table.md
+
+Reads the regression runs under RUNS (RUNS/<column>/<representation>/<lr>_seed<k>/, as
+experiments/run_comparison.py lays them out: columns car, gqn (rooms), gibson (area),
+seven_scenes and the capture columns car_<NAME>); per column, each representation's learning
+rate is chosen on the validation split (`camrep.regression.tables.select`). One row per table
+column of the paper (car rotation; rooms and area x, y, yaw; 7-Scenes median position and
+rotation) and per capture column:
+
+  - paper: the paper's "ours" and its best hand-designed representation in that column (Table 1;
+    Table 2's PoseNet + log q [MapNet] for 7-Scenes), real data at paper size, for reference;
+  - camrep, best hand-designed: the hand-designed representation with the lowest test statistic
+    in the column (as experiments/table1.py chooses it), with its interval;
+  - camrep, ours: with its interval;
+  - ours / best: the ratio of the two paired on the same seeds and test views, its 95% interval
+    and the verdict (better / tie / worse: interval below / containing / above 1);
+  - seeds, and whether either chosen learning rate sits at its grid's edge.
+
+Intervals and ratios as in `camrep.regression.stats` (two-level bootstrap over seeds and test
+views; per-scene medians averaged over scenes for 7-Scenes). A column whose runs lack per-view
+errors (errors_<split>.npz) or its ours or baselines is listed with "–". Runs in a few seconds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+from collections.abc import Sequence
+
+from camrep.regression import stats
+from camrep.regression import tables as C
+
+
+@dataclasses.dataclass(frozen=True)
+class Column:
+  """One row of the lead table: a table column of the paper (or a capture column)."""
+
+  label: str
+  directory: str  # RUNS/<directory>/<representation>/<run>
+  error: str
+  reduce: str = "mean"
+  by_scene: bool = False
+  paper_ours: float | None = None
+  paper_best: tuple[str, float] | None = None  # (label, value)
+  unit: str = ""
+
+
+def _paper_best(key: str) -> tuple[str, float]:
+  vals = {r: v[key] for r, v in C.PAPER_TABLE1.items() if r in stats.HAND_DESIGNED and key in v}
+  rep = min(vals, key=vals.get)
+  return rep, vals[rep]
+
+
+# The paper's Table 2 baseline: PoseNet + log q (MapNet's numbers), median over each scene,
+# averaged over the 7 scenes.
+PAPER_LOGQ_7SCENES = (0.22, 8.07)
+
+COLUMNS = tuple(
+  Column(
+    header,
+    setting,
+    error,
+    paper_ours=C.PAPER_TABLE1["ours"][key],
+    paper_best=_paper_best(key),
+  )
+  for key, header, setting, error in C.TABLE1_COLUMNS
+) + (
+  Column(
+    "7-Scenes position (m, median)",
+    "seven_scenes",
+    "position_error",
+    "median",
+    True,
+    C.PAPER_TABLE2["average"][0],
+    ("PoseNet + log q", PAPER_LOGQ_7SCENES[0]),
+  ),
+  Column(
+    "7-Scenes rotation (deg, median)",
+    "seven_scenes",
+    "rotation_error_deg",
+    "median",
+    True,
+    C.PAPER_TABLE2["average"][1],
+    ("PoseNet + log q", PAPER_LOGQ_7SCENES[1]),
+  ),
+)
+
+
+def capture_columns(runs: str) -> tuple[Column, ...]:
+  """The capture columns (car setting on one capture) that RUNS holds."""
+  names = sorted(d for d in os.listdir(runs) if d.startswith("car_")) if os.path.isdir(runs) else []
+  return tuple(Column(f"{n[4:]} rotation (deg; capture)", n, "rotation_error_deg") for n in names)
+
+
+def _cell(runs, column: Column) -> stats.Interval | None:
+  return stats.cell_interval(runs, column.error, column.reduce, by_scene=column.by_scene)
+
+
+def row(runs: str, column: Column) -> list[str] | None:
+  """The lead table's row of `column`, or None when RUNS holds none of its runs."""
+  results = C.load_results([os.path.join(runs, column.directory, "*", "*")])
+  if not results:
+    return None
+  selections = C.select(results)
+  cells = {rep: _cell(sel.runs, column) for (_, rep), sel in selections.items()}
+  best = stats.best_hand_designed({r: iv.value for r, iv in cells.items() if iv is not None})
+  ours = next((sel for (_, rep), sel in selections.items() if rep == "ours"), None)
+  fmt = lambda iv: stats.fmt_interval(iv, digits=C.digits_for(iv.value)) if iv else "–"
+  comp = None
+  if ours is not None and best is not None:
+    base = next(sel for (_, rep), sel in selections.items() if rep == best)
+    comp = stats.compare_runs(
+      ours.runs, base.runs, column.error, column.reduce, baseline=best, by_scene=column.by_scene
+    )
+  paper = "–"
+  if column.paper_ours is not None and column.paper_best is not None:
+    name, value = column.paper_best
+    paper = f"{column.paper_ours:g} vs {value:g} ({C.ROW_LABELS.get(name, name)})"
+  edges = []
+  for rep in ("ours", best):
+    sel = next((s for (_, r), s in selections.items() if r == rep), None)
+    if sel is not None and C.grid_edge(sel):
+      edges.append(f"{rep}: {C.grid_edge(sel)} ({C.fmt_lr(sel.lr)})")
+  seeds = sorted({len(s.runs) for s in selections.values()})
+  r = comp.ratio if comp else None
+  return [
+    column.label,
+    paper,
+    f"{fmt(cells.get(best))} ({best})" if best else "–",
+    fmt(cells.get("ours")),
+    f"{r.value:.2f} [{r.lo:.2f}, {r.hi:.2f}]" if r else "–",
+    f"**{comp.verdict}**" if comp else "–",
+    "/".join(map(str, seeds)),
+    "; ".join(edges) or "no",
+  ]
+
+
+HEADER = (
+  "column",
+  "paper: ours vs best hand-designed",
+  "camrep: best hand-designed",
+  "camrep: ours",
+  "ours / best [95%]",
+  "verdict",
+  "seeds",
+  "chosen lr at grid edge",
+)
+
+
+def build(runs: str) -> str:
+  """The Markdown table of every column RUNS holds runs of."""
+  rows = [r for c in COLUMNS + capture_columns(runs) if (r := row(runs, c)) is not None]
+  if not rows:
+    raise FileNotFoundError(f"no regression runs with results.json under {runs}")
+  return C.markdown_table(HEADER, rows)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument("--runs", required=True, help="RUNS: <column>/<representation>/<run> dirs")
+  p.add_argument("--out", default="", help="Markdown file to write (default: print only)")
+  args = p.parse_args(argv)
+  try:
+    text = build(args.runs)
+  except FileNotFoundError as e:
+    print(f"error: {e}", file=sys.stderr)
+    return 2
+  print(text)
+  if args.out:
+    with open(args.out, "w", encoding="utf-8") as f:
+      f.write(text + "\n")
+    print(f"wrote {args.out}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
