@@ -492,8 +492,8 @@ def test_run_comparison_converge_synthesis_to_its_plateau(tmp_path, capsys):
   assert "curve_synthesis_<column>" in capsys.readouterr().out
   launch = rc.make_launch(rc._parse_args(args))
   flags = {j.name: {a.split("=")[0]: a.split("=")[1] for a in j.argv[4:]} for j in launch.synth}
-  assert flags["synthesis_car_seed2"]["--config.total_steps"] == "2400"
-  assert flags["synthesis_car_mlp_seed0"]["--config.stop.min_steps"] == "600"
+  assert flags["synthesis_car_seed2"]["--config.total_steps"] == "4800"
+  assert flags["synthesis_car_mlp_seed0"]["--config.stop.min_steps"] == "1200"
   g = flags["synthesis_gqn_lowdim_seed1"]
   assert g["--config.total_steps"] == "8000" and g["--config.eval_every_steps"] == "400"
   assert g["--config.stop.min_improvement"] == "0.02" and g["--config.seed"] == "1"
@@ -501,7 +501,7 @@ def test_run_comparison_converge_synthesis_to_its_plateau(tmp_path, capsys):
   # The flags fit the configs they go with: caps 4x their quick steps, the rule accepted.
   for name in rc.SETTINGS:
     c = _synthesis_quick(rc, name)
-    assert rc.CONVERGE_SYNTHESIS_CAPS[name] == 4 * c.total_steps
+    assert rc.CONVERGE_SYNTHESIS_CAPS[name] == (8 if name == "car" else 4) * c.total_steps
     plateau = dict(
       a.removeprefix("--config.").split("=") for a in rc.synthesis_flags(launch.plan, name)
     )
