@@ -346,11 +346,23 @@ class Job:
     if not self.done_file or not os.path.exists(self.done_file):
       return False
     if os.path.basename(self.done_file) == session.FINAL_FILE:
-      return session.is_complete(os.path.dirname(self.done_file))
+      return synthesis_done(os.path.dirname(self.done_file), self.argv)
     return True
 
   def command(self) -> str:
     return shlex.join(self.argv)
+
+
+def synthesis_done(workdir: str, argv: Sequence[str]) -> bool:
+  """A view-synthesis run is done when complete at the step cap its command gives
+  (`--config.total_steps`), or stopped earlier by its plateau rule: a raised cap resumes a run
+  that reached the old one."""
+  if not session.is_complete(workdir):
+    return False
+  caps = [a.split("=", 1)[1] for a in argv if a.startswith("--config.total_steps=")]
+  final = session.read_final(workdir)
+  stopped = bool((final.get("stopping") or {}).get("stopped_early"))
+  return not caps or stopped or final.get("step") == int(caps[-1])
 
 
 def mlp_synthesis_supported() -> bool:

@@ -148,3 +148,23 @@ def test_a_new_machine_restores_the_archive_and_trains_only_what_is_missing(
   ran.clear()
   assert rc.main(_args(tmp_path / "third", archive)) == 0
   assert ran == []
+
+
+def test_a_raised_cap_resumes_a_synthesis_run_that_reached_the_old_one(rc, tmp_path):
+  wd = tmp_path / "syn"
+  wd.mkdir()
+  argv = ["python", "-m", "camrep.main", "--config.total_steps=4800"]
+
+  def final(step, stopped_early):
+    with open(wd / "final_metrics.json", "w") as f:
+      json.dump({"complete": True, "step": step, "stopping": {"stopped_early": stopped_early}}, f)
+
+  final(2400, False)  # reached the old cap of 2,400
+  assert not rc.synthesis_done(str(wd), argv)
+  assert rc.synthesis_done(str(wd), argv[:3])  # no cap on the command line: complete is done
+  final(4800, False)
+  assert rc.synthesis_done(str(wd), argv)
+  final(1200, True)  # stopped by its plateau rule before the cap
+  assert rc.synthesis_done(str(wd), argv)
+  os.remove(wd / "final_metrics.json")
+  assert not rc.synthesis_done(str(wd), argv)
