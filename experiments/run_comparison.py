@@ -262,6 +262,8 @@ def synthesis_flags(plan: Plan, setting: str, kind: str = "") -> list[str]:
     f"--config.stop.min_improvement={CONVERGE_MIN_IMPROVEMENT:g}",
     "--config.stop.window=0.25",
     f"--config.stop.min_steps={cap // 4}",
+    # A raised cap resumes a run that reached the old one (recorded in config_history.jsonl).
+    "--config.allow_changes=total_steps,eval_every_steps,stop",
   ]
 
 
@@ -1045,6 +1047,10 @@ def run_synthesis(launch: Launch, jobs: Sequence[Job], logs: str, kw: dict) -> l
       todo.append(j)
     else:
       print(f"[synthesis: skipped] {j.name}: archived, nothing left needs it", flush=True)
+  for j in todo:  # a run that trains on (a raised cap) makes its old evaluation stale
+    stale = os.path.join(os.path.dirname(j.done_file), "eval", "noise.json")
+    if not j.done() and os.path.exists(stale):
+      os.remove(stale)
   failed = run_jobs(todo, logs, label="synthesis: ", **kw)
   names = {j.name.removeprefix("synthesis_") for j in jobs}
   evaluations = [j for j in L.figures if j.name.removeprefix("evaluate_") in names]

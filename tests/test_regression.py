@@ -498,7 +498,8 @@ def test_run_comparison_converge_synthesis_to_its_plateau(tmp_path, capsys):
   assert g["--config.total_steps"] == "8000" and g["--config.eval_every_steps"] == "400"
   assert g["--config.stop.min_improvement"] == "0.02" and g["--config.seed"] == "1"
   assert "--config.total_steps" not in flags["synthesis_gqn_convdraw_seed0"]
-  # The flags fit the configs they go with: caps 4x their quick steps, the rule accepted.
+  # The flags fit the configs they go with: caps 4x their quick steps (the car 8x), the rule
+  # and the permission to raise a cap accepted.
   for name in rc.SETTINGS:
     c = _synthesis_quick(rc, name)
     assert rc.CONVERGE_SYNTHESIS_CAPS[name] == (8 if name == "car" else 4) * c.total_steps
@@ -508,7 +509,8 @@ def test_run_comparison_converge_synthesis_to_its_plateau(tmp_path, capsys):
     for k, v in plateau.items():
       section, _, field = k.rpartition(".")
       node = c[section] if section else c
-      node[field] = float(v) if isinstance(node[field], float) else int(v)
+      kind = type(node[field])
+      node[field] = v if kind is str else float(v) if kind is float else int(v)
     config_schema.validate(c, overridden=set(plateau))
     assert components.stopping_rule(c).active
   # Curves: one job per column over its synthesis workdirs that exist.

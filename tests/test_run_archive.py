@@ -168,3 +168,22 @@ def test_a_raised_cap_resumes_a_synthesis_run_that_reached_the_old_one(rc, tmp_p
   assert rc.synthesis_done(str(wd), argv)
   os.remove(wd / "final_metrics.json")
   assert not rc.synthesis_done(str(wd), argv)
+
+
+def test_a_synthesis_run_that_trains_on_loses_its_old_evaluation(rc, tmp_path, monkeypatch):
+  """A run resumed past its old cap is evaluated again: its old eval/noise.json is removed
+  before it trains (the evaluation job is then not done and runs after it)."""
+  ran = []
+  monkeypatch.setattr(rc, "run_job", lambda job, logs, **kw: ran.append(job.name) or True)
+  launch = rc.make_launch(rc._parse_args(_args(tmp_path / "out", tmp_path / "archive")[:-2]))
+  launch.figures = rc.figure_jobs(launch.out, launch.plan, launch.synth, launch.python)
+  wd = tmp_path / "out" / "synthesis" / "car_seed0"
+  os.makedirs(wd / "eval")
+  os.makedirs(wd / "checkpoints" / "2400")
+  with open(wd / "final_metrics.json", "w") as f:
+    json.dump({"complete": True, "step": 2400, "stopping": {"stopped_early": False}}, f)
+  open(wd / "eval" / "noise.json", "w").close()
+  jobs = rc.synthesis_of_seed(launch, 0)
+  assert rc.run_synthesis(launch, jobs, str(tmp_path / "logs"), dict(at_once=1)) == []
+  assert not (wd / "eval" / "noise.json").exists()
+  assert ran == ["synthesis_car_seed0", "evaluate_car_seed0"]
