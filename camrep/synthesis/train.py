@@ -26,8 +26,8 @@ import numpy as np
 
 from camrep.data import pipeline as pipeline_lib
 from camrep.runtime import checkpoint as ckpt_lib
+from camrep.runtime import preemption, runconfig, stopping, writers
 from camrep.runtime import progress as progress_lib
-from camrep.runtime import runconfig, stopping, writers
 from camrep.runtime import session as session_lib
 from camrep.synthesis import components, heldout
 from camrep.synthesis import step as step_lib
@@ -121,14 +121,14 @@ def train_and_evaluate(
     # A resumed run whose curve ends at its start (another rule now): the rule decides at once.
     plateau, reason = agree(rule, curve, lead, check_now=bool(curve) and curve[-1][0] == start)
     with (
-      ckpt_lib.install_signal_handlers() as signals,
+      preemption.install_signal_handlers() as signals,
       contextlib.closing(device_batches(config, train_pipe, start)) as batches,
     ):
       todo = range(start + 1, total + 1) if not plateau else range(0)
       for step, batch in zip(todo, batches, strict=False):
         pstate, metrics = p_step(pstate, batch, loop_key)
         pending.append((step, metrics))
-        stopped = stop_requested(signals)
+        stopped = preemption.stop_requested(signals)
         save = progress_lib.itstime(step, config.ckpt_every_steps, total) or stopped
         if progress_lib.itstime(step, config.log_every_steps, total) or save:
           raise_if_not_finite(session.writer, pending, workdir, origin)  # host reads only here
@@ -297,12 +297,3 @@ def raise_if_not_finite(
       f"is kept in {workdir} and a resume verifies its checksums before using it"
     )
 
-
-def stop_requested(signals) -> bool:
-  """Whether any process was signalled to stop (saves are collective: all must agree)."""
-  if jax.process_count() == 1:
-    return signals.requested
-  from jax.experimental import multihost_utils
-
-  flags = multihost_utils.process_allgather(np.asarray(signals.requested, np.int32))
-  return bool(np.any(flags))
