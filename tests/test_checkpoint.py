@@ -1,4 +1,5 @@
-"""Tests for camrep.runtime.checkpoint: round trips, retention, resume, and fault handling."""
+"""Tests for camrep.runtime.checkpoint (and its checksums and preemption): round trips, retention,
+resume, and fault handling."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ import pytest
 from flax.training import train_state
 
 from camrep.runtime import checkpoint as ckpt_lib
+from camrep.runtime import checksums, preemption
 
 # When a read or write fails, Orbax/tensorstore leave asyncio futures whose exceptions are
 # reported after their event loop closed; that is Orbax-internal noise, not our error.
@@ -354,7 +356,7 @@ def test_read_only(tmp_path):
 
 def test_signal_handler_sets_requested_and_restores():
   before = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
-  with ckpt_lib.install_signal_handlers() as preempt:
+  with preemption.install_signal_handlers() as preempt:
     assert not preempt.requested
     os.kill(os.getpid(), signal.SIGTERM)
     assert preempt.requested and preempt.signum == signal.SIGTERM
@@ -370,7 +372,7 @@ def test_signal_handler_first_sigint_only_requests():
   # Whatever was installed before comes back (Python's default handler in a terminal; SIG_IGN
   # for a job started in the background by a non-interactive shell, as CI may do).
   before = signal.getsignal(signal.SIGINT)
-  handler = ckpt_lib.install_signal_handlers()
+  handler = preemption.install_signal_handlers()
   try:
     os.kill(os.getpid(), signal.SIGINT)
     assert handler.requested and handler.signum == signal.SIGINT
@@ -380,7 +382,7 @@ def test_signal_handler_first_sigint_only_requests():
 
 
 def _manifest(step_dir: str) -> str:
-  return os.path.join(step_dir, ckpt_lib.MANIFEST_NAME)
+  return os.path.join(step_dir, checksums.MANIFEST_NAME)
 
 
 @pytest.mark.parametrize("async_save", [False, True])
@@ -393,7 +395,7 @@ def test_manifest_written_for_each_save(tmp_path, async_save):
     for s in (2, 3):
       step_dir = os.path.join(c.directory, str(s))
       assert os.path.isfile(_manifest(step_dir))
-      assert ckpt_lib.verify_manifest(step_dir)
+      assert checksums.verify_manifest(step_dir)
       with open(_manifest(step_dir)) as fh:
         files = json.load(fh)["files"]
       # Every file of the step is covered, the array data included.
@@ -401,7 +403,7 @@ def test_manifest_written_for_each_save(tmp_path, async_save):
         os.path.relpath(os.path.join(r, n), step_dir)
         for r, _, names in os.walk(step_dir)
         for n in names
-        if n != ckpt_lib.MANIFEST_NAME
+        if n != checksums.MANIFEST_NAME
       }
       assert set(files) == on_disk
       assert any(os.path.join(step_dir, f) in _data_files(step_dir) for f in files)
@@ -458,7 +460,7 @@ def test_checkpoint_without_manifest_restores(tmp_path, caplog):
         c.restore(_make_state(0), step=1)
   _assert_bit_exact(restored, state)
   assert (extra, step) == ({"data_step": 2}, 2)
-  notes = [r for r in caplog.records if ckpt_lib.MANIFEST_NAME in r.getMessage()]
+  notes = [r for r in caplog.records if checksums.MANIFEST_NAME in r.getMessage()]
   assert len(notes) == 1  # at most one note, no warning
   with ckpt_lib.Checkpointer(tmp_path) as c:
     c.save(3, state, extra={"data_step": 3})

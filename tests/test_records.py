@@ -25,6 +25,7 @@ from camrep.regression import driver as R
 from camrep.runtime import cli, runconfig, writers
 from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import components, train
+from camrep.synthesis import step as step_lib
 
 pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
@@ -207,13 +208,13 @@ def test_non_finite_stop_says_whether_the_restored_checkpoint_was_verified():
   # End to end (a resumed run stopping on NaN: "restored from step 4, checksum verified"):
   # tests/test_train.py::test_non_finite_stops_and_keeps_last_good_checkpoint; the Checkpointer's
   # `restored` of a step without a manifest: tests/test_checkpoint.py.
-  assert train.restored_from({"step": 4, "verified": True}) == (
+  assert step_lib.restored_from({"step": 4, "verified": True}) == (
     "this run restored from step 4, checksum verified"
   )
-  assert train.restored_from({"step": 2, "verified": False}) == (
+  assert step_lib.restored_from({"step": 2, "verified": False}) == (
     "this run restored from step 2, not verified (written before checkpoints had checksums)"
   )
-  assert train.restored_from(None) == "this run started from step 0 (no checkpoint restored)"
+  assert step_lib.restored_from(None) == "this run started from step 0 (no checkpoint restored)"
 
 
 def test_record_differences_accept_gained_fields_and_name_changed_ones():

@@ -11,14 +11,13 @@ fresh `init_fn()`):
   ckpt = Checkpointer(workdir, max_to_keep=3)
   state, extra, step = ckpt.restore_or_init(lambda: create_train_state(init_key, config))
   start_step = 0 if step is None else step
-  with install_signal_handlers() as preempt:
-    for step in range(start_step + 1, total_steps + 1):
-      state, metrics = p_train_step(state, batch, loop_key)
-      if itstime(step, ckpt_every_steps, total_steps) or preempt.requested:
-        ckpt.save(step, state, extra={"data_step": step})
-      if preempt.requested:
-        break
+  for step in range(start_step + 1, total_steps + 1):
+    state, metrics = p_train_step(state, batch, loop_key)
+    if itstime(step, ckpt_every_steps, total_steps):
+      ckpt.save(step, state, extra={"data_step": step})
   ckpt.close()
+
+(`preemption` adds the save and stop on SIGTERM/SIGINT.)
 
 Faults and what happens:
 
@@ -31,9 +30,9 @@ Faults and what happens:
   `save()` deletes the steps found bad, so that the resumed run can write them again.
 * Integrity: once a save is complete on disk (after Orbax's rename; for an async save at the
   next `save`, `wait_until_finished` or `close`), process 0 writes `<step>/camrep_checksums.json`
-  (crc32c and size of every file of the step, written atomically). `restore()` checks it before
-  reading a step: a file whose size or checksum differs (bit rot, a flipped byte that Orbax
-  would read without complaint) makes that step bad exactly like an unreadable one
+  (`checksums`: crc32c and size of every file of the step, written atomically). `restore()`
+  checks it before reading a step: a file whose size or checksum differs (bit rot, a flipped
+  byte that Orbax would read without complaint) makes that step bad exactly like an unreadable one
   (`CorruptCheckpointWarning` "checksum mismatch in FILE", fallback, deleted at the next save).
   So a step that restores is verified. A step without a manifest (written by an older camrep,
   or an async save killed after its rename and before its manifest) restores unverified, with
@@ -52,9 +51,9 @@ metadata and directory renames/deletions happen only on the primary process (0),
 the barriers. This module writes only the checksum manifest, on process 0 (the writability probe
 is a per-process uniquely named temporary file, removed at once); every process verifies it at
 restore (same files, same verdict, so all fall back alike). `extra` must be identical on all
-processes. With several processes, combine `PreemptionHandler.requested` across processes (e.g. an
-all-gather, or `CheckpointManager.reached_preemption`) before deciding to save, since a save
-that only some processes enter would hang. Only one writer may use a directory at a time;
+processes. With several processes, combine a stop request across processes
+(`preemption.stop_requested`) before deciding to save, since a save that only some processes
+enter would hang. Only one writer may use a directory at a time;
 readers (evaluation jobs) should pass `read_only=True`, which neither cleans up tmp
 directories nor saves.
 """
@@ -66,29 +65,31 @@ import json
 import logging
 import os
 import shutil
-import signal
 import sys
 import tempfile
 import threading
 import time
 import warnings
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
-import crc32c
 import jax
 import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
-from camrep.runtime import writers
+from camrep.runtime.checksums import (
+  MANIFEST_NAME,
+  _ChecksumMismatch,
+  _short,
+  verify_manifest,
+  write_manifest,
+)
 
 __all__ = [
   "CheckpointError",
   "Checkpointer",
   "CorruptCheckpointWarning",
-  "PreemptionHandler",
-  "install_signal_handlers",
 ]
 
 PyTree = Any
@@ -97,8 +98,6 @@ _STATE = "state"
 _EXTRA = "extra"
 CHECKPOINT_SUBDIR = "checkpoints"
 _TMP_SUFFIX = ".orbax-checkpoint-tmp"
-MANIFEST_NAME = "camrep_checksums.json"
-_MANIFEST_VERSION = 1
 
 
 class CheckpointError(RuntimeError):
@@ -189,73 +188,6 @@ class _HeldStderr:
   def drop(self) -> int:
     """Discards what was held; returns its number of lines."""
     return self._restore().count(b"\n")
-
-
-class _ChecksumMismatch(ValueError):
-  """A step's files differ from its checksum manifest."""
-
-
-def _file_crc32c(path: str, chunk: int = 1 << 22) -> str:
-  value = 0
-  with open(path, "rb") as fh:
-    while block := fh.read(chunk):
-      value = crc32c.crc32c(block, value)
-  return f"{value:08x}"
-
-
-def _step_files(step_dir: str) -> list[str]:
-  """Paths relative to `step_dir` of every file under it except the manifest (and its tmp)."""
-  out = []
-  for root, _, names in os.walk(step_dir):
-    for name in names:
-      if name.startswith(MANIFEST_NAME):
-        continue
-      out.append(os.path.relpath(os.path.join(root, name), step_dir))
-  return sorted(out)
-
-
-def write_manifest(step_dir: str) -> None:
-  """Writes `step_dir/camrep_checksums.json` (crc32c and size per file), atomically."""
-  files = {}
-  for rel in _step_files(step_dir):
-    path = os.path.join(step_dir, rel)
-    files[rel] = {"size": os.path.getsize(path), "crc32c": _file_crc32c(path)}
-  text = json.dumps({"version": _MANIFEST_VERSION, "files": files}, indent=1, sort_keys=True)
-  writers.write_text_atomic(os.path.join(step_dir, MANIFEST_NAME), text)
-
-
-def verify_manifest(step_dir: str) -> bool:
-  """Checks the files of `step_dir` against its manifest.
-
-  Returns:
-    True if verified, False if the step has no manifest (written by an older camrep).
-
-  Raises:
-    _ChecksumMismatch: naming the first file that is missing or differs, or an unreadable
-      manifest.
-  """
-  path = os.path.join(step_dir, MANIFEST_NAME)
-  if not os.path.exists(path):
-    return False
-  try:
-    with open(path) as fh:
-      files = json.load(fh)["files"]
-  except (OSError, ValueError, KeyError, TypeError) as e:
-    raise _ChecksumMismatch(f"checksum manifest {MANIFEST_NAME} unreadable ({_short(e)})") from e
-  for rel, want in sorted(files.items()):
-    full = os.path.join(step_dir, rel)
-    if not os.path.isfile(full):
-      raise _ChecksumMismatch(f"checksum mismatch in {rel}: file missing")
-    if os.path.getsize(full) != want["size"] or _file_crc32c(full) != want["crc32c"]:
-      raise _ChecksumMismatch(f"checksum mismatch in {rel}")
-  return True
-
-
-def _short(exc: BaseException, limit: int = 300) -> str:
-  text = " ".join(str(exc).split())
-  if len(text) > limit:
-    text = text[:limit] + "..."
-  return f"{type(exc).__name__}: {text}"
 
 
 def _to_abstract(x: Any) -> Any:
@@ -716,71 +648,3 @@ class Checkpointer:
     state, extra, step = self.restore(init_fn())
     logging.info("Resumed from checkpoint step %d in %s.", step, self.directory)
     return state, extra, step
-
-
-class PreemptionHandler:
-  """Records SIGTERM/SIGINT so the train loop can save a checkpoint and stop cleanly.
-
-  The first signal sets `requested` (and `signum`). A second SIGINT raises
-  `KeyboardInterrupt` as usual (press Ctrl-C twice to abort without saving); a second
-  SIGTERM is only logged. Use `install_signal_handlers()` to create one.
-
-  Attributes:
-    requested: True once a signal arrived.
-    signum: the first signal received, or None.
-  """
-
-  def __init__(self, signals: Iterable[int]) -> None:
-    self.requested = False
-    self.signum: int | None = None
-    self._signals = tuple(signals)
-    self._previous: dict[int, Any] = {}
-
-  def _install(self) -> None:
-    if threading.current_thread() is not threading.main_thread():
-      raise RuntimeError("Signal handlers can only be installed from the main thread.")
-    for sig in self._signals:
-      self._previous[sig] = signal.signal(sig, self._handle)
-
-  def _handle(self, signum: int, frame: object) -> None:
-    del frame
-    name = signal.Signals(signum).name
-    if self.requested:
-      if signum == signal.SIGINT:
-        raise KeyboardInterrupt
-      logging.warning("Received %s again; still stopping at the next checkpoint.", name)
-      return
-    self.requested = True
-    self.signum = signum
-    logging.warning("Received %s: will save a checkpoint and stop.", name)
-
-  def uninstall(self) -> None:
-    """Restores the handlers that were active before; safe to call twice."""
-    for sig, previous in self._previous.items():
-      # None means the previous handler was not installed from Python.
-      signal.signal(sig, signal.SIG_DFL if previous is None else previous)
-    self._previous.clear()
-
-  def __enter__(self) -> PreemptionHandler:
-    return self
-
-  def __exit__(self, *exc_info: object) -> None:
-    self.uninstall()
-
-
-def install_signal_handlers(
-  *, signals: Iterable[int] = (signal.SIGTERM, signal.SIGINT)
-) -> PreemptionHandler:
-  """Installs handlers that turn SIGTERM/SIGINT into a `requested` flag.
-
-  Must be called from the main thread. Usable as a context manager, which uninstalls on exit.
-
-  Args:
-    signals: the signals to catch.
-
-  Returns:
-    The installed `PreemptionHandler`.
-  """
-  handler = PreemptionHandler(signals)
-  handler._install()
-  return handler

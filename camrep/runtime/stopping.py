@@ -1,8 +1,8 @@
-"""When a training run stops: a plateau rule on its periodic validation score (issue 29).
+"""When a training run stops: a plateau rule on its periodic validation score.
 
 Both stages use it, each on its own validation-like score, one number per evaluation, lower is
 better: pose regression (`camrep.regression.driver`) on `tables.validation_score` of its
-validation split; view synthesis (`camrep.synthesis.train`) on the held-out-view MSE
+validation split; view synthesis (`camrep.synthesis.plateau`) on the held-out-view MSE
 10^(-eval/psnr / 10) (`psnr_score`). Evaluated at each periodic evaluation (every
 `eval_every_steps`): with the scores s(t_1), ..., s(t_k) so far, at step t = t_k
 

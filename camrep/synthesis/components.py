@@ -1,12 +1,14 @@
 """The parts of a view-synthesis run, built from its config (paper section 4.1): the setting,
-the pose system, the model (`synthesizers.from_config`) and the data pipelines; `check_config`
-refuses combinations the train step cannot run before anything is built.
+the pose system, the model (`synthesizers.from_config`), the data pipelines and the training
+batches on the devices; `check_config` refuses combinations the train step cannot run before
+anything is built.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Iterator
 
 import jax
 
@@ -206,3 +208,21 @@ def make_pipelines(config):
 def num_train_scenes(pipe) -> int:
   """Size of the per-scene tables: one past the largest training scene id."""
   return int(pipe.all_scene_ids.max()) + 1
+
+
+def device_batches(config, pipe, start: int) -> Iterator[dict]:
+  """The training batches from `start` on, copied to the devices `data.device_prefetch` steps
+  ahead while the step runs; closing it stops the pipeline's worker processes, if any."""
+  host = pipe.iterator(start_step=start, num_steps=max(config.total_steps - start, 0))
+  n_ahead = int(config.data.get("device_prefetch", 2))
+  try:
+    it = (
+      pipeline_lib.prefetch_to_device(host, n_ahead, devices=jax.local_devices())
+      if n_ahead > 0
+      else host
+    )
+    for b in it:
+      yield {k: b[k] for k in ("image", "pose", "scene")}
+  finally:
+    if hasattr(host, "close"):
+      host.close()

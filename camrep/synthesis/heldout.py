@@ -4,6 +4,8 @@ held-out views against a trivial baseline, on a fixed evaluation set built once 
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -116,3 +118,16 @@ def evaluate_and_log(
   writer.write_images(step, {"eval/grid": grid})
   log(f"step {step}: " + " ".join(f"{k}={v:.3f}" for k, v in scalars.items()))
   return scalars
+
+
+def make_evaluate(model: synthesizers.Synthesizer, train_pipe, test_pipe, writer, *, log):
+  """evaluate(params, step) -> eval scalars: `evaluate_and_log` on the evaluation set of
+  `eval_batches`, built here once for the whole run."""
+  return functools.partial(
+    evaluate_and_log,
+    writer,
+    make_predict(model),
+    eval_batches(model, train_pipe, test_pipe),
+    grid_scenes=model.config.evals.grid_scenes,
+    log=log,
+  )

@@ -7,11 +7,15 @@ its own Adam; "rep" (grid vectors and generators) minimises lambda_1 loss + lamb
 L_rot,l + lambda_4 L_rot,theta with another Adam. `pose_steps` 0 (GQN) takes one simultaneous
 step of both groups from the same forward pass; otherwise `pose_steps` pose-input steps on the same
 batch, then one model step.
+
+A step whose loss or gradients are non-finite skips its updates and says so in its metrics
+("train/finite" 0); the loop reads that flag at its log and save steps (`raise_if_not_finite`).
 """
 
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
@@ -253,3 +257,35 @@ def unreplicate(tree):
 def to_host(metrics: Mapping[str, Array]) -> dict[str, float]:
   """Device 0's scalar metrics as floats (they are device-averaged)."""
   return {k: float(np.asarray(v)[0]) for k, v in metrics.items()}
+
+
+def restored_from(restored: Mapping | None) -> str:
+  """How a run began, for the non-finite stop's message: `Checkpointer.restored` or None."""
+  if restored is None:
+    return "this run started from step 0 (no checkpoint restored)"
+  how = (
+    "checksum verified"
+    if restored.get("verified")
+    else "not verified (written before checkpoints had checksums)"
+  )
+  return f"this run restored from step {restored['step']}, {how}"
+
+
+def raise_if_not_finite(
+  writer, pending: list[tuple[int, Mapping]], workdir: str, origin: str = ""
+) -> None:
+  """Raises FloatingPointError naming the first of the `pending` (step, metrics) that flagged
+  non-finite losses or gradients (the step skipped its updates), after logging its values;
+  `origin` (`restored_from`) says which checkpoint the run began from and whether it was
+  verified."""
+  for step, metrics in pending:
+    if float(np.asarray(metrics["train/finite"])[0]) >= 1:
+      continue
+    host = to_host(metrics)
+    bad = [k for k, v in host.items() if not math.isfinite(v)]
+    writer.write_scalars(step, host)
+    raise FloatingPointError(
+      f"non-finite training values at step {step} ({', '.join(bad) or 'gradients'}); "
+      f"updates of this step were skipped; {origin + '; ' if origin else ''}the last checkpoint "
+      f"is kept in {workdir} and a resume verifies its checksums before using it"
+    )
