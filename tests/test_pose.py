@@ -187,12 +187,18 @@ def test_random_neighbour_quantisation():
   """mode='random' uses the lower or the upper neighbour (digest 1.3), both about equally often."""
   with x64():
     params = P.init(jax.random.key(3), SPEC_1D, dtype=jnp.float64)
-    grid = P.grid_vectors(params, SPEC_1D, "x")
     x = jnp.full((400,), 0.53)  # between grid points 5 and 6
-    v = P.embed_dof(params, SPEC_1D, "x", x, mode="random", key=jax.random.key(0))
-    B = lie.skew(params["x"][P.GENERATOR], block_size=4)
-    lower = lie.apply_exp_blocks(B, 0.53 - 0.5, grid[5])
-    upper = lie.apply_exp_blocks(B, 0.53 - 0.6, grid[6])
+
+    @jax.jit  # as the runs call it; eager, each op dispatches and compiles on its own
+    def embed_and_neighbours(params, x, key):
+      grid = P.grid_vectors(params, SPEC_1D, "x")
+      v = P.embed_dof(params, SPEC_1D, "x", x, mode="random", key=key)
+      B = lie.skew(params["x"][P.GENERATOR], block_size=4)
+      lower = lie.apply_exp_blocks(B, 0.53 - 0.5, grid[5])
+      upper = lie.apply_exp_blocks(B, 0.53 - 0.6, grid[6])
+      return v, lower, upper
+
+    v, lower, upper = embed_and_neighbours(params, x, jax.random.key(0))
     is_lower = np.all(np.isclose(v, lower), axis=-1)
     is_upper = np.all(np.isclose(v, upper), axis=-1)
     assert np.all(is_lower | is_upper)
@@ -267,9 +273,10 @@ def test_polar_continuous_variant_is_conjugated_generator():
 def test_polar_gradient_finite_at_zero_displacement():
   spec = P.PoseSystemSpec(dofs=(P.PolarDof(variant="continuous"),), n_blocks=2, block_size=4)
   params = P.init(jax.random.key(7), spec)
-  g = jax.grad(lambda p: jnp.sum(P.embed_dof(params, spec, "xy", p) ** 2 * jnp.arange(8)))(
-    jnp.array([0.0, 0.1])
+  grad = jax.jit(
+    jax.grad(lambda p: jnp.sum(P.embed_dof(params, spec, "xy", p) ** 2 * jnp.arange(8)))
   )
+  g = grad(jnp.array([0.0, 0.1]))
   assert np.all(np.isfinite(np.asarray(g)))
 
 
@@ -434,7 +441,7 @@ def test_decode_shapes_and_candidates():
   assert P.candidates(SPEC_1D, "yaw").shape == (1440,)  # 0.25 degrees, [0, 360)
   assert P.candidates(SPEC_1D, "x").shape == (81,)  # 0.25 grid units over [0, 2]
   assert P.candidates(P.PoseSystemSpec(dofs=(P.PolarDof(),)), "xy").shape == (81 * 81, 2)
-  v = P.embed(params, SPEC_1D, np.zeros((2, 3, 3), np.float32))
+  v = jax.jit(P.embed, static_argnums=1)(params, SPEC_1D, np.zeros((2, 3, 3), np.float32))
   decode = jax.jit(P.decode, static_argnums=(1,))
   assert decode(params, SPEC_1D, v).shape == (2, 3, 3)
   assert decode(params, SPEC_1D, P.concat(v, SPEC_1D)).shape == (2, 3, 3)
