@@ -175,9 +175,10 @@ def test_grid_points_embed_to_grid_vectors():
   params = P.init(jax.random.key(2), SPEC_1D)
   d = SPEC_1D.dof("x")
   x = d.low + d.spacing * np.arange(d.n_grid)
+  embed_dof = jax.jit(P.embed_dof, static_argnums=(1, 2), static_argnames="mode")
   for mode in ("nearest", "floor"):
     assert_close(
-      P.embed_dof(params, SPEC_1D, "x", x, mode=mode),
+      embed_dof(params, SPEC_1D, "x", x, mode=mode),
       P.grid_vectors(params, SPEC_1D, "x"),
       atol=1e-6,
     )
@@ -208,10 +209,11 @@ def test_random_neighbour_quantisation():
 def test_periodic_angle_wraps():
   params = P.init(jax.random.key(4), SPEC_1D)
   a = np.array([0.3, 2.0, 6.1], np.float32)
+  embed_dof = jax.jit(P.embed_dof, static_argnums=(1, 2))
   for shift in (TWO_PI, -TWO_PI, 2 * TWO_PI):
     assert_close(
-      P.embed_dof(params, SPEC_1D, "yaw", a + shift),
-      P.embed_dof(params, SPEC_1D, "yaw", a),
+      embed_dof(params, SPEC_1D, "yaw", a + shift),
+      embed_dof(params, SPEC_1D, "yaw", a),
       atol=1e-5,
     )
 
@@ -246,9 +248,10 @@ def test_polar_direction_bin_wraps_mod_n():
     params["xy"][P.GENERATOR] = params["xy"][P.GENERATOR] * 300  # visible rotations
     v = P.grid_vectors(params, spec, "xy")[:1]
     disp = np.array([[0.05, -1e-5]])  # direction 2 pi - 0.0002 rad -> bin 144 -> 0
-    out = P.rotate(params, spec, "xy", disp, v)
+    out = jax.jit(P.rotate, static_argnums=(1, 2))(params, spec, "xy", disp, v)
     B0 = lie.skew(params["xy"][P.GENERATOR][0], block_size=4)
-    ref = lie.apply_exp_blocks(B0, np.linalg.norm(disp[0]), v[0], method="expm")
+    apply = jax.jit(lie.apply_exp_blocks, static_argnames="method")
+    ref = apply(B0, np.linalg.norm(disp[0]), v[0], method="expm")
     assert_close(out[0], ref, atol=1e-12)
     assert np.abs(np.asarray(out[0] - v[0])).max() > 1e-3
 
@@ -346,7 +349,8 @@ def test_direction_loss_matches_formula():
     )
     params = P.init(jax.random.key(11), spec, dtype=jnp.float64)
     params = jax.tree.map(lambda x: x * 300, params)
-    got = P.direction_loss(params, spec, "xy", max_shift=3)
+    loss = jax.jit(P.direction_loss, static_argnums=(1, 2), static_argnames="max_shift")
+    got = loss(params, spec, "xy", max_shift=3)
     Bs = [
       scipy.linalg.block_diag(*lie.skew(params["xy"][P.GENERATOR][j], block_size=4))
       for j in range(12)
