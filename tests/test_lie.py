@@ -162,11 +162,13 @@ def test_broadcasting_shapes():
   rng = np.random.default_rng(4)
   B = sample_generator(rng, (6,), 5, "normal").astype(np.float32)
   t = rng.uniform(size=(4, 1)).astype(np.float32)
+  exp = jax.jit(lie.exp_skew, static_argnames="method")  # as the runs call them
+  apply = jax.jit(lie.apply_exp_skew, static_argnames="method")
   for method in lie.EXP_METHODS:
-    M = lie.exp_skew(B, t, method=method)
+    M = exp(B, t, method=method)
     assert M.shape == (4, 6, 5, 5) and M.dtype == jnp.float32
     v = rng.normal(size=(5,)).astype(np.float32)
-    assert lie.apply_exp_skew(B, t, v, method=method).shape == (4, 6, 5)
+    assert apply(B, t, v, method=method).shape == (4, 6, 5)
 
 
 def test_blocks_match_full_block_diagonal_expm():
@@ -178,9 +180,11 @@ def test_blocks_match_full_block_diagonal_expm():
     ref = np.stack(
       [scipy.linalg.expm(t[i] * scipy.linalg.block_diag(*B[i])) @ v[i] for i in range(3)]
     )
+    apply = jax.jit(lie.apply_exp_blocks, static_argnames="method")  # as the runs call them
+    exp = jax.jit(lie.exp_blocks, static_argnames="method")
     for method in ("expm", "spectral"):
-      assert_close(lie.apply_exp_blocks(B, t, v, method=method), ref, atol=1e-12)
-      full = lie.block_diag(lie.exp_blocks(B, t, method=method))
+      assert_close(apply(B, t, v, method=method), ref, atol=1e-12)
+      full = lie.block_diag(exp(B, t, method=method))
       assert_close(np.einsum("bij,bj->bi", full, v), ref, atol=1e-12)
 
 
