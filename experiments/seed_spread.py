@@ -220,10 +220,10 @@ def decoding_error(
   regression decodes its predictions): a perfect regressor's error on that pose system."""
   import jax.numpy as jnp
 
-  from camrep.regression import driver, scoring
+  from camrep.regression import pose_system, scoring
   from camrep.regression import targets as T
 
-  system = driver.load_pose_system(syn_workdir, setting)
+  system = pose_system.load_pose_system(syn_workdir, setting)
   true = jnp.asarray(poses, jnp.float32)
   kw = dict(spec=system["spec"], rep_params=system["rep"], mode=quantisation)
   heads = T.encode("ours", setting, true, **kw)

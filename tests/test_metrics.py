@@ -11,6 +11,9 @@ from scipy.spatial.transform import Rotation
 from camrep import metrics
 from tests.utils import x64
 
+# Compilation dominates these small shapes; the numerics are checked to the same tolerances.
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 VARIANTS = ("eager", "jit")
 
 

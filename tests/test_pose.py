@@ -175,9 +175,10 @@ def test_grid_points_embed_to_grid_vectors():
   params = P.init(jax.random.key(2), SPEC_1D)
   d = SPEC_1D.dof("x")
   x = d.low + d.spacing * np.arange(d.n_grid)
+  embed_dof = jax.jit(P.embed_dof, static_argnums=(1, 2), static_argnames="mode")
   for mode in ("nearest", "floor"):
     assert_close(
-      P.embed_dof(params, SPEC_1D, "x", x, mode=mode),
+      embed_dof(params, SPEC_1D, "x", x, mode=mode),
       P.grid_vectors(params, SPEC_1D, "x"),
       atol=1e-6,
     )
@@ -187,12 +188,18 @@ def test_random_neighbour_quantisation():
   """mode='random' uses the lower or the upper neighbour (digest 1.3), both about equally often."""
   with x64():
     params = P.init(jax.random.key(3), SPEC_1D, dtype=jnp.float64)
-    grid = P.grid_vectors(params, SPEC_1D, "x")
     x = jnp.full((400,), 0.53)  # between grid points 5 and 6
-    v = P.embed_dof(params, SPEC_1D, "x", x, mode="random", key=jax.random.key(0))
-    B = lie.skew(params["x"][P.GENERATOR], block_size=4)
-    lower = lie.apply_exp_blocks(B, 0.53 - 0.5, grid[5])
-    upper = lie.apply_exp_blocks(B, 0.53 - 0.6, grid[6])
+
+    @jax.jit  # as the runs call it; eager, each op dispatches and compiles on its own
+    def embed_and_neighbours(params, x, key):
+      grid = P.grid_vectors(params, SPEC_1D, "x")
+      v = P.embed_dof(params, SPEC_1D, "x", x, mode="random", key=key)
+      B = lie.skew(params["x"][P.GENERATOR], block_size=4)
+      lower = lie.apply_exp_blocks(B, 0.53 - 0.5, grid[5])
+      upper = lie.apply_exp_blocks(B, 0.53 - 0.6, grid[6])
+      return v, lower, upper
+
+    v, lower, upper = embed_and_neighbours(params, x, jax.random.key(0))
     is_lower = np.all(np.isclose(v, lower), axis=-1)
     is_upper = np.all(np.isclose(v, upper), axis=-1)
     assert np.all(is_lower | is_upper)
@@ -202,10 +209,11 @@ def test_random_neighbour_quantisation():
 def test_periodic_angle_wraps():
   params = P.init(jax.random.key(4), SPEC_1D)
   a = np.array([0.3, 2.0, 6.1], np.float32)
+  embed_dof = jax.jit(P.embed_dof, static_argnums=(1, 2))
   for shift in (TWO_PI, -TWO_PI, 2 * TWO_PI):
     assert_close(
-      P.embed_dof(params, SPEC_1D, "yaw", a + shift),
-      P.embed_dof(params, SPEC_1D, "yaw", a),
+      embed_dof(params, SPEC_1D, "yaw", a + shift),
+      embed_dof(params, SPEC_1D, "yaw", a),
       atol=1e-5,
     )
 
@@ -240,9 +248,10 @@ def test_polar_direction_bin_wraps_mod_n():
     params["xy"][P.GENERATOR] = params["xy"][P.GENERATOR] * 300  # visible rotations
     v = P.grid_vectors(params, spec, "xy")[:1]
     disp = np.array([[0.05, -1e-5]])  # direction 2 pi - 0.0002 rad -> bin 144 -> 0
-    out = P.rotate(params, spec, "xy", disp, v)
+    out = jax.jit(P.rotate, static_argnums=(1, 2))(params, spec, "xy", disp, v)
     B0 = lie.skew(params["xy"][P.GENERATOR][0], block_size=4)
-    ref = lie.apply_exp_blocks(B0, np.linalg.norm(disp[0]), v[0], method="expm")
+    apply = jax.jit(lie.apply_exp_blocks, static_argnames="method")
+    ref = apply(B0, np.linalg.norm(disp[0]), v[0], method="expm")
     assert_close(out[0], ref, atol=1e-12)
     assert np.abs(np.asarray(out[0] - v[0])).max() > 1e-3
 
@@ -267,9 +276,10 @@ def test_polar_continuous_variant_is_conjugated_generator():
 def test_polar_gradient_finite_at_zero_displacement():
   spec = P.PoseSystemSpec(dofs=(P.PolarDof(variant="continuous"),), n_blocks=2, block_size=4)
   params = P.init(jax.random.key(7), spec)
-  g = jax.grad(lambda p: jnp.sum(P.embed_dof(params, spec, "xy", p) ** 2 * jnp.arange(8)))(
-    jnp.array([0.0, 0.1])
+  grad = jax.jit(
+    jax.grad(lambda p: jnp.sum(P.embed_dof(params, spec, "xy", p) ** 2 * jnp.arange(8)))
   )
+  g = grad(jnp.array([0.0, 0.1]))
   assert np.all(np.isfinite(np.asarray(g)))
 
 
@@ -339,7 +349,8 @@ def test_direction_loss_matches_formula():
     )
     params = P.init(jax.random.key(11), spec, dtype=jnp.float64)
     params = jax.tree.map(lambda x: x * 300, params)
-    got = P.direction_loss(params, spec, "xy", max_shift=3)
+    loss = jax.jit(P.direction_loss, static_argnums=(1, 2), static_argnames="max_shift")
+    got = loss(params, spec, "xy", max_shift=3)
     Bs = [
       scipy.linalg.block_diag(*lie.skew(params["xy"][P.GENERATOR][j], block_size=4))
       for j in range(12)
@@ -434,7 +445,7 @@ def test_decode_shapes_and_candidates():
   assert P.candidates(SPEC_1D, "yaw").shape == (1440,)  # 0.25 degrees, [0, 360)
   assert P.candidates(SPEC_1D, "x").shape == (81,)  # 0.25 grid units over [0, 2]
   assert P.candidates(P.PoseSystemSpec(dofs=(P.PolarDof(),)), "xy").shape == (81 * 81, 2)
-  v = P.embed(params, SPEC_1D, np.zeros((2, 3, 3), np.float32))
+  v = jax.jit(P.embed, static_argnums=1)(params, SPEC_1D, np.zeros((2, 3, 3), np.float32))
   decode = jax.jit(P.decode, static_argnums=(1,))
   assert decode(params, SPEC_1D, v).shape == (2, 3, 3)
   assert decode(params, SPEC_1D, P.concat(v, SPEC_1D)).shape == (2, 3, 3)

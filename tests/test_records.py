@@ -22,6 +22,7 @@ from absl import flags
 from camrep.configs import gqn, regression
 from camrep.data import fingerprint, prepare, procedural
 from camrep.regression import driver as R
+from camrep.regression import pose_system
 from camrep.runtime import cli, runconfig, writers
 from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import components, train
@@ -187,7 +188,7 @@ def _regression(workdir, **family):
 def test_regression_ours_refuses_a_pose_system_learned_on_other_rooms(gqn_smoke_run, tmp_path):
   # The same rooms: accepted (load_pose_system restores only the checkpoint).
   config = R.resolve_config(_regression(gqn_smoke_run))
-  assert R.load_pose_system(gqn_smoke_run, "gqn", config=config)["step"] == 4
+  assert pose_system.load_pose_system(gqn_smoke_run, "gqn", config=config)["step"] == 4
   # Rooms of another wall style: the source and the directory are the same, the rooms are not.
   other = _regression(gqn_smoke_run, wall_style="distinct")
   wd = tmp_path / "reg"
@@ -197,7 +198,7 @@ def test_regression_ours_refuses_a_pose_system_learned_on_other_rooms(gqn_smoke_
   assert not wd.exists()
   # Another light and seed: each named.
   with pytest.raises(runconfig.ConfigError, match="data.family.light_azimuth_deg: None -> 30"):
-    R.load_pose_system(
+    pose_system.load_pose_system(
       gqn_smoke_run,
       "gqn",
       config=R.resolve_config(_regression(gqn_smoke_run, light_azimuth_deg=30.0, seed=3)),

@@ -20,6 +20,7 @@ import pytest
 from camrep.configs import regression as regression_config
 from camrep.configs import shapenet_car
 from camrep.regression import driver as R
+from camrep.regression import pose_system
 from camrep.regression import tables as C
 from camrep.regression import views as views_lib
 from camrep.runtime import runconfig
@@ -71,7 +72,8 @@ def test_baseline_end_to_end(tmp_path, cache):
     assert json.load(f) == json.loads(json.dumps(results))
   # record.json: the data's fingerprint (a baseline has no pose system to record).
   record = workdir_lib.read_record(wd)
-  assert record["data"] == R.data_record(R.resolve_config(config)) and "pose_spec" not in record
+  assert record["data"] == views_lib.data_record(R.resolve_config(config))
+  assert "pose_spec" not in record
   assert (results["setting"], results["representation"], results["seed"]) == ("car", "euler", 1)
   assert results["lr"] == 3e-3 and results["steps"] == 3 and results["params"] > 0
   assert results["variant"] == "smoke" and results["representation_params"]["source"] == "none"
@@ -148,11 +150,11 @@ def test_ours_from_a_synthesis_workdir(tmp_path, cache, car_synthesis):
   assert info["workdir"] == os.path.abspath(car_synthesis)
   assert results["lr"] == 1e-3  # the paper's car lr (configs/regression.py hparams.car)
   assert np.isfinite(results["test"]["all"]["rotation_error_deg"]["mean"])
-  spec, rep, info = R.representation_params(R.resolve_config(config))
+  spec, rep, info = pose_system.representation_params(R.resolve_config(config))
   assert spec == components.pose_spec(shapenet_car.get_config("smoke")) and info["step"] == 1
   # "mlp" with a learned-grid run: its pose spec, a frozen random MLP embedding.
   mlp = _config("car", "mlp", synthesis_workdir=car_synthesis, **{"data.cache_dir": cache})
-  spec, params, info = R.representation_params(R.resolve_config(mlp))
+  spec, params, info = pose_system.representation_params(R.resolve_config(mlp))
   assert info["source"] == "random_init" and set(params) == set(spec.names)
   # A synthesis run of another setting is refused.
   other = _config("gibson", "ours", synthesis_workdir=car_synthesis)

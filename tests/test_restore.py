@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from camrep.data import batches, pipeline, render, storage
-from camrep.regression import driver as regression_driver
+from camrep.regression import pose_system
 from camrep.runtime import checkpoint as ckpt_lib
 from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import components, restore
@@ -80,7 +80,7 @@ def test_restore_or_init_and_pose_system_render_nothing(gqn_smoke_run, tmp_path,
   state = step_lib.from_state_dict(init, state_d)
   assert start == 4
   _assert_same_params(state.params, reference.params)
-  system = regression_driver.load_pose_system(wd, "gqn")
+  system = pose_system.load_pose_system(wd, "gqn")
   assert system["step"] == 4
   _assert_same_params(system["rep"], reference.params["rep"])
 

@@ -19,6 +19,9 @@ from scipy.spatial.transform import Rotation
 from camrep import rotations as rot
 from tests.utils import BATCH_SHAPES, FAST_BATCH_SHAPE, assert_close, slow_except, x64
 
+# Compilation dominates these small shapes; the numerics are checked to the same tolerances.
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 TWO_PI = 2 * math.pi
 BACKENDS = ("numpy", "jax")
 

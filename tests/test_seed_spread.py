@@ -116,7 +116,7 @@ def test_decoding_error_of_a_pose_system(tmp_path):
   a grid cell (10 degrees) for a system of one training step."""
   import jax.numpy as jnp
 
-  from camrep.regression import driver, scoring
+  from camrep.regression import pose_system, scoring
   from camrep.regression import targets as T
 
   ss = load_experiment("seed_spread")
@@ -130,7 +130,7 @@ def test_decoding_error_of_a_pose_system(tmp_path):
   for mode in ("nearest", "floor"):
     kw = dict(error="azimuth_error_deg", quantisation=mode, refine_steps=0)
     got[mode] = ss.decoding_error(wd, "car", poses, **kw)
-    system = driver.load_pose_system(wd, "car")
+    system = pose_system.load_pose_system(wd, "car")
     codec = dict(spec=system["spec"], rep_params=system["rep"], mode=mode)
     true = jnp.asarray(poses, jnp.float32)
     back = T.decode("ours", "car", T.encode("ours", "car", true, **codec), refine_steps=0, **codec)

@@ -7,8 +7,9 @@ writes into DIR:
 
   config.json        the resolved config (per-setting sizes filled in)
   record.json        what identifies its data and pose system beyond the config
-                     (`data_record`: the family's resolved parameters or the prepared dataset's
-                     identity, their fingerprints; the pose spec of a learned representation)
+                     (`views.data_record`: the family's resolved parameters or the prepared
+                     dataset's identity, their fingerprints; the pose spec of a learned
+                     representation)
   metrics.jsonl      train/* every log_every_steps, eval/validation/* (with the lr-selection
                      score eval/validation/score: the validation curve) every eval_every_steps,
                      every split's at the end
@@ -43,12 +44,13 @@ them), decoded once and held in memory (or batch by batch with `data.stream`). r
 "data" then names the source, the directory, the dataset path, the test split, what each
 evaluation split is, and the number of test views.
 
-Representations: baselines need nothing more; "ours" restores the frozen pose system of a
-view-synthesis workdir (`load_pose_system`, via `camrep.synthesis`'s `load_run`); "mlp" uses that
-workdir's MLP embedding when it was trained with rep.kind="mlp", else a frozen randomly
-initialised MLP embedding (`MlpPoseInput`; the supplement's MLP is trained by view synthesis).
-The synthesis workdir must have been trained on the same data (`check_same_data`: same source,
-same prepared directory and dataset) and, for "ours", with the learned grid system.
+Representations (`pose_system.representation_params`): baselines need nothing more; "ours"
+restores the frozen pose system of a view-synthesis workdir (`pose_system.load_pose_system`, via
+`camrep.synthesis`'s `load_run`); "mlp" uses that workdir's MLP embedding when it was trained with
+rep.kind="mlp", else a frozen randomly initialised MLP embedding (`MlpPoseInput`; the
+supplement's MLP is trained by view synthesis). The synthesis workdir must have been trained on
+the same data (`pose_system.check_same_data`: same source, same prepared directory and dataset)
+and, for "ours", with the learned grid system.
 `model.resnet_weights` (seven_scenes) loads a torchvision ResNet-34 state dict into the trunk
 (`load_resnet_weights`).
 """
@@ -65,13 +67,11 @@ from collections.abc import Mapping
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from camrep import pose_inputs
 from camrep.data import sources
-from camrep.regression import learner, scoring
+from camrep.regression import learner, pose_system, scoring
 from camrep.regression import tables as tables_lib
 from camrep.regression import targets as T
 from camrep.regression import views as views_lib
@@ -79,7 +79,7 @@ from camrep.runtime import progress as progress_lib
 from camrep.runtime import runconfig, stopping, writers
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime.runconfig import ConfigError
-from camrep.synthesis import components, restore
+from camrep.synthesis import components
 
 RESULTS_FILE = "results.json"
 SPLITS = ("test", "test_scenes")
@@ -173,7 +173,7 @@ def check_source(config) -> None:
     if d.get("dir", ""):
       raise ConfigError(
         "data.dir is set but data.source is empty: name the prepared dataset's source "
-        f"(--config.data.source={data_source(config)} is "
+        f"(--config.data.source={views_lib.data_source(config)} is "
         "procedural; real ones: gqn, srn_cars, gibson, seven_scenes)"
       )
     return
@@ -197,217 +197,6 @@ def check_source(config) -> None:
     )
   if not os.path.isdir(d.dir):
     raise ConfigError(f"data.dir {d.dir} does not exist (data.source {source!r})")
-
-
-def data_source(config) -> str:
-  """The config's data source: data.source, or the setting's procedural family."""
-  return config.data.get("source", "") or sources.procedural_of(config.setting)
-
-
-# --------------------------------------------------------------------------------------------
-# Data.
-
-
-# --------------------------------------------------------------------------------------------
-# The frozen representation.
-
-
-def check_same_data(workdir: str, syn_config, config) -> None:
-  """Refuses a view-synthesis run trained on other data than this regression reads: another
-  data.source, or (real data) another prepared directory or dataset.
-
-  Raises:
-    ConfigError: as above.
-  """
-  ours, theirs = data_source(config), syn_config.data.source
-  our_dir = os.path.abspath(config.data.dir) if config.data.get("dir", "") else ""
-  their_dir = os.path.abspath(syn_config.data.dir) if syn_config.data.get("dir", "") else ""
-  if ours != theirs or our_dir != their_dir:
-    raise ConfigError(
-      f"synthesis_workdir {workdir} was trained on data.source={theirs!r}"
-      + (f" data.dir={their_dir}" if their_dir else " (procedural)")
-      + f", but this regression reads data.source={ours!r}"
-      + (f" data.dir={our_dir}" if our_dir else " (procedural)")
-      + ': "ours" must regress a pose system learned on the same data'
-    )
-  check_same_world(workdir, syn_config, config)
-  if not our_dir:
-    return
-  from camrep.data import storage
-  from camrep.data.errors import DataError
-
-  preset = syn_config.data.get("preset", "default")
-  try:
-    theirs_path = storage.dataset_dir(
-      their_dir, theirs, config=preset if preset != "default" else None
-    )
-  except DataError:
-    return  # the run's dataset cannot be resolved any more; source and dir matched
-  ours_path, _ = views_lib.open_dataset(config)
-  if os.path.abspath(theirs_path) != os.path.abspath(ours_path):
-    raise ConfigError(
-      f"synthesis_workdir {workdir} was trained on the prepared dataset {theirs_path}, this "
-      f"regression reads {ours_path} (pass --config.data.dataset_config to pick the same one)"
-    )
-
-
-def data_record(config) -> dict[str, Any]:
-  """`fingerprint.data_record` of the data this (resolved) regression reads: its prepared
-  dataset (`views.open_dataset`) or the setting's procedural family. Renders nothing.
-
-  Raises:
-    ConfigError: the dataset cannot be found, or the family refuses its parameters.
-  """
-  from camrep.data import fingerprint
-  from camrep.data.errors import DataError
-
-  if config.data.get("dir", ""):
-    path, _ = views_lib.open_dataset(config)
-    return fingerprint.prepared_record(path)
-  try:
-    return fingerprint.procedural_record(config.data, sources.procedural_of(config.setting))
-  except DataError as e:
-    raise ConfigError(f"data.family: {e}") from None
-
-
-def _synthesis_data_record(workdir: str, syn_config) -> dict[str, Any] | None:
-  """The data record of a view-synthesis workdir: its record.json's, or (a workdir written
-  before camrep kept one) computed from its config.json with today's library defaults, with a
-  warning; None when neither is possible (its prepared dataset is gone)."""
-  import sys
-
-  from camrep.data import fingerprint
-  from camrep.data.errors import DataError
-
-  record = workdir_lib.read_record(workdir)
-  if record is not None and isinstance(record.get("data"), dict):
-    return record["data"]
-  try:
-    data = fingerprint.data_record(syn_config.data)
-  except DataError:
-    return None
-  print(
-    f"warning: synthesis_workdir {workdir} has no {workdir_lib.RECORD_FILE} (an older camrep): "
-    "its data is identified from its config.json with today's library defaults",
-    file=sys.stderr,
-    flush=True,
-  )
-  return data
-
-
-def check_same_world(workdir: str, syn_config, config) -> None:
-  """Refuses a view-synthesis run whose data fingerprint ("world": the family's parameters apart
-  from scene and view counts and image resolution, or the prepared dataset's identity and
-  content) differs from this regression's, e.g. rooms of another wall style, light or seed.
-
-  Raises:
-    ConfigError: the first differing parameter (or the fingerprints) named, synthesis value ->
-      this regression's.
-  """
-  from camrep.data import fingerprint
-
-  theirs = _synthesis_data_record(workdir, syn_config)
-  if theirs is None:
-    return  # its dataset is gone: data.source and data.dir were compared
-  ours = data_record(config)
-  if theirs.get("world") == ours.get("world"):
-    return
-  a, b = theirs.get("family") or {}, ours.get("family") or {}
-  fields = [
-    f"data.family.{k}: {a.get(k)!r} -> {b.get(k)!r}"
-    for k in sorted(set(a) | set(b))
-    if k not in fingerprint.EXTENT_FIELDS and a.get(k) != b.get(k)
-  ]
-  if theirs.get("renderer") != ours.get("renderer"):
-    fields.append(f"data.renderer: {theirs.get('renderer')!r} -> {ours.get('renderer')!r}")
-  what = "; ".join(fields) or (
-    f"data.fingerprint: {theirs.get('fingerprint')} -> {ours.get('fingerprint')}"
-  )
-  raise ConfigError(
-    f"synthesis_workdir {workdir} learned its pose system on other data than this regression "
-    f'reads ({what}; synthesis -> regression): "ours" must regress a pose system learned on '
-    "the same data (the same family parameters apart from scene and view counts and image "
-    "size, or the same prepared dataset)"
-  )
-
-
-def load_pose_system(workdir: str, setting: str, *, config=None) -> dict[str, Any]:
-  """The frozen pose input of a view-synthesis workdir, checked against the setting (and, with
-  the regression's `config`, against its data: `check_same_data`).
-
-  Restores the latest checkpoint with the synthesis `load_run` (which reads no data).
-
-  Returns:
-    {"spec": PoseSystemSpec, "rep": pose-input params, "kind": "grid" / "mlp" / "lowdim",
-     "step": restored step, "workdir": absolute path}.
-
-  Raises:
-    ConfigError: the workdir is missing, has no checkpoint, or its setting or data differ.
-  """
-  from camrep.runtime import checkpoint as ckpt_lib
-
-  workdir = os.path.abspath(workdir)
-  try:
-    syn_config = workdir_lib.read_config(workdir)
-  except FileNotFoundError as e:
-    raise ConfigError(f"synthesis_workdir: {e}") from None
-  syn_setting = components.setting(syn_config)
-  if syn_setting != setting:
-    raise ConfigError(
-      f"synthesis_workdir {workdir} is a {syn_setting!r} run (data.source "
-      f"{syn_config.data.source!r}); this regression's setting is {setting!r}"
-    )
-  kind = syn_config.rep.get("kind", "grid")
-  if config is not None:
-    check_same_data(workdir, syn_config, config)
-    if config.representation == "ours" and kind != "grid":
-      raise ConfigError(
-        f"synthesis_workdir {workdir} was trained with another pose system, rep.kind={kind!r}; "
-        '"ours" needs the learned grid system (rep.kind="grid")'
-      )
-  spec = components.pose_spec(syn_config)
-  try:
-    with ckpt_lib.Checkpointer(workdir, read_only=True) as ck:
-      step = ck.latest_step()
-  except ckpt_lib.CheckpointError:
-    step = None
-  if step is None:
-    raise ConfigError(f"synthesis_workdir {workdir} has no checkpoint (train it first)")
-  try:
-    run = restore.load_run(workdir)
-  except (FileNotFoundError, ckpt_lib.CheckpointError) as e:
-    raise ConfigError(f"synthesis_workdir: {e}") from None
-  rep = jax.tree.map(jnp.asarray, run.params["rep"])
-  return {"spec": spec, "rep": rep, "kind": kind, "step": int(run.step), "workdir": workdir}
-
-
-def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
-  """(spec, rep_params, info) of the config's representation (see the module docstring).
-
-  Raises:
-    ConfigError: "ours" without a learned-grid synthesis run of the same setting.
-  """
-  rep = config.representation
-  if rep not in T.LEARNED:
-    return None, None, {"source": "none"}
-  system = None
-  if config.synthesis_workdir:
-    system = load_pose_system(config.synthesis_workdir, config.setting, config=config)
-  if rep == "ours":
-    if system["kind"] != "grid":
-      raise ConfigError(
-        f"synthesis_workdir {system['workdir']} was trained with another pose system, "
-        f'rep.kind={system["kind"]!r}; "ours" needs the learned grid system (rep.kind="grid")'
-      )
-    info = {"source": "synthesis", "workdir": system["workdir"], "step": system["step"]}
-    return system["spec"], system["rep"], info
-  spec = system["spec"] if system else T.default_spec(config.setting)
-  if system and system["kind"] == "mlp":
-    info = {"source": "synthesis", "workdir": system["workdir"], "step": system["step"]}
-    return spec, system["rep"], info
-  key = jax.random.fold_in(jax.random.key(config.seed), 1)
-  info = {"source": "random_init", "note": "frozen randomly initialised MLP embedding"}
-  return spec, pose_inputs.MlpPoseInput(spec).init(key), info
 
 
 # --------------------------------------------------------------------------------------------
@@ -461,7 +250,7 @@ def prepare(config: ml_collections.ConfigDict, *, log=print) -> Setup:
   """Restores the pose input and renders the data of a resolved config (in that order, so that a
   bad synthesis workdir fails before minutes of rendering)."""
   t0 = time.perf_counter()
-  spec, rep_params, rep_info = representation_params(config)
+  spec, rep_params, rep_info = pose_system.representation_params(config)
   data = views_lib.make_data(config)
   t_data = time.perf_counter() - t0
   scene_max = [data.train.scenes.max(), *(e.queries.scenes.max() for e in data.evals.values())]
@@ -681,7 +470,7 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
   lock.acquire()
   try:
     try:
-      record = {"version": 1, "data": data_record(config)}
+      record = {"version": 1, "data": views_lib.data_record(config)}
       setup = prepare(config, log=log)
     except BaseException:
       if not existed:

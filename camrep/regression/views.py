@@ -230,6 +230,30 @@ def is_real(config) -> bool:
   return bool(source) and not sources.is_procedural(source)
 
 
+def data_source(config) -> str:
+  """The config's data source: data.source, or the setting's procedural family."""
+  return config.data.get("source", "") or sources.procedural_of(config.setting)
+
+
+def data_record(config) -> dict[str, Any]:
+  """`fingerprint.data_record` of the data this (resolved) regression reads: its prepared
+  dataset (`open_dataset`) or the setting's procedural family. Renders nothing.
+
+  Raises:
+    ConfigError: the dataset cannot be found, or the family refuses its parameters.
+  """
+  from camrep.data import fingerprint
+  from camrep.data.errors import DataError
+
+  if config.data.get("dir", ""):
+    path, _ = open_dataset(config)
+    return fingerprint.prepared_record(path)
+  try:
+    return fingerprint.procedural_record(config.data, sources.procedural_of(config.setting))
+  except DataError as e:
+    raise ConfigError(f"data.family: {e}") from None
+
+
 def make_data(config) -> Data:
   """Train, validation and test sets of a resolved config (see the module docstring)."""
   if is_real(config):

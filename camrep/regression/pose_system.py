@@ -1,0 +1,209 @@
+"""The frozen pose input a regression run regresses from (paper section 4.4), and the checks that
+tie it to a view-synthesis workdir trained on the same data.
+
+  representation_params  (spec, params, info) of `config.representation`: nothing for the
+                         baselines; "ours" the learned grid system of `config.synthesis_workdir`;
+                         "mlp" that workdir's MLP embedding when it was trained with
+                         rep.kind="mlp", else a frozen randomly initialised `MlpPoseInput`
+  load_pose_system       restores a view-synthesis workdir's pose input (the synthesis
+                         `load_run`, which reads no data), checked against the setting and,
+                         given the regression's config, its data
+  check_same_data        the same data.source and prepared directory and dataset as the
+                         regression reads, and (`check_same_world`) the same data fingerprint:
+                         the family's parameters apart from scene and view counts and image
+                         size, or the prepared dataset's identity and content
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from camrep import pose_inputs
+from camrep.regression import targets as T
+from camrep.regression import views as views_lib
+from camrep.runtime import workdir as workdir_lib
+from camrep.runtime.runconfig import ConfigError
+from camrep.synthesis import components, restore
+
+
+def check_same_data(workdir: str, syn_config, config) -> None:
+  """Refuses a view-synthesis run trained on other data than this regression reads: another
+  data.source, or (real data) another prepared directory or dataset.
+
+  Raises:
+    ConfigError: as above.
+  """
+  ours, theirs = views_lib.data_source(config), syn_config.data.source
+  our_dir = os.path.abspath(config.data.dir) if config.data.get("dir", "") else ""
+  their_dir = os.path.abspath(syn_config.data.dir) if syn_config.data.get("dir", "") else ""
+  if ours != theirs or our_dir != their_dir:
+    raise ConfigError(
+      f"synthesis_workdir {workdir} was trained on data.source={theirs!r}"
+      + (f" data.dir={their_dir}" if their_dir else " (procedural)")
+      + f", but this regression reads data.source={ours!r}"
+      + (f" data.dir={our_dir}" if our_dir else " (procedural)")
+      + ': "ours" must regress a pose system learned on the same data'
+    )
+  check_same_world(workdir, syn_config, config)
+  if not our_dir:
+    return
+  from camrep.data import storage
+  from camrep.data.errors import DataError
+
+  preset = syn_config.data.get("preset", "default")
+  try:
+    theirs_path = storage.dataset_dir(
+      their_dir, theirs, config=preset if preset != "default" else None
+    )
+  except DataError:
+    return  # the run's dataset cannot be resolved any more; source and dir matched
+  ours_path, _ = views_lib.open_dataset(config)
+  if os.path.abspath(theirs_path) != os.path.abspath(ours_path):
+    raise ConfigError(
+      f"synthesis_workdir {workdir} was trained on the prepared dataset {theirs_path}, this "
+      f"regression reads {ours_path} (pass --config.data.dataset_config to pick the same one)"
+    )
+
+
+def _synthesis_data_record(workdir: str, syn_config) -> dict[str, Any] | None:
+  """The data record of a view-synthesis workdir: its record.json's, or (a workdir written
+  before camrep kept one) computed from its config.json with today's library defaults, with a
+  warning; None when neither is possible (its prepared dataset is gone)."""
+  import sys
+
+  from camrep.data import fingerprint
+  from camrep.data.errors import DataError
+
+  record = workdir_lib.read_record(workdir)
+  if record is not None and isinstance(record.get("data"), dict):
+    return record["data"]
+  try:
+    data = fingerprint.data_record(syn_config.data)
+  except DataError:
+    return None
+  print(
+    f"warning: synthesis_workdir {workdir} has no {workdir_lib.RECORD_FILE} (an older camrep): "
+    "its data is identified from its config.json with today's library defaults",
+    file=sys.stderr,
+    flush=True,
+  )
+  return data
+
+
+def check_same_world(workdir: str, syn_config, config) -> None:
+  """Refuses a view-synthesis run whose data fingerprint ("world": the family's parameters apart
+  from scene and view counts and image resolution, or the prepared dataset's identity and
+  content) differs from this regression's, e.g. rooms of another wall style, light or seed.
+
+  Raises:
+    ConfigError: the first differing parameter (or the fingerprints) named, synthesis value ->
+      this regression's.
+  """
+  from camrep.data import fingerprint
+
+  theirs = _synthesis_data_record(workdir, syn_config)
+  if theirs is None:
+    return  # its dataset is gone: data.source and data.dir were compared
+  ours = views_lib.data_record(config)
+  if theirs.get("world") == ours.get("world"):
+    return
+  a, b = theirs.get("family") or {}, ours.get("family") or {}
+  fields = [
+    f"data.family.{k}: {a.get(k)!r} -> {b.get(k)!r}"
+    for k in sorted(set(a) | set(b))
+    if k not in fingerprint.EXTENT_FIELDS and a.get(k) != b.get(k)
+  ]
+  if theirs.get("renderer") != ours.get("renderer"):
+    fields.append(f"data.renderer: {theirs.get('renderer')!r} -> {ours.get('renderer')!r}")
+  what = "; ".join(fields) or (
+    f"data.fingerprint: {theirs.get('fingerprint')} -> {ours.get('fingerprint')}"
+  )
+  raise ConfigError(
+    f"synthesis_workdir {workdir} learned its pose system on other data than this regression "
+    f'reads ({what}; synthesis -> regression): "ours" must regress a pose system learned on '
+    "the same data (the same family parameters apart from scene and view counts and image "
+    "size, or the same prepared dataset)"
+  )
+
+
+def load_pose_system(workdir: str, setting: str, *, config=None) -> dict[str, Any]:
+  """The frozen pose input of a view-synthesis workdir, checked against the setting (and, with
+  the regression's `config`, against its data: `check_same_data`).
+
+  Restores the latest checkpoint with the synthesis `load_run` (which reads no data).
+
+  Returns:
+    {"spec": PoseSystemSpec, "rep": pose-input params, "kind": "grid" / "mlp" / "lowdim",
+     "step": restored step, "workdir": absolute path}.
+
+  Raises:
+    ConfigError: the workdir is missing, has no checkpoint, or its setting or data differ.
+  """
+  from camrep.runtime import checkpoint as ckpt_lib
+
+  workdir = os.path.abspath(workdir)
+  try:
+    syn_config = workdir_lib.read_config(workdir)
+  except FileNotFoundError as e:
+    raise ConfigError(f"synthesis_workdir: {e}") from None
+  syn_setting = components.setting(syn_config)
+  if syn_setting != setting:
+    raise ConfigError(
+      f"synthesis_workdir {workdir} is a {syn_setting!r} run (data.source "
+      f"{syn_config.data.source!r}); this regression's setting is {setting!r}"
+    )
+  kind = syn_config.rep.get("kind", "grid")
+  if config is not None:
+    check_same_data(workdir, syn_config, config)
+    if config.representation == "ours" and kind != "grid":
+      raise ConfigError(
+        f"synthesis_workdir {workdir} was trained with another pose system, rep.kind={kind!r}; "
+        '"ours" needs the learned grid system (rep.kind="grid")'
+      )
+  spec = components.pose_spec(syn_config)
+  try:
+    with ckpt_lib.Checkpointer(workdir, read_only=True) as ck:
+      step = ck.latest_step()
+  except ckpt_lib.CheckpointError:
+    step = None
+  if step is None:
+    raise ConfigError(f"synthesis_workdir {workdir} has no checkpoint (train it first)")
+  try:
+    run = restore.load_run(workdir)
+  except (FileNotFoundError, ckpt_lib.CheckpointError) as e:
+    raise ConfigError(f"synthesis_workdir: {e}") from None
+  rep = jax.tree.map(jnp.asarray, run.params["rep"])
+  return {"spec": spec, "rep": rep, "kind": kind, "step": int(run.step), "workdir": workdir}
+
+
+def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
+  """(spec, rep_params, info) of the config's representation (see the module docstring).
+
+  Raises:
+    ConfigError: "ours" without a learned-grid synthesis run of the same setting.
+  """
+  rep = config.representation
+  if rep not in T.LEARNED:
+    return None, None, {"source": "none"}
+  system = None
+  if config.synthesis_workdir:
+    system = load_pose_system(config.synthesis_workdir, config.setting, config=config)
+  if rep == "ours":
+    if system["kind"] != "grid":
+      raise ConfigError(
+        f"synthesis_workdir {system['workdir']} was trained with another pose system, "
+        f'rep.kind={system["kind"]!r}; "ours" needs the learned grid system (rep.kind="grid")'
+      )
+    info = {"source": "synthesis", "workdir": system["workdir"], "step": system["step"]}
+    return system["spec"], system["rep"], info
+  spec = system["spec"] if system else T.default_spec(config.setting)
+  if system and system["kind"] == "mlp":
+    info = {"source": "synthesis", "workdir": system["workdir"], "step": system["step"]}
+    return spec, system["rep"], info
+  key = jax.random.fold_in(jax.random.key(config.seed), 1)
+  info = {"source": "random_init", "note": "frozen randomly initialised MLP embedding"}
+  return spec, pose_inputs.MlpPoseInput(spec).init(key), info
