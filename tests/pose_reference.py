@@ -90,22 +90,54 @@ def _lowdim_config(source: str):
   return c
 
 
+def _params_and_noisy(spec: P.PoseSystemSpec, seed: jax.Array, poses: jax.Array):
+  """The system's parameters and the noisy pose vectors its decodes start from."""
+  key = lambda i: jax.random.fold_in(jax.random.key(seed), i)
+  params = P.init(key(0), spec)
+  vectors = P.embed(params, spec, poses)
+  noisy = {
+    n: v + 0.02 * jax.random.normal(key(10 + i), v.shape)
+    for i, (n, v) in enumerate(sorted(vectors.items()))
+  }
+  return params, noisy
+
+
+def _decode_residuals(spec, seed, poses, decoded) -> jax.Array:
+  """(N, n_dofs): per DOF, the objective decoding minimises, ||v(decoded) - v_hat||^2 (eq. 12)."""
+  params, noisy = _params_and_noisy(spec, seed, poses)
+  cols = []
+  for d in spec.dofs:
+    x = _dof_values(spec, decoded, d.name)
+    cols.append(jnp.sum((P.embed_dof(params, spec, d.name, x) - noisy[d.name]) ** 2, -1))
+  return jnp.stack(cols, -1)
+
+
+def decode_residuals(decoded: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+  """{"<system>/decode_<k>": (N, n_dofs) residuals} of the decodes in `decoded` (same keys as
+  `outputs`): two decodes that find equally good candidates have equal residuals, whichever of
+  two near-tied candidates each picked."""
+  out = {}
+  for i, (sname, spec) in enumerate(_specs().items()):
+    fn = jax.jit(lambda seed, p, dec, spec=spec: _decode_residuals(spec, seed, p, dec))
+    for k in ("decode_0", "decode_2"):
+      name = f"{sname}/{k}"
+      if name in decoded:
+        res = fn(jnp.uint32(100 + i), _poses(spec), jnp.asarray(decoded[name]))
+        out[name] = np.asarray(res)
+  return out
+
+
 def _spec_outputs(
   spec: P.PoseSystemSpec, seed: jax.Array, poses: jax.Array
 ) -> dict[str, jax.Array]:
   """Every stored number of one system (jitted by `outputs`, so that XLA cannot fold it)."""
   out = {}
   key = lambda i: jax.random.fold_in(jax.random.key(seed), i)
-  params = P.init(key(0), spec)
+  params, noisy = _params_and_noisy(spec, seed, poses)
   out.update(_flat("init", params))
   for mode in ("nearest", "floor", "random"):
     k = key(1) if mode == "random" else None
     out.update(_flat(f"embed_{mode}", P.embed(params, spec, poses, mode=mode, key=k)))
-  vectors = P.embed(params, spec, poses)
-  noisy = {
-    n: v + 0.02 * jax.random.normal(key(10 + i), v.shape)
-    for i, (n, v) in enumerate(sorted(vectors.items()))
-  }
   out["decode_0"] = P.decode(params, spec, noisy, refine_steps=0)
   out["decode_2"] = P.decode(params, spec, P.concat(noisy, spec), refine_steps=2)
   out.update(_flat("rot", P.rotation_losses(key(2), params, spec, n_pairs=16)))
