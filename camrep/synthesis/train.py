@@ -133,7 +133,7 @@ def train_and_evaluate(
         if evaluated and rule.active:
           ended, reason = plateau.agree(rule, curve, lead)
           if ended:
-            step_lib.raise_if_not_finite(session.writer, pending, workdir)
+            step_lib.raise_if_not_finite(session.writer, pending, workdir, origin)
             pending, save = [], True
             if lead:
               log(f"stopping at step {step}: {reason}")
