@@ -17,7 +17,9 @@ rotation) and per capture column:
   - camrep, ours: with its interval;
   - ours / best: the ratio of the two paired on the same seeds and test views, its 95% interval
     and the verdict (better / tie / worse: interval below / containing / above 1);
-  - seeds, and whether either chosen learning rate sits at its grid's edge.
+  - seeds, whether either chosen learning rate sits at its grid's edge, and how many of the
+    ours and best runs reached their step cap instead of being stopped by the plateau rule
+    (results.json "stopping"; runs without a rule count as stopped).
 
 Intervals and ratios as in `camrep.regression.stats` (two-level bootstrap over seeds and test
 views; per-scene medians averaged over scenes for 7-Scenes). A column whose runs lack per-view
@@ -126,6 +128,12 @@ def row(runs: str, column: Column) -> list[str] | None:
     sel = next((s for (_, r), s in selections.items() if r == rep), None)
     if sel is not None and C.grid_edge(sel):
       edges.append(f"{rep}: {C.grid_edge(sel)} ({C.fmt_lr(sel.lr)})")
+  capped = []
+  for rep in ("ours", best):
+    sel = next((s for (_, r), s in selections.items() if r == rep), None)
+    if sel is not None:
+      n = sum(1 for run in sel.runs if not (run.get("stopping") or {}).get("stopped_early", True))
+      capped.append(f"{rep} {n}/{len(sel.runs)}")
   seeds = sorted({len(s.runs) for s in selections.values()})
   r = comp.ratio if comp else None
   return [
@@ -137,6 +145,7 @@ def row(runs: str, column: Column) -> list[str] | None:
     f"**{comp.verdict}**" if comp else "–",
     "/".join(map(str, seeds)),
     "; ".join(edges) or "no",
+    ", ".join(capped) or "–",
   ]
 
 
@@ -149,6 +158,7 @@ HEADER = (
   "verdict",
   "seeds",
   "chosen lr at grid edge",
+  "runs at their step cap",
 )
 
 

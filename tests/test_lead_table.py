@@ -24,6 +24,7 @@ def _run(root, column, rep, lr, seed, errors: dict, setting="car", scenes=None):
   for e, v in errors.items():  # validation error: the test error (lr choice follows it)
     val["all"][e] = {"mean": float(np.mean(v)), "median": float(np.median(v))}
   r = dict(setting=setting, representation=rep, lr=lr, seed=seed, steps=10, variant="quick")
+  r["stopping"] = {"stopped_early": seed != 2 or rep != "ours"}  # ours' seed 2 reached its cap
   r.update(validation=val, test=summ)
   with open(os.path.join(wd, "results.json"), "w") as f:
     json.dump(r, f)
@@ -65,6 +66,7 @@ def test_lead_table_rows_intervals_and_verdicts(tmp_path):
   ratio = float(car[4].split()[0])
   assert abs(ratio - 2 / 3) < 0.05 and car[5] == "**better**" and car[6] == "3"
   assert car[7] == "sincos: highest (3e-3)"
+  assert car[8] == "ours 1/3, sincos 0/3"
   chair = [c.strip() for c in lines["chair rotation (deg; capture)"].split("|")[1:-1]]
   assert chair[1] == "–" and chair[5] == "**tie**"
   assert chair[7] == "ours: only lr (1e-3); quat: only lr (1e-3)"  # one lr: no grid to judge
