@@ -30,7 +30,9 @@ record.json, results.json or final_metrics.json, metrics.jsonl, errors_*.npz, ev
 never checkpoints) and the launch's tables and figures are copied into DIR as soon as the run
 ends, and a launch starts by restoring the runs DIR holds into --out: a launch cut short resumes
 on another machine, losing only the runs in flight. A view-synthesis run restored without its
-checkpoints is trained again (runs are deterministic: the same numbers) only while a run that
+checkpoints is trained again (the same numbers on the same kind of CPU; on another, XLA's
+round-off makes it a statistically equivalent run: the car's seed 0 differed by 0.04 dB at step
+480 between two machines; the regression's record.json names the system it read) only while a run that
 reads them (its seed's "ours" / MLP regressions, its noise evaluation, crossed runs) is missing.
 With one synthesis run per seed (converge) the launch goes seed by seed, so that a cut loses
 little: seed 0's synthesis runs and their evaluations, phase 1, then for each later seed its
@@ -1028,7 +1030,7 @@ def run_synthesis(launch: Launch, jobs: Sequence[Job], logs: str, kw: dict) -> l
   """Trains the view-synthesis `jobs` that are not done, then their noise / Gram evaluations.
 
   A run whose records came from the archive (complete, without checkpoints) is trained again
-  (from scratch, to the same result: runs are deterministic) only while a job that reads its
+  (from scratch: the same numbers on the same kind of CPU) only while a job that reads its
   checkpoints is not done (`pending_synthesis`), else skipped."""
   L = launch
   pending = pending_synthesis(L)
