@@ -152,6 +152,8 @@ def test_ours_from_a_synthesis_workdir(tmp_path, cache, car_synthesis):
   assert np.isfinite(results["test"]["all"]["rotation_error_deg"]["mean"])
   spec, rep, info = pose_system.representation_params(R.resolve_config(config))
   assert spec == components.pose_spec(shapenet_car.get_config("smoke")) and info["step"] == 1
+  # The system it read, by content: the digest of the parameters it regressed.
+  assert results["representation_params"]["digest"] == pose_system.params_digest(rep)
   # "mlp" with a learned-grid run: its pose spec, a frozen random MLP embedding.
   mlp = _config("car", "mlp", synthesis_workdir=car_synthesis, **{"data.cache_dir": cache})
   spec, params, info = pose_system.representation_params(R.resolve_config(mlp))

@@ -133,3 +133,20 @@ def test_command_line_values_win_and_bad_ones_are_named():
     c.loss[field] = value
     with pytest.raises(ConfigError, match=match):
       driver.resolve_config(c)
+
+
+def test_pose_system_digest_names_the_parameters():
+  """results.json's representation_params "digest": equal trees agree, any change of a value,
+  shape or key does not (which pose system a regression read, across machines)."""
+  import jax.numpy as jnp
+
+  from camrep.regression import pose_system
+
+  a = {"azimuth": {"grid": jnp.arange(6.0).reshape(2, 3)}, "polar": {"B": jnp.ones(4)}}
+  same = {"polar": {"B": jnp.ones(4)}, "azimuth": {"grid": jnp.arange(6.0).reshape(2, 3)}}
+  d = pose_system.params_digest(a)
+  assert d.startswith("sha256:") and d == pose_system.params_digest(same)
+  changed = {**a, "polar": {"B": jnp.ones(4).at[2].set(1.0 + 1e-7)}}
+  reshaped = {**a, "azimuth": {"grid": jnp.arange(6.0).reshape(3, 2)}}
+  renamed = {"azimuth": a["azimuth"], "roll": a["polar"]}
+  assert len({d, *map(pose_system.params_digest, (changed, reshaped, renamed))}) == 4

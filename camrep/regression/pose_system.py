@@ -16,11 +16,13 @@ tie it to a view-synthesis workdir trained on the same data.
 
 from __future__ import annotations
 
+import hashlib
 import os
 from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from camrep import pose_inputs
 from camrep.regression import targets as T
@@ -138,7 +140,7 @@ def load_pose_system(workdir: str, setting: str, *, config=None) -> dict[str, An
 
   Returns:
     {"spec": PoseSystemSpec, "rep": pose-input params, "kind": "grid" / "mlp" / "lowdim",
-     "step": restored step, "workdir": absolute path}.
+     "step": restored step, "workdir": absolute path, "digest": `params_digest` of "rep"}.
 
   Raises:
     ConfigError: the workdir is missing, has no checkpoint, or its setting or data differ.
@@ -177,7 +179,25 @@ def load_pose_system(workdir: str, setting: str, *, config=None) -> dict[str, An
   except (FileNotFoundError, ckpt_lib.CheckpointError) as e:
     raise ConfigError(f"synthesis_workdir: {e}") from None
   rep = jax.tree.map(jnp.asarray, run.params["rep"])
-  return {"spec": spec, "rep": rep, "kind": kind, "step": int(run.step), "workdir": workdir}
+  return {
+    "spec": spec,
+    "rep": rep,
+    "kind": kind,
+    "step": int(run.step),
+    "workdir": workdir,
+    "digest": params_digest(rep),
+  }
+
+
+def params_digest(params) -> str:
+  """ "sha256:<hex>" of a parameter pytree's paths, dtypes, shapes and bytes: which pose system a
+  regression read, comparable across machines (a system retrained elsewhere may differ)."""
+  h = hashlib.sha256()
+  for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+    a = np.asarray(leaf)
+    h.update(f"{jax.tree_util.keystr(path)}:{a.dtype}:{a.shape};".encode())
+    h.update(np.ascontiguousarray(a).tobytes())
+  return "sha256:" + h.hexdigest()
 
 
 def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
@@ -198,12 +218,12 @@ def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
         f"synthesis_workdir {system['workdir']} was trained with another pose system, "
         f'rep.kind={system["kind"]!r}; "ours" needs the learned grid system (rep.kind="grid")'
       )
-    info = {"source": "synthesis", "workdir": system["workdir"], "step": system["step"]}
-    return system["spec"], system["rep"], info
+    info = {k: system[k] for k in ("workdir", "step", "digest")}
+    return system["spec"], system["rep"], {"source": "synthesis", **info}
   spec = system["spec"] if system else T.default_spec(config.setting)
   if system and system["kind"] == "mlp":
-    info = {"source": "synthesis", "workdir": system["workdir"], "step": system["step"]}
-    return spec, system["rep"], info
+    info = {k: system[k] for k in ("workdir", "step", "digest")}
+    return spec, system["rep"], {"source": "synthesis", **info}
   key = jax.random.fold_in(jax.random.key(config.seed), 1)
   info = {"source": "random_init", "note": "frozen randomly initialised MLP embedding"}
   return spec, pose_inputs.MlpPoseInput(spec).init(key), info
