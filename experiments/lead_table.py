@@ -71,25 +71,19 @@ COLUMNS = tuple(
     paper_best=_paper_best(key),
   )
   for key, header, setting, error in C.TABLE1_COLUMNS
-) + (
+) + tuple(
   Column(
-    "7-Scenes position (m, median)",
+    f"7-Scenes {what}, median)",
     "seven_scenes",
-    "position_error",
+    error,
     "median",
     True,
-    C.PAPER_TABLE2["average"][0],
-    ("PoseNet + log q", PAPER_LOGQ_7SCENES[0]),
-  ),
-  Column(
-    "7-Scenes rotation (deg, median)",
-    "seven_scenes",
-    "rotation_error_deg",
-    "median",
-    True,
-    C.PAPER_TABLE2["average"][1],
-    ("PoseNet + log q", PAPER_LOGQ_7SCENES[1]),
-  ),
+    C.PAPER_TABLE2["average"][i],
+    ("PoseNet + log q", PAPER_LOGQ_7SCENES[i]),
+  )
+  for i, (what, error) in enumerate(
+    (("position (m", "position_error"), ("rotation (deg", "rotation_error_deg"))
+  )
 )
 
 
@@ -99,49 +93,54 @@ def capture_columns(runs: str) -> tuple[Column, ...]:
   return tuple(Column(f"{n[4:]} rotation (deg; capture)", n, "rotation_error_deg") for n in names)
 
 
-def _cell(runs, column: Column) -> stats.Interval | None:
-  return stats.cell_interval(runs, column.error, column.reduce, by_scene=column.by_scene)
-
-
 def row(runs: str, column: Column) -> list[str] | None:
   """The lead table's row of `column`, or None when RUNS holds none of its runs."""
   results = C.load_results([os.path.join(runs, column.directory, "*", "*")])
   if not results:
     return None
-  selections = C.select(results)
-  cells = {rep: _cell(sel.runs, column) for (_, rep), sel in selections.items()}
-  best = stats.best_hand_designed({r: iv.value for r, iv in cells.items() if iv is not None})
-  ours = next((sel for (_, rep), sel in selections.items() if rep == "ours"), None)
+  by_rep = {rep: sel for (_, rep), sel in C.select(results).items()}
+  values = {}  # the column's statistic of each representation: which hand-designed one is best
+  for rep, sel in by_rep.items():
+    m = stats.seed_matrix(sel.runs, column.error)
+    if m is not None:
+      values[rep] = stats.statistic(m[0], m[1] if column.by_scene else None, column.reduce)
+  best = stats.best_hand_designed(values)
+  shown = [rep for rep in ("ours", best) if rep in by_rep]
+  cells = {
+    rep: stats.cell_interval(
+      by_rep[rep].runs, column.error, column.reduce, by_scene=column.by_scene
+    )
+    for rep in shown
+  }
   fmt = lambda iv: stats.fmt_interval(iv, digits=C.digits_for(iv.value)) if iv else "–"
   comp = None
-  if ours is not None and best is not None:
-    base = next(sel for (_, rep), sel in selections.items() if rep == best)
+  if "ours" in by_rep and best is not None:
     comp = stats.compare_runs(
-      ours.runs, base.runs, column.error, column.reduce, baseline=best, by_scene=column.by_scene
+      by_rep["ours"].runs,
+      by_rep[best].runs,
+      column.error,
+      column.reduce,
+      baseline=best,
+      by_scene=column.by_scene,
     )
   paper = "–"
   if column.paper_ours is not None and column.paper_best is not None:
     name, value = column.paper_best
     paper = f"{column.paper_ours:g} vs {value:g} ({C.ROW_LABELS.get(name, name)})"
-  edges = []
-  for rep in ("ours", best):
-    sel = next((s for (_, r), s in selections.items() if r == rep), None)
-    if sel is not None and C.grid_edge(sel):
+  edges, capped = [], []
+  for rep in shown:
+    sel = by_rep[rep]
+    if C.grid_edge(sel):
       edges.append(f"{rep}: {C.grid_edge(sel)} ({C.fmt_lr(sel.lr)})")
-  capped = []
-  for rep in ("ours", best):
-    sel = next((s for (_, r), s in selections.items() if r == rep), None)
-    if sel is not None:
-      n = sum(1 for run in sel.runs if not (run.get("stopping") or {}).get("stopped_early", True))
-      capped.append(f"{rep} {n}/{len(sel.runs)}")
-  seeds = sorted({len(s.runs) for s in selections.values()})
-  r = comp.ratio if comp else None
+    n = sum(1 for run in sel.runs if not (run.get("stopping") or {}).get("stopped_early", True))
+    capped.append(f"{rep} {n}/{len(sel.runs)}")
+  seeds = sorted({len(s.runs) for s in by_rep.values()})
   return [
     column.label,
     paper,
     f"{fmt(cells.get(best))} ({best})" if best else "–",
     fmt(cells.get("ours")),
-    f"{r.value:.2f} [{r.lo:.2f}, {r.hi:.2f}]" if r else "–",
+    stats.fmt_interval(comp.ratio, digits=2) if comp else "–",
     f"**{comp.verdict}**" if comp else "–",
     "/".join(map(str, seeds)),
     "; ".join(edges) or "no",
