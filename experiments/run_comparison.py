@@ -1254,7 +1254,18 @@ def main(argv: Sequence[str] | None = None) -> int:
   print_plan(launch, args.size, commands=False, at_once=args.jobs)
   t0 = time.perf_counter()
   deadline = time.monotonic() + 3600 * args.max_hours if args.max_hours > 0 else None
-  failed = execute(launch, at_once=args.jobs, deadline=deadline)
+  try:
+    failed = execute(launch, at_once=args.jobs, deadline=deadline)
+  except KeyboardInterrupt:  # Ctrl-C, or `timeout -s INT` around a chunk: a stop, not a crash
+    took = progress_lib.format_duration(time.perf_counter() - t0)
+    kept = f" and archived in {launch.archive}" if launch.archive else ""
+    print(
+      f"\ninterrupted after {took}: the runs that finished are kept{kept}; the runs in flight "
+      "resume from their last checkpoints when the same command is run again",
+      file=sys.stderr,
+      flush=True,
+    )
+    return 130
   took = progress_lib.format_duration(time.perf_counter() - t0)
   if deadline is not None and time.monotonic() > deadline:
     print(

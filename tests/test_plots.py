@@ -65,3 +65,15 @@ def test_save_writes_png_and_pdf_twins_reproducibly(tmp_path):
   assert open(again[0], "rb").read() == png and open(again[1], "rb").read() == pdf
   rgb = plots.to_rgb(fig)
   assert rgb.dtype == np.uint8 and rgb.ndim == 3 and rgb.shape[2] == 3
+
+
+def test_nine_representations_get_nine_distinct_line_looks():
+  """A Table 1 column's nine curves (and up to 40 series) never share colour, style and marker."""
+  x = np.arange(3.0)
+  series = {f"rep{i}": np.full(3, float(i)) for i in range(12)}
+  fig = plots.curves_figure(x, [plots.Panel("t", "y", series)])
+  lines = fig.axes[0].get_lines()
+  looks = {(ln.get_color(), ln.get_linestyle(), ln.get_marker()) for ln in lines}
+  assert len(lines) == 12 and len(looks) == 12
+  assert len({ln.get_color() for ln in lines[:10]}) == 10  # tab10 before any style repeats
+  assert len({tuple(plots.series_style(i).values()) for i in range(40)}) == 40

@@ -77,6 +77,7 @@ def test_baseline_end_to_end(tmp_path, cache):
   assert (results["setting"], results["representation"], results["seed"]) == ("car", "euler", 1)
   assert results["lr"] == 3e-3 and results["steps"] == 3 and results["params"] > 0
   assert results["variant"] == "smoke" and results["representation_params"]["source"] == "none"
+  assert results["machine"]["backend"] == "cpu" and results["machine"]["jax"]  # what ran it
   # small object family: 4 cars x 12 training views, the last quarter of each car for validation.
   assert results["data"]["train_views"] == 36 and results["data"]["test_split"] == "test"
   assert results["data"]["num_examples"] == {"validation": 12, "test": 16}

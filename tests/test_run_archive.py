@@ -187,3 +187,24 @@ def test_a_synthesis_run_that_trains_on_loses_its_old_evaluation(rc, tmp_path, m
   assert rc.run_synthesis(launch, jobs, str(tmp_path / "logs"), dict(at_once=1)) == []
   assert not (wd / "eval" / "noise.json").exists()
   assert ran == ["synthesis_car_seed0", "evaluate_car_seed0"]
+
+
+def test_an_interrupted_launch_says_how_to_resume_instead_of_a_traceback(
+  rc, tmp_path, monkeypatch, capsys
+):
+  """Ctrl-C (or `timeout -s INT` around a chunk) ends the launch with exit status 130 and one
+  line on what was kept and how to go on; the runs finished before it stay archived."""
+  ran = []
+  fake = fake_run_job(rc, ran)
+
+  def run_job(job, logs, *, index, env=None):
+    if len(ran) == 2:
+      raise KeyboardInterrupt
+    return fake(job, logs, index=index, env=env)
+
+  monkeypatch.setattr(rc, "run_job", run_job)
+  out, archive = tmp_path / "out", tmp_path / "archive"
+  assert rc.main(_args(out, archive)) == 130
+  err = capsys.readouterr().err
+  assert "interrupted after" in err and f"archived in {archive}" in err and "Traceback" not in err
+  assert (archive / "synthesis" / "car_seed0" / "final_metrics.json").exists()

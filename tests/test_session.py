@@ -46,6 +46,7 @@ def test_a_complete_run_records_it(run):
   assert final["complete"] is True and final["step"] == 4
   assert session.is_complete(run) and session.is_complete(run, 4)
   assert not session.is_complete(run, 6)
+  assert final["machine"] == workdir_lib.machine()  # what ran it (this CPU here)
   rows = writers.read_metrics(run)
   assert final["eval/psnr"] == [r for r in rows if "eval/psnr" in r][-1]["eval/psnr"]
   assert not [f for f in os.listdir(run) if ".tmp" in f]  # written by os.replace

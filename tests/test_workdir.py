@@ -13,6 +13,7 @@ import socket
 import subprocess
 import sys
 
+import jax
 import pytest
 
 from camrep.configs import gqn, regression, shapenet_car
@@ -262,3 +263,12 @@ def test_command_line_on_a_held_workdir_is_exit_2_naming_the_holder(trained):
     assert snapshot(trained) == before
   finally:
     lock.unlink()
+
+
+def test_machine_names_the_backend_the_devices_and_the_cpu():
+  """A run's records say what ran it: runs of one table may come from a lent GPU and this CPU."""
+  m = workdir_lib.machine()
+  assert m["backend"] == jax.default_backend() and m["devices"] == len(jax.devices())
+  assert m["device_kind"] == jax.devices()[0].device_kind and m["jax"] == jax.__version__
+  assert isinstance(m["cpu"], str) and m["cpu"] and m["cpu_count"] >= 1
+  json.dumps(m)  # recorded in JSON files

@@ -422,6 +422,7 @@ def results_record(
     "validation": summaries["validation"],
     "test": summaries[config.evals.test_split],
     "extra": extra,
+    "machine": workdir_lib.machine(),
   }
   if stop is not None:
     final = tables_lib.validation_score(config.setting, summaries["validation"])

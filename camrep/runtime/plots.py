@@ -18,10 +18,23 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
-# Colours of successive series (matplotlib's tab10, so a label keeps its colour across panels).
-COLORS = ("tab:blue", "tab:red", "tab:green", "tab:purple", "tab:orange", "tab:brown", "tab:gray")
+# Colours of successive series (matplotlib's tab10, so a label keeps its colour across panels);
+# past the tenth series the colours repeat with the next line style and marker, so no two series
+# of a panel look alike (Table 1 has nine representations, a noise figure more inputs).
+COLORS = (
+  "tab:blue", "tab:red", "tab:green", "tab:purple", "tab:orange",
+  "tab:brown", "tab:gray", "tab:pink", "tab:olive", "tab:cyan",
+)  # fmt: skip
+LINESTYLES = ("-", "--", ":", "-.")
+MARKERS = ("o", "s", "^", "D")
 PANEL_SIZE = (4.6, 3.4)  # inches, one panel; PNGs at DPI dots per inch
 DPI = 120
+
+
+def series_style(i: int) -> dict[str, str]:
+  """Colour, line style and marker of the i-th series of a panel (distinct for i < 40)."""
+  k = (i // len(COLORS)) % len(LINESTYLES)
+  return {"color": COLORS[i % len(COLORS)], "linestyle": LINESTYLES[k], "marker": MARKERS[k]}
 
 
 @dataclass(frozen=True)
@@ -83,14 +96,12 @@ def curves_figure(x, panels: Sequence[Panel], *, suptitle: str = "") -> Figure:
       if label in panel.bands:
         low, high, seeds = panel.bands[label]
         low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
-      color = COLORS[i % len(COLORS)]
+      style = series_style(i)
       name = f"{label} (mean of {seeds} seeds)" if seeds > 1 else label
       ok = np.isfinite(mean)
-      ax.plot(
-        x[ok], mean[ok], marker="o", markersize=3.5, linewidth=1.6, color=color, label=name or None
-      )
+      ax.plot(x[ok], mean[ok], markersize=3.5, linewidth=1.6, label=name or None, **style)
       if seeds > 1:
-        ax.fill_between(x[ok], low[ok], high[ok], color=color, alpha=0.2, linewidth=0)
+        ax.fill_between(x[ok], low[ok], high[ok], color=style["color"], alpha=0.2, linewidth=0)
     ax.set_title(panel.title, fontsize=10)
     ax.set_xlabel(panel.xlabel)
     ax.set_ylabel(panel.ylabel)

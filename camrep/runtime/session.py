@@ -183,15 +183,16 @@ class Session:
       self.log(f"config changed at step {start}: {changed}")
 
   def finish(self, step: int, last: Mapping[str, float]) -> None:
-    """final_metrics.json: the last logged scalars, the config changes of the run's history, and
-    {"complete": true, "step": step}. Call once what it describes is on disk (the last
-    checkpoint saved, the metrics flushed)."""
+    """final_metrics.json: the last logged scalars, the config changes of the run's history, the
+    machine that finished it (`workdir.machine`), and {"complete": true, "step": step}. Call
+    once what it describes is on disk (the last checkpoint saved, the metrics flushed)."""
     if not self.lead:
       return
     self.writer.flush()
     history = workdir_lib.read_history(self.workdir)
     changes = [{"step": h["step"], "changes": h["changes"]} for h in history if h["changes"]]
     record = {"step": int(step), **last, "config_changes": changes, "complete": True}
+    record["machine"] = workdir_lib.machine()
     _write_json(os.path.join(self.workdir, FINAL_FILE), record)
 
   def __exit__(self, exc_type, exc, tb) -> None:

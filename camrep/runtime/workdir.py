@@ -21,6 +21,7 @@ from __future__ import annotations
 import datetime
 import json
 import os
+import platform
 import socket
 import sys
 import tempfile
@@ -273,6 +274,31 @@ def topology(*, processes: int, devices: int, scenes_per_device: int) -> dict[st
     "processes": int(processes),
     "devices": int(devices),
     "global_batch": int(devices) * int(scenes_per_device),
+  }
+
+
+def machine() -> dict[str, Any]:
+  """What ran a run, for its records (final_metrics.json, results.json): JAX's backend, the kind
+  and count of its devices, the host's CPU model and the jax version. Runs of one table may come
+  from several machines (a lent GPU beside the CPU), whose results differ in round-off."""
+  import jax  # here: the rest of this module is read by tools that never import JAX
+
+  cpu = platform.processor() or platform.machine()
+  try:
+    with open("/proc/cpuinfo", encoding="utf-8") as f:
+      cpu = next(
+        (line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu
+      )
+  except OSError:
+    pass
+  devices = jax.devices()
+  return {
+    "backend": jax.default_backend(),
+    "device_kind": devices[0].device_kind,
+    "devices": len(devices),
+    "cpu": cpu,
+    "cpu_count": os.cpu_count(),
+    "jax": jax.__version__,
   }
 
 
