@@ -11,8 +11,8 @@
 
 `--size converge` (issue 29): the quick sizes with 3 seeds per cell; every regression run capped
 (CONVERGE_CAPS) and stopped by the stopping rule (`--config.stop.*`, validation every cap / 20
-steps); lr grids of three values, phase 1 trying up to two more (half a decade beyond the edge)
-while seed 0's choice sits at its grid's edge; one view-synthesis run per seed for "ours" (and
+steps); lr grids of three values, phase 1 trying up to two more (half a decade beyond the edge;
+`--extend_grid N`: up to N) while seed 0's choice sits at its grid's edge; one view-synthesis run per seed for "ours" (and
 the MLP embedding, and the GQN noise runs), `synthesis/<name>_seed<k>`, regression seed k of
 "ours" regressing synthesis seed k's pose system; every view-synthesis run but GQN's ConvDRAW is
 trained to its own plateau (the trainer's `--config.stop.*` rule at its held-out evaluations,
@@ -750,6 +750,15 @@ def _parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     "--jobs", type=int, default=1, help="subprocesses at once within each step (GPU: 4 for medium)"
   )
   p.add_argument(
+    "--extend_grid",
+    type=int,
+    default=None,
+    metavar="N",
+    help="converge size: how many lrs beyond its grid phase 1 may try while seed 0's choice "
+    "sits at an edge (default: the plan's, 2); raise it to resume a launch whose choice stayed "
+    "at the edge after the plan's extensions",
+  )
+  p.add_argument(
     "--crossed",
     default="",
     metavar="COLUMN",
@@ -835,6 +844,11 @@ class Launch:
 
 def make_launch(args: argparse.Namespace) -> Launch:
   plan = PLANS[args.size]
+  extend = getattr(args, "extend_grid", None)
+  if extend is not None:
+    if extend < 0 or not plan.regression_flags:
+      raise SystemExit(f"--extend_grid {extend}: a count >= 0, at a size with a stopping rule")
+    plan = dataclasses.replace(plan, extend_grid=extend)
   captures = [c for c in getattr(args, "data", {}) if c not in SETTINGS]
   settings = args.settings + [c for c in captures if setting_of(c) in args.settings]
   only = {r.strip() for r in args.representations.split(",") if r.strip()}

@@ -47,9 +47,10 @@ def _summary(err):
   return {"all": {"rotation_error_deg": {"mean": err, "median": err / 2}}}
 
 
-def fake_run_job(rc, ran):
+def fake_run_job(rc, ran, score=lambda lr: 1.0 + abs(np.log10(lr) + 3)):
   """A `run_job` that writes what a finished run leaves, and records the order of the runs.
-  Regression: validation error lowest at lr 1e-3 (inside the grid: no extension)."""
+  Regression: validation error `score(lr)`, by default lowest at lr 1e-3 (inside the grid: no
+  extension)."""
 
   def run_job(job, logs, *, index, env=None):
     if not job.done_file:  # tables and curves: scripts over the runs, not runs
@@ -69,7 +70,7 @@ def fake_run_job(rc, ran):
         json.dump({"complete": True, "step": 8}, f)
       return True
     lr, seed = float(_flag(job.argv, "optax.lr")), int(_flag(job.argv, "seed"))
-    val = 1.0 + abs(np.log10(lr) + 3)
+    val = score(lr)
     r = dict(setting="car", representation=_flag(job.argv, "representation"), lr=lr, seed=seed)
     r.update(steps=10, variant="quick", validation=_summary(val), test=_summary(2 * val))
     with open(job.done_file, "w") as f:
@@ -208,3 +209,33 @@ def test_an_interrupted_launch_says_how_to_resume_instead_of_a_traceback(
   err = capsys.readouterr().err
   assert "interrupted after" in err and f"archived in {archive}" in err and "Traceback" not in err
   assert (archive / "synthesis" / "car_seed0" / "final_metrics.json").exists()
+
+
+@pytest.mark.parametrize("extend", [None, 3])
+def test_extend_grid_sets_how_far_phase_1_follows_a_choice_at_the_edge(
+  rc, tmp_path, monkeypatch, extend
+):
+  """A choice that stays at the grid's top gets the plan's 2 extensions, or `--extend_grid N`;
+  a rerun with a larger N resumes: only the new lr for seed 0, then the later seeds at it."""
+  ran = []
+  monkeypatch.setattr(rc, "run_job", fake_run_job(rc, ran, score=lambda lr: 1.0 / lr))
+  out, archive = tmp_path / "out", tmp_path / "archive"
+  flags = [] if extend is None else ["--extend_grid", str(extend)]
+  assert rc.main(_args(out, archive, "--representations", "quat", *flags)) == 0
+  seed0 = sorted(n for n in ran if n.startswith("regression_car_quat_") and n.endswith("_seed0"))
+  assert len(seed0) == 3 + (2 if extend is None else extend)
+  top = "lr3e-2" if extend is None else "lr1e-1"  # the car grid (3e-4, 1e-3, 3e-3), then x3 steps
+  assert [n for n in ran if n.endswith(("_seed1", "_seed2")) and "regression" in n] == [
+    f"regression_car_quat_{top}_seed1",
+    f"regression_car_quat_{top}_seed2",
+  ]
+  if extend is None:  # resumed with one more extension: seed 0 at 1e-1, then seeds 1, 2 there
+    ran.clear()
+    assert rc.main(_args(out, archive, "--representations", "quat", "--extend_grid", "3")) == 0
+    assert [n for n in ran if n.startswith("regression_")] == [
+      "regression_car_quat_lr1e-1_seed0",
+      "regression_car_quat_lr1e-1_seed1",
+      "regression_car_quat_lr1e-1_seed2",
+    ]
+  with pytest.raises(SystemExit):
+    rc.make_launch(rc._parse_args(["--size", "quick", "--out", str(out), "--extend_grid", "1"]))
