@@ -560,10 +560,12 @@ def half_decade(lr: float, *, up: bool) -> float:
 
 def table_jobs(out: str, py: str, settings: Sequence[str]) -> list[Job]:
   """table1 / table2 of the settings (each read from its own regression/<setting> runs, so that
-  capture columns are not pooled with the car's); one table1_<column>.md per capture column."""
+  capture columns are not pooled with the car's); one table1_<column>.md per capture column.
+  table1.md holds every Table 1 column DIR has runs of, not only this launch's settings: a launch
+  of one setting (a chunk, an extension) rewrites it without dropping the others' columns."""
   jobs = []
-  t1 = [s for s in ("car", "gqn", "gibson") if s in settings]
-  if t1:
+  t1 = ("car", "gqn", "gibson")
+  if any(s in settings for s in t1):
     runs = [os.path.join(out, "regression", s, "*", "*") for s in t1]
     argv = [py, "experiments/table1.py", "--runs", *runs, "--out", os.path.join(out, "table1.md")]
     jobs.append(Job("table1", argv, "", 3))

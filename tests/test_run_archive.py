@@ -239,3 +239,12 @@ def test_extend_grid_sets_how_far_phase_1_follows_a_choice_at_the_edge(
     ]
   with pytest.raises(SystemExit):
     rc.make_launch(rc._parse_args(["--size", "quick", "--out", str(out), "--extend_grid", "1"]))
+
+
+def test_a_launch_of_one_setting_keeps_the_other_columns_of_table1(rc, tmp_path):
+  """table1.md is rewritten by every launch that has a Table 1 setting; it reads all three
+  settings' runs in DIR, so a car-only chunk does not drop the rooms and area columns."""
+  (table1,) = [j for j in rc.table_jobs(str(tmp_path), "py", ["car"]) if j.name == "table1"]
+  runs = table1.argv[table1.argv.index("--runs") + 1 : table1.argv.index("--out")]
+  assert runs == [str(tmp_path / "regression" / s / "*" / "*") for s in ("car", "gqn", "gibson")]
+  assert not [j for j in rc.table_jobs(str(tmp_path), "py", ["seven_scenes"]) if j.name == "table1"]
