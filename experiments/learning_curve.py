@@ -21,13 +21,13 @@ max as a band, e.g. the validation curves
 launch's chosen runs:
 
   .venv/bin/python experiments/learning_curve.py --bands --metrics eval/validation/score \
-      --runs DIR/regression/car/*/lr1e-3_seed* --png results/curve_car.png --md results/curve_car.md
+      --runs DIR/regression/car/*/lr1e-3_seed* --png /tmp/curve_car.png --md /tmp/curve_car.md
 
 Reads workdirs only (config.json, metrics.jsonl); seconds. `--from_md` redraws the figure from
-tables this script wrote, when the workdirs are gone (how results/curve_rooms.png was redrawn):
+tables this script wrote, when the workdirs are gone (how results/quick/curve_rooms.png was redrawn):
 
-  .venv/bin/python experiments/learning_curve.py --from_md results/curve_rooms.md \\
-      --png results/curve_rooms.png
+  .venv/bin/python experiments/learning_curve.py --from_md results/quick/curve_rooms.md \\
+      --png results/quick/curve_rooms.png
 """
 
 from __future__ import annotations
@@ -76,10 +76,13 @@ def markdown(labels: Sequence[str], metric: str, curves: Sequence[dict[int, floa
 
 
 def figure(
-  labels: Sequence[str], metrics: Sequence[str], curves: Sequence[Sequence[dict[int, float]]]
+  labels: Sequence[str],
+  metrics: Sequence[str],
+  curves: Sequence[Sequence[dict[int, float]]],
+  title: str = "",
 ) -> plots.Figure:
   """One panel per metric (curves[i]: that metric's {step: value} per run); runs sharing a
-  label are stacked as seeds."""
+  label are stacked as seeds; `title` over the panels."""
   steps = sorted(set().union(*(c for per_metric in curves for c in per_metric)))
   panels = []
   for metric, per_run in zip(metrics, curves, strict=True):
@@ -94,7 +97,7 @@ def figure(
         xlabel="step",
       )
     )
-  return plots.curves_figure(steps, panels)
+  return plots.curves_figure(steps, panels, suptitle=title)
 
 
 def from_markdown(text: str) -> tuple[list[str], list[str], list[list[dict[int, float]]]]:
@@ -166,6 +169,7 @@ def main(argv=None) -> int:
   p.add_argument("--labels", default="", help="comma-separated labels (default: from config)")
   p.add_argument("--png", default="", help="output figure (one panel per metric)")
   p.add_argument("--md", default="", help="output Markdown tables")
+  p.add_argument("--title", default="", help="the figure's title (and the Markdown's heading)")
   p.add_argument(
     "--bands", action="store_true", help="group runs by representation: mean [min, max]"
   )
@@ -176,7 +180,8 @@ def main(argv=None) -> int:
     with open(args.from_md, encoding="utf-8") as f:
       labels, metrics, curves = from_markdown(f.read())
     os.makedirs(os.path.dirname(os.path.abspath(args.png)), exist_ok=True)
-    print("wrote", ", ".join(plots.save(figure(labels, metrics, curves), args.png)))
+    fig = figure(labels, metrics, curves, args.title)
+    print("wrote", ", ".join(plots.save(fig, args.png)))
     return 0
   if not (args.runs and args.metrics):
     p.error("give --runs and --metrics (or --from_md)")
@@ -206,7 +211,7 @@ def main(argv=None) -> int:
     else:
       tables.append(markdown(labels, metric, curves))
     all_curves.append(curves)
-  text = "\n".join(tables)
+  text = (f"# {args.title}\n\n" if args.title else "") + "\n".join(tables)
   text += (
     "\nRuns: " + "; ".join(f"{lab}: `{w}`" for lab, w in zip(labels, args.runs, strict=True)) + "\n"
   )
@@ -217,7 +222,8 @@ def main(argv=None) -> int:
       f.write(text)
   if args.png:
     os.makedirs(os.path.dirname(os.path.abspath(args.png)), exist_ok=True)
-    print("wrote", ", ".join(plots.save(figure(groups, metrics, all_curves), args.png)))
+    fig = figure(groups, metrics, all_curves, args.title)
+    print("wrote", ", ".join(plots.save(fig, args.png)))
   return 0
 
 

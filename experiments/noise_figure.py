@@ -17,13 +17,13 @@ each cell "mean [min, max]" over its seeds, a plain value for one run):
 
   .venv/bin/python experiments/noise_figure.py --runs /tmp/cmp/synthesis/gqn_grid \\
       /tmp/cmp/synthesis/gqn_lowdim /tmp/cmp/synthesis/gqn_mlp \\
-      --png results/noise_gqn.png --md results/noise_gqn.md
+      --png /tmp/noise_gqn.png --md /tmp/noise_gqn.md
 
 Reads workdirs only (config.json, eval/noise.json); seconds. `--from_md` redraws a figure from a
-table this script wrote, when the workdirs are gone (how results/noise_*.png were redrawn):
+table this script wrote, when the workdirs are gone (how results/quick/noise_*.png were redrawn):
 
-  .venv/bin/python experiments/noise_figure.py --from_md results/noise_gqn.md \\
-      --png results/noise_gqn.png --setting gqn
+  .venv/bin/python experiments/noise_figure.py --from_md results/quick/noise_gqn.md \\
+      --png results/quick/noise_gqn.png --setting gqn
 """
 
 from __future__ import annotations

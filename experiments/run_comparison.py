@@ -201,7 +201,7 @@ CONVERGE_SYNTHESIS_CAPS = {s: 4 * n for s, n in QUICK_SYNTHESIS_STEPS.items()} |
 # (regression results.json, synthesis final_metrics.json).
 CONVERGE_SYNTHESIS_EXPECTED_SHARE = {"gqn": 0.6, "car": 0.6, "gibson": 0.6, "seven_scenes": 0.6}
 # Regression caps (steps) and the stopping rule (camrep/runtime/stopping.py) at converge size:
-# rooms to 8,000 steps (results/curve_rooms.md: ours still improving at 8,000), the others 6,000
+# rooms to 8,000 steps (results/quick/curve_rooms.md: ours still improving at 8,000), the others 6,000
 # (4x quick) but the car (below); validation every cap / 20 steps; stop when the best validation score improved by
 # less than 2% over the last quarter of the steps, not before a quarter of the cap.
 # The car's cap is 24,000 (16x quick): at 6,000 its first runs (seed 0: ours, mlp, euler at lr
@@ -1211,7 +1211,7 @@ def curve_jobs(launch: Launch) -> list[Job]:
     if not runs:
       continue
     argv = [L.python, "experiments/learning_curve.py", "--bands", "--metrics"]
-    argv += ["eval/validation/score", "--runs", *runs]
+    argv += ["eval/validation/score", "--runs", *runs, "--title", curve_title(col)]
     argv += ["--png", os.path.join(L.out, f"curve_{col}.png")]
     argv += ["--md", os.path.join(L.out, f"curve_{col}.md")]
     jobs.append(Job(f"curve_{col}", argv, "", 5))
@@ -1241,10 +1241,21 @@ def synthesis_curve_jobs(launch: Launch) -> list[Job]:
   jobs = []
   for col, runs in sorted(by_column.items()):
     argv = [L.python, "experiments/learning_curve.py", "--bands", "--metrics", "eval/psnr"]
-    argv += ["--runs", *runs, "--png", os.path.join(L.out, f"curve_synthesis_{col}.png")]
+    title = f"{col}: held-out PSNR (dB) of the view-synthesis runs; mean of seeds, band min-max"
+    argv += ["--runs", *runs, "--title", title]
+    argv += ["--png", os.path.join(L.out, f"curve_synthesis_{col}.png")]
     argv += ["--md", os.path.join(L.out, f"curve_synthesis_{col}.md")]
     jobs.append(Job(f"curve_synthesis_{col}", argv, "", 5))
   return jobs
+
+
+def curve_title(column: str) -> str:
+  """The title of a column's validation curves: what the score is, how the bands are made."""
+  score = C.validation_score_text(setting_of(column))
+  return (
+    f"{column}: validation score = {score} (lower is better)\n"
+    "each representation at its chosen lr; line = mean of seeds, band = min to max"
+  )
 
 
 def _group(job: Job) -> tuple[str, str]:

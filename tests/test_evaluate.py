@@ -234,7 +234,7 @@ def test_noise_figure_script(tmp_path):
   text = md.read_text()
   assert "| 0.300 | 19.00 / 0.300 | 14.00 / 0.300 |" in text
   assert "ours (learned) 1.00 dB, GQN low-dim pose 6.50 dB" in text
-  # The table gives the runs back (how results/noise_*.png are redrawn without the workdirs).
+  # The table gives the runs back (how results/quick/noise_*.png are redrawn without the workdirs).
   back = nf.from_markdown(text, "gqn")
   assert [r["label"] for r in back] == ["ours (learned)", "GQN low-dim pose"]
   assert back[1]["psnr"] == [20.5, 17.0, 14.0] and back[0]["alphas"] == alphas

@@ -39,7 +39,7 @@ def test_tables_and_figure_from_metrics(tmp_path, capsys):
   img = cv2.imread(str(png))
   assert img is not None and img.shape[0] > 100
   assert (tmp_path / "out" / "c.pdf").read_bytes().startswith(b"%PDF")
-  # The tables give the curves back (how results/curve_rooms.png is redrawn).
+  # The tables give the curves back (how results/quick/curve_rooms.png is redrawn).
   labels, metrics, curves = lc.from_markdown(text)
   assert labels == ["ours (lr 0.001)", "quat (lr 0.001)"] and metrics == [key]
   assert curves[0][0] == {100: 80.0, 200: 20.5} and curves[0][1][100] == 85.0
@@ -82,8 +82,9 @@ def test_bands_over_seeds_per_representation(tmp_path, capsys):
   ]
   png, md = tmp_path / "b.png", tmp_path / "b.md"
   args = ["--bands", "--runs", *runs, "--metrics", key, "--png", str(png), "--md", str(md)]
-  assert lc.main(args) == 0
+  assert lc.main([*args, "--title", "car: the score"]) == 0
   text = md.read_text()
+  assert text.startswith("# car: the score\n")
   assert "| step | ours (3 runs) | quat (1 runs) |" in text
   assert "| 100 | 2 [1, 3] | 4 [4, 4] |" in text and "| 200 | 1 [0.5, 1.5] | 2 [2, 2] |" in text
   assert cv2.imread(str(png)) is not None

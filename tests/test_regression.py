@@ -467,6 +467,8 @@ def test_run_comparison_converge_plan(tmp_path, capsys):
   assert rc.chosen_lr(out, "car", "quat", plan) == 3e-3
   curves = [j for j in rc.curve_jobs(launch) if j.name == "curve_car"]
   assert len(curves) == 1 and "--bands" in curves[0].argv
+  title = curves[0].argv[curves[0].argv.index("--title") + 1]  # says what the score is
+  assert title.startswith("car: validation score = rotation_error_deg mean / 2.85")
   assert os.path.join(reg, "car", "quat", "lr3e-3_seed0") in curves[0].argv
   assert os.path.join(reg, "car", "quat", "lr1e-3_seed0") not in curves[0].argv
   assert [rc.half_decade(x, up=u) for x, u in ((1e-3, True), (3e-4, False), (1e-4, False))] == [

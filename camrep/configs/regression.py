@@ -29,7 +29,7 @@ run's config.json, `camrep.regression.learner.resolve_hparams` reads the rest).
     rendered once, ~30 s, into --config.data.cache_dir), eighth-width networks, 1500 steps of
     32 images (gqn: 600 steps of 4 scenes x (6 + 4) views, ~1.5 minutes). Baselines get as
     many parameters as ours (model.equalise_params). Measured in the quick comparison
-    (results/table1.md, mean of seeds 0 and 1 at the validation-chosen lr): car ours 3.71 deg
+    (results/quick/table1.md, mean of seeds 0 and 1 at the validation-chosen lr): car ours 3.71 deg
     mean rotation error, sin/cos 4.50, quat 7.73 (paper, real data: 2.85 / 7.29 / 4.28); rooms
     (GQN) every representation at chance (x, y ~0.41, yaw ~89 deg) with the old rooms, whose
     views can be placed only relative to their room's context. The quick rooms now have

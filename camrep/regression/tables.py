@@ -133,6 +133,12 @@ def load_results(patterns: Iterable[str]) -> list[dict[str, Any]]:
   return out
 
 
+def validation_score_text(setting: str) -> str:
+  """The selection score of `setting` in words, e.g. "mean of (x_error mean / 0.053, ...)"."""
+  terms = [f"{err} {stat} / {ref:g}" for err, stat, ref in SELECTION_METRICS[setting]]
+  return terms[0] if len(terms) == 1 else f"mean of ({', '.join(terms)})"
+
+
 def validation_score(setting: str, summary: Mapping[str, Any]) -> float:
   """The learning-rate selection score of a validation summary (see the module docstring)."""
   terms = [summary["all"][err][stat] / ref for err, stat, ref in SELECTION_METRICS[setting]]
