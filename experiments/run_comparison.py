@@ -884,13 +884,26 @@ def make_launch(args: argparse.Namespace) -> Launch:
   )
 
 
+def phase2_jobs(launch: Launch) -> list[tuple[tuple[str, str, int], Job]]:
+  """Each phase-2 (setting, rep, seed) with its job: at the lr seed 0's validation errors choose
+  so far, or the <LR> placeholder while phase 1 has no results (for the plan and its estimate;
+  `execute` chooses again once phase 1 and its extensions are done)."""
+  L = launch
+  out = []
+  for s, rep, seed in L.later:
+    lr = chosen_lr(L.out, s, rep, L.plan)
+    out.append(((s, rep, seed), regression_job(L.out, L.plan, s, rep, lr, seed, L.python, L.data)))
+  return out
+
+
 def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -> None:
   """The summary line (runs, estimate of what is not done yet, divided by `at_once` jobs at a
   time: the best case); with `commands`, every job."""
   L, plan = launch, launch.plan
   todo_first = [j for j in L.synth + L.first if not j.done()]
   est = sum(j.estimate_s for j in todo_first)
-  est += sum(plan.regression_s[setting_of(s)] for s, _, _ in L.later)
+  later = phase2_jobs(L)
+  est += sum(plan.regression_s[setting_of(s)] for (s, _, _), j in later if not j.done())
   cached = os.path.isdir(os.path.join(L.out, "cache"))
   est += sum(plan.data_s[setting_of(s)] for s in L.settings if not cached)
   est += sum(j.estimate_s for j in L.tables + L.figures if not j.done())
@@ -902,8 +915,13 @@ def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -
     f"regressions at {CONVERGE_EXPECTED_SHARE:g} of their step caps)",
   }
   at = f", {at_once} jobs at a time at best" if at_once > 1 else ""
-  if plan.extend_grid:
-    groups = {_group(j) for j in L.first}
+  if plan.extend_grid:  # groups whose seed-0 choice is settled inside its grid need none
+    settled = all(j.done() for j in L.first)
+    groups = {
+      g
+      for g in map(_group, L.first)
+      if not settled or extension_lr(L.out, g[0], g[1], plan) is not None
+    }
     worst = len(groups) * plan.extend_grid
     worst_s = sum(plan.regression_s[setting_of(c)] for c, _ in groups) * plan.extend_grid
     at += (
@@ -938,11 +956,11 @@ def print_plan(launch: Launch, size: str, *, commands: bool, at_once: int = 1) -
   for j in L.synth + L.first:
     state = "done" if j.done() else f"~{progress_lib.format_duration(j.estimate_s)}"
     print(f"[{state}] {j.command()}")
-  for s, rep, seed in L.later:
-    job = regression_job(L.out, plan, s, rep, None, seed, L.python, L.data)
+  for (s, _, _), job in later:
     est_s = plan.regression_s[setting_of(s)]
-    print(f"[~{progress_lib.format_duration(est_s)}, phase 2] {job.command()}")
-  print("  (phase 2: <LR> = the lr chosen on seed 0's validation errors)")
+    state = "done" if job.done() else f"~{progress_lib.format_duration(est_s)}"
+    print(f"[{state}, phase 2] {job.command()}")
+  print("  (phase 2: <LR> = the lr chosen on seed 0's validation errors, where not chosen yet)")
   for job in crossed_jobs(L, None):
     est_s = plan.regression_s[setting_of(L.crossed)]
     print(f"[~{progress_lib.format_duration(est_s)}, crossed] {job.command()}")

@@ -145,10 +145,15 @@ def test_a_new_machine_restores_the_archive_and_trains_only_what_is_missing(
   # The archived synthesis record of seed 0 came back without checkpoints and stays so.
   assert rc.archived_only(str(out / "synthesis" / "car_seed0"))
   assert rc.has_checkpoint(str(out / "synthesis" / "car_seed2"))
-  # A third launch finds nothing to do.
+  # A third launch finds nothing to do, and its dry run says so (phase 2 at the chosen lr).
   ran.clear()
+  capsys.readouterr()
   assert rc.main(_args(tmp_path / "third", archive)) == 0
   assert ran == []
+  assert rc.main(_args(tmp_path / "third", archive, "--dry_run")) == 0
+  plan = capsys.readouterr().out
+  assert "plus up to 0 phase-1 runs" in plan and "phase 2] " in plan
+  assert plan.count("[done, phase 2]") == 4 and "<LR>" not in plan.split("(phase 2:")[0]
 
 
 def test_a_raised_cap_resumes_a_synthesis_run_that_reached_the_old_one(rc, tmp_path):
