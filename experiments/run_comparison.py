@@ -97,6 +97,7 @@ import math
 import os
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -1283,6 +1284,10 @@ def _group(job: Job) -> tuple[str, str]:
   return parts[-3], parts[-2]
 
 
+def _interrupt(signum, frame):
+  raise KeyboardInterrupt
+
+
 def main(argv: Sequence[str] | None = None) -> int:
   args = _parse_args(argv)
   launch = make_launch(args)
@@ -1299,9 +1304,11 @@ def main(argv: Sequence[str] | None = None) -> int:
   print_plan(launch, args.size, commands=False, at_once=args.jobs)
   t0 = time.perf_counter()
   deadline = time.monotonic() + 3600 * args.max_hours if args.max_hours > 0 else None
+  # SIGTERM (`kill PID`; a launch started with `&` from a script ignores SIGINT) stops it as Ctrl-C.
+  old_handler = signal.signal(signal.SIGTERM, _interrupt)
   try:
     failed = execute(launch, at_once=args.jobs, deadline=deadline)
-  except KeyboardInterrupt:  # Ctrl-C, or `timeout -s INT` around a chunk: a stop, not a crash
+  except KeyboardInterrupt:  # Ctrl-C, `kill`, or `timeout` around a chunk: a stop, not a crash
     took = progress_lib.format_duration(time.perf_counter() - t0)
     kept = f" and archived in {launch.archive}" if launch.archive else ""
     print(
@@ -1311,6 +1318,8 @@ def main(argv: Sequence[str] | None = None) -> int:
       flush=True,
     )
     return 130
+  finally:
+    signal.signal(signal.SIGTERM, old_handler)
   took = progress_lib.format_duration(time.perf_counter() - t0)
   if deadline is not None and time.monotonic() > deadline:
     print(

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 
 import numpy as np
 import pytest
@@ -195,16 +196,21 @@ def test_a_synthesis_run_that_trains_on_loses_its_old_evaluation(rc, tmp_path, m
   assert ran == ["synthesis_car_seed0", "evaluate_car_seed0"]
 
 
+@pytest.mark.parametrize("how", ["ctrl-c", "sigterm"])
 def test_an_interrupted_launch_says_how_to_resume_instead_of_a_traceback(
-  rc, tmp_path, monkeypatch, capsys
+  rc, tmp_path, monkeypatch, capsys, how
 ):
-  """Ctrl-C (or `timeout -s INT` around a chunk) ends the launch with exit status 130 and one
-  line on what was kept and how to go on; the runs finished before it stay archived."""
+  """Ctrl-C or SIGTERM (`kill`, `timeout` around a chunk) ends the launch with exit status 130
+  and one line on what was kept and how to go on; the runs finished before it stay archived, and
+  the process's own SIGTERM handling is given back."""
   ran = []
   fake = fake_run_job(rc, ran)
+  before = signal.getsignal(signal.SIGTERM)
 
   def run_job(job, logs, *, index, env=None):
     if len(ran) == 2:
+      if how == "sigterm":
+        os.kill(os.getpid(), signal.SIGTERM)
       raise KeyboardInterrupt
     return fake(job, logs, index=index, env=env)
 
@@ -214,6 +220,7 @@ def test_an_interrupted_launch_says_how_to_resume_instead_of_a_traceback(
   err = capsys.readouterr().err
   assert "interrupted after" in err and f"archived in {archive}" in err and "Traceback" not in err
   assert (archive / "synthesis" / "car_seed0" / "final_metrics.json").exists()
+  assert signal.getsignal(signal.SIGTERM) == before
 
 
 @pytest.mark.parametrize("extend", [None, 3])
