@@ -77,3 +77,13 @@ def test_nine_representations_get_nine_distinct_line_looks():
   assert len(lines) == 12 and len(looks) == 12
   assert len({ln.get_color() for ln in lines[:10]}) == 10  # tab10 before any style repeats
   assert len({tuple(plots.series_style(i).values()) for i in range(40)}) == 40
+
+
+def test_a_long_title_is_wrapped_to_the_figure_width():
+  """A title longer than the panels are wide is wrapped (and the figure made taller for it)."""
+  title = "car: validation score = " + "a long definition of the score " * 6
+  fig = plots.curves_figure([0.0, 1.0], [plots.Panel("t", "y", {"a": [1.0, 2.0]})], suptitle=title)
+  lines = fig._suptitle.get_text().splitlines()
+  assert len(lines) > 1 and max(map(len, lines)) <= 13 * plots.PANEL_SIZE[0]
+  assert " ".join(lines) == title.strip()
+  assert fig.get_size_inches()[1] > plots.PANEL_SIZE[1] + 0.2

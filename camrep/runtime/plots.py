@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import os
+import textwrap
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -88,7 +89,10 @@ def curves_figure(x, panels: Sequence[Panel], *, suptitle: str = "") -> Figure:
   has several seeds, one legend per panel placed where it covers the fewest points."""
   x = np.asarray(x, np.float64)
   w, h = PANEL_SIZE
-  fig = Figure(figsize=(w * len(panels), h + (0.3 if suptitle else 0.0)), layout="constrained")
+  # A long title is wrapped to the figure's width (~13 characters an inch at its font size).
+  width = max(20, int(13 * w * len(panels)))
+  title = [t for line in suptitle.splitlines() for t in textwrap.wrap(line, width)]
+  fig = Figure(figsize=(w * len(panels), h + 0.2 * len(title)), layout="constrained")
   axes = fig.subplots(1, len(panels), squeeze=False)[0]
   for ax, panel in zip(axes, panels, strict=True):
     for i, (label, values) in enumerate(panel.series.items()):
@@ -110,8 +114,8 @@ def curves_figure(x, panels: Sequence[Panel], *, suptitle: str = "") -> Figure:
     ax.xaxis.set_major_locator(MaxNLocator(nbins=7, steps=[1, 2, 2.5, 5, 10]))
     if any(panel.series) and any(panel.series.keys()):
       ax.legend(loc="best", fontsize=8, framealpha=0.85)
-  if suptitle:
-    fig.suptitle(suptitle, fontsize=11)
+  if title:
+    fig.suptitle("\n".join(title), fontsize=9 if len(title) > 1 else 11)
   return fig
 
 
