@@ -133,7 +133,8 @@ class Plan:
     variant: config variant ("quick" or "" for paper size).
     seeds: regression seeds.
     lrs: learning-rate grid per setting.
-    synthesis_s: estimated seconds per view-synthesis run, per setting.
+    synthesis_s: estimated seconds per view-synthesis run, per setting ("capture": a capture
+      column's, where given).
     regression_s: estimated seconds per regression run (data cached), per setting.
     data_s: one-time rendering of a setting's regression data, seconds.
     evaluate_s: `camrep.synthesis.evaluate` of one synthesis run, seconds.
@@ -181,6 +182,10 @@ CONVERGE_REG_STEP_S = {"car": 0.0075, "gqn": 0.055, "gibson": 0.0097, "seven_sce
 CONVERGE_REG_OVERHEAD_S = 30.0
 CONVERGE_SYNTHESIS_STEP_S = {"gqn": 0.38, "car": 0.38, "gibson": 0.38, "seven_scenes": 0.38}
 CONVERGE_CONVDRAW_STEP_S = 0.45
+# A capture column's synthesis step (one instance a step, `scenes_per_device=1`): measured
+# 2026-11-26 beside another job, chair 2,400 steps in 65 s, ethiopianHead 1,920 in 69 s,
+# moldGoldCape 1,200 in 110 s (whole runs, start included); ~0.05 s a step.
+CONVERGE_CAPTURE_SYNTHESIS_STEP_S = 0.05
 CONVERGE_SYNTHESIS_OVERHEAD_S = 45.0 + 20 * 3.0
 # The :quick view-synthesis runs' own total_steps (configs/<setting>.py:quick, gqn_convdraw.py).
 QUICK_SYNTHESIS_STEPS = {"gqn": 2000, "car": 600, "gibson": 600, "seven_scenes": 600}
@@ -228,6 +233,12 @@ def _converge_plan() -> Plan:
     + CONVERGE_SYNTHESIS_EXPECTED_SHARE[s] * CONVERGE_SYNTHESIS_CAPS[s] * t
     for s, t in CONVERGE_SYNTHESIS_STEP_S.items()
   }
+  syn["capture"] = (
+    CONVERGE_SYNTHESIS_OVERHEAD_S
+    + CONVERGE_SYNTHESIS_EXPECTED_SHARE["car"]
+    * CONVERGE_SYNTHESIS_CAPS["car"]
+    * CONVERGE_CAPTURE_SYNTHESIS_STEP_S
+  )
   return Plan(
     variant="quick",
     seeds=(0, 1, 2),
@@ -402,6 +413,14 @@ def data_flags(setting: str, data: dict | None) -> list[str]:
   ]
 
 
+def capture_of(name: str, data: dict | None) -> str | None:
+  """The capture column a view-synthesis name belongs to ("car_chair" or "car_chair_mlp" ->
+  "car_chair"; the longest capture column it starts with), or None for a setting's own."""
+  caps = [c for c, d in (data or {}).items() if isinstance(d, tuple)]
+  hits = [c for c in caps if name == c or name.startswith(f"{c}_")]
+  return max(hits, key=len) if hits else None
+
+
 def synthesis_jobs(
   out: str, plan: Plan, names: Sequence[str], py: str, data: dict[str, str] | None = None
 ) -> list[Job]:
@@ -414,9 +433,10 @@ def synthesis_jobs(
     name, _, seed = full.partition("_seed")
     setting = next(x for x in SETTINGS if name == x or name.startswith(f"{x}_"))
     kind = name[len(setting) + 1 :]
-    capture = bool(data) and isinstance(data.get(name), tuple)
+    cap = capture_of(name, data)
+    capture = cap is not None
     if capture:  # a capture column: the car setting on the capture, one instance a step
-      kind = ""
+      kind = name[len(cap) + 1 :]  # "" (the learned system) or "mlp"
     wd = os.path.join(out, "synthesis", full)
     if kind == "convdraw":  # GQN's own generator: its config, fed GQN's 7-D pose vector
       argv = [py, "-m", "camrep.main", f"--config=configs/gqn_convdraw.py{suffix}"]
@@ -425,13 +445,15 @@ def synthesis_jobs(
     argv.append(f"--workdir={wd}")
     if kind and kind != "convdraw":
       argv.append(f"--config.rep.kind={kind}")
-    argv += data_flags(name if capture else setting, data)
+    argv += data_flags(cap if capture else setting, data)
     if capture:
       argv.append("--config.data.scenes_per_device=1")
     if seed:
       argv.append(f"--config.seed={seed}")
     argv += list(plan.synthesis_flags) + synthesis_flags(plan, setting, kind)
     est = plan.synthesis_s.get(f"{setting}_{kind}", plan.synthesis_s[setting])
+    if capture:
+      est = plan.synthesis_s.get("capture", est)
     jobs.append(Job(f"synthesis_{full}", argv, os.path.join(wd, "final_metrics.json"), est))
   return jobs
 
@@ -586,9 +608,12 @@ def table_jobs(out: str, py: str, settings: Sequence[str]) -> list[Job]:
   return jobs
 
 
-def figure_jobs(out: str, plan: Plan, synth: Sequence[Job], py: str) -> list[Job]:
-  """Noise robustness and Gram maps of every synthesis run (`camrep.synthesis.evaluate`), then one noise
-  figure per setting with several pose inputs (experiments/noise_figure.py, if present)."""
+def figure_jobs(
+  out: str, plan: Plan, synth: Sequence[Job], py: str, data: dict | None = None
+) -> list[Job]:
+  """Noise robustness and Gram maps of every synthesis run (`camrep.synthesis.evaluate`), then one
+  noise figure per setting or capture column with several pose inputs
+  (experiments/noise_figure.py, if present)."""
   jobs = []
   names = [j.name.removeprefix("synthesis_") for j in synth]
   for name in names:
@@ -598,7 +623,8 @@ def figure_jobs(out: str, plan: Plan, synth: Sequence[Job], py: str) -> list[Job
     jobs.append(Job(f"evaluate_{name}", argv, done, plan.evaluate_s))
   script = os.path.join("experiments", "noise_figure.py")
   if os.path.exists(os.path.join(ROOT, script)):
-    for setting in SETTINGS:
+    captures = [c for c, d in (data or {}).items() if isinstance(d, tuple)]
+    for setting in [*SETTINGS, *captures]:
       # Pose inputs of the setting (with seeds at converge size: every seed's run, for bands).
       inputs = ("", "_mlp", "_lowdim", "_convdraw")
       group = [n for n in names if n.partition("_seed")[0] in {setting + k for k in inputs}]
@@ -861,8 +887,8 @@ def make_launch(args: argparse.Namespace) -> Launch:
   out, py = os.path.abspath(args.out), args.python
   kinds = mlp_synthesis_supported()
   names = [s for s in settings if "ours" in reps[s]]
-  if kinds and "mlp" in reps.get("car", ()):
-    names.append("car_mlp")
+  if kinds:  # the MLP embedding's own synthesis runs, for the car and each capture column
+    names += [f"{s}_mlp" for s in settings if setting_of(s) == "car" and "mlp" in reps[s]]
   if kinds and args.noise_runs and "gqn" in settings:
     kinds = [k.strip() for k in args.noise_kinds.split(",") if k.strip()]
     if plan.variant == "medium":  # configs/gqn_convdraw.py has no :medium size yet
@@ -875,7 +901,7 @@ def make_launch(args: argparse.Namespace) -> Launch:
   synth = synthesis_jobs(out, plan, names, py, data)
   first, later = plan_regression(out, plan, settings, reps, py, full_grid=args.full_grid, data=data)
   tables = table_jobs(out, py, settings)
-  figures = [] if args.skip_figures else figure_jobs(out, plan, synth, py)
+  figures = [] if args.skip_figures else figure_jobs(out, plan, synth, py, data)
   crossed = getattr(args, "crossed", "")
   if crossed and "ours" not in reps.get(crossed, ()):
     raise SystemExit(f"--crossed {crossed}: the launch runs no ours there (--representations)")
@@ -1241,8 +1267,9 @@ def synthesis_column(name: str, data: dict | None = None) -> str:
   """The column of a view-synthesis run's name ("car_mlp_seed1" -> "car"; a capture column's
   "car_chair_seed0" -> "car_chair")."""
   base = name.partition("_seed")[0]
-  if data and isinstance(data.get(base), tuple):
-    return base
+  cap = capture_of(base, data)
+  if cap is not None:
+    return cap
   return next(x for x in SETTINGS if base == x or base.startswith(f"{x}_"))
 
 

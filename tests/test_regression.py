@@ -451,6 +451,18 @@ def test_run_comparison_converge_plan(tmp_path, capsys):
   chair = next(j for j in launch.synth if j.name == "synthesis_car_chair_seed1")
   assert f"--config.data.dir={cap}" in chair.argv and "--config.seed=1" in chair.argv
   assert any("table1_car_chair.md" in " ".join(j.argv) for j in launch.tables)
+  # The capture's MLP embedding has its own synthesis runs, which its mlp regressions read.
+  mlp = next(j for j in launch.synth if j.name == "synthesis_car_chair_mlp_seed2")
+  assert "--config.rep.kind=mlp" in mlp.argv and f"--config.data.dir={cap}" in mlp.argv
+  assert "--config.data.scenes_per_device=1" in mlp.argv
+  assert mlp.estimate_s == plan.synthesis_s["capture"] < plan.synthesis_s["car"]
+  mlp_reg = [j for j in launch.first if j.name.startswith("regression_car_chair_mlp_")]
+  wd = os.path.join(out, "synthesis", "car_chair_mlp_seed0")
+  assert mlp_reg and all(f"--config.synthesis_workdir={wd}" in j.argv for j in mlp_reg)
+  assert rc.synthesis_column("car_chair_mlp_seed0", launch.data) == "car_chair"
+  assert rc.synthesis_column("car_mlp_seed0", launch.data) == "car"
+  noise = next(j for j in launch.figures if j.name == "noise_figure_car_chair")
+  assert os.path.join(out, "synthesis", "car_chair_mlp_seed1") in noise.argv
   # The grid extends: car quat chose the highest lr of (3e-4, 1e-3, 3e-3) -> 1e-2 next.
   reg = os.path.join(out, "regression")
 
