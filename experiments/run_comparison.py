@@ -12,8 +12,9 @@
 `--size converge` (issue 29): the quick sizes with 3 seeds per cell; every regression run capped
 (CONVERGE_CAPS) and stopped by the stopping rule (`--config.stop.*`, validation every cap / 20
 steps); lr grids of three values, phase 1 trying up to two more (half a decade beyond the edge;
-`--extend_grid N`: up to N) while seed 0's choice sits at its grid's edge; one view-synthesis run per seed for "ours" (and
-the MLP embedding, and the GQN noise runs), `synthesis/<name>_seed<k>`, regression seed k of
+`--extend_grid N`: up to N) while seed 0's choice sits at its grid's edge; one view-synthesis
+run per seed for "ours" (and the MLP embedding, on the car and on each capture column, and the
+GQN noise runs), `synthesis/<name>_seed<k>`, regression seed k of
 "ours" regressing synthesis seed k's pose system; every view-synthesis run but GQN's ConvDRAW is
 trained to its own plateau (the trainer's `--config.stop.*` rule at its held-out evaluations,
 capped at 4x its quick steps (the car 8x), CONVERGE_SYNTHESIS_CAPS; its curve in final_metrics.json
@@ -183,8 +184,8 @@ CONVERGE_REG_OVERHEAD_S = 30.0
 CONVERGE_SYNTHESIS_STEP_S = {"gqn": 0.38, "car": 0.38, "gibson": 0.38, "seven_scenes": 0.38}
 CONVERGE_CONVDRAW_STEP_S = 0.45
 # A capture column's synthesis step (one instance a step, `scenes_per_device=1`): measured
-# 2026-11-26 beside another job, chair 2,400 steps in 65 s, ethiopianHead 1,920 in 69 s,
-# moldGoldCape 1,200 in 110 s (whole runs, start included); ~0.05 s a step.
+# 2026-11-26 beside another job, the three captures' seed-0 runs of 1,200-2,400 steps took
+# 65-110 s each (whole runs, start included; the grey chair 2,400 steps in 65 s); ~0.05 s a step.
 CONVERGE_CAPTURE_SYNTHESIS_STEP_S = 0.05
 CONVERGE_SYNTHESIS_OVERHEAD_S = 45.0 + 20 * 3.0
 # The :quick view-synthesis runs' own total_steps (configs/<setting>.py:quick, gqn_convdraw.py).
