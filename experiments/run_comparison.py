@@ -1126,10 +1126,7 @@ def pending_synthesis(launch: Launch) -> set[str]:
   """The view-synthesis workdirs that a job not yet done reads (its pose system, noise
   evaluation, crossed runs); a phase-2 run whose lr phase 1 has not chosen yet counts."""
   L = launch
-  jobs = list(L.first) + extension_jobs(L)
-  for s, rep, seed in L.later:
-    lr = chosen_lr(L.out, s, rep, L.plan)
-    jobs.append(regression_job(L.out, L.plan, s, rep, lr, seed, L.python, L.data))
+  jobs = list(L.first) + extension_jobs(L) + [job for _, job in phase2_jobs(L)]
   if L.crossed:
     jobs += crossed_jobs(L, chosen_lr(L.out, L.crossed, "ours", L.plan))
   need = set()
