@@ -8,7 +8,7 @@ experiments/run_comparison.py lays them out: columns car, gqn (rooms), gibson (a
 seven_scenes and the capture columns car_<NAME>); per column, each representation's learning
 rate is chosen on the validation split (`camrep.regression.tables.select`). One row per table
 column of the paper (car rotation; rooms and area x, y, yaw; 7-Scenes median position and
-rotation) and per capture column:
+rotation) and per capture column (two rows: its mean and its median over test views):
 
   - paper: the paper's "ours" and its best hand-designed representation in that column (Table 1;
     Table 2's PoseNet + log q [MapNet] for 7-Scenes), real data at paper size, for reference;
@@ -88,9 +88,17 @@ COLUMNS = tuple(
 
 
 def capture_columns(runs: str) -> tuple[Column, ...]:
-  """The capture columns (car setting on one capture) that RUNS holds."""
+  """The capture columns (car setting on one capture) that RUNS holds: the mean over test views
+  (the car column's statistic), then the median over each seed's test views. A capture has 9-50
+  test views, and on the LLFF captures one or two views with errors of 50-180 degrees (a pose
+  mistaken for its mirror) move every representation's mean by several degrees; the median row
+  shows the typical view. lrs are chosen on the validation mean either way."""
   names = sorted(d for d in os.listdir(runs) if d.startswith("car_")) if os.path.isdir(runs) else []
-  return tuple(Column(f"{n[4:]} rotation (deg; capture)", n, "rotation_error_deg") for n in names)
+  return tuple(
+    Column(f"{n[4:]} rotation (deg{what}; capture)", n, "rotation_error_deg", reduce)
+    for n in names
+    for what, reduce in (("", "mean"), (", median", "median"))
+  )
 
 
 def row(runs: str, column: Column) -> list[str] | None:

@@ -151,10 +151,11 @@ def _bands(runs: list[dict], key: str) -> dict[str, tuple]:
   return {r["label"]: (*r[f"{key}_band"], r["seeds"]) for r in runs if f"{key}_band" in r}
 
 
-def figure(runs: list[dict]) -> plots.Figure:
-  """PSNR and SSIM against alpha, one curve (and seed band) per label."""
-  setting = runs[0]["setting"]
-  suffix = f" ({setting})" if setting else ""
+def figure(runs: list[dict], column: str = "") -> plots.Figure:
+  """PSNR and SSIM against alpha, one curve (and seed band) per label; the panels name `column`
+  (e.g. a capture's "chair (car setting)"), else the runs' setting."""
+  name = column or runs[0]["setting"]
+  suffix = f" ({name})" if name else ""
   panels = [
     plots.Panel(
       f"PSNR vs pose noise{suffix}",
@@ -177,6 +178,9 @@ def main(argv=None) -> int:
   p.add_argument("--md", default="", help="output Markdown table (required with --runs)")
   p.add_argument("--from_md", default="", help="redraw from this table instead of --runs")
   p.add_argument("--setting", default="", help="with --from_md: the setting, for the titles")
+  p.add_argument(
+    "--column", default="", help="what the panels' titles name (default: the runs' setting)"
+  )
   args = p.parse_args(argv)
   if bool(args.runs) == bool(args.from_md) or (args.runs and not args.md):
     p.error("give --runs and --md, or --from_md")
@@ -184,7 +188,7 @@ def main(argv=None) -> int:
     with open(args.from_md, encoding="utf-8") as f:
       runs = from_markdown(f.read(), args.setting)
     os.makedirs(os.path.dirname(os.path.abspath(args.png)), exist_ok=True)
-    print("wrote", ", ".join(plots.save(figure(runs), args.png)))
+    print("wrote", ", ".join(plots.save(figure(runs, args.column), args.png)))
     return 0
   try:
     runs = [load(w) for w in args.runs]
@@ -202,7 +206,7 @@ def main(argv=None) -> int:
   table = markdown(runs)
   with open(args.md, "w", encoding="utf-8") as f:
     f.write(table)
-  figures = plots.save(figure(runs), args.png)
+  figures = plots.save(figure(runs, args.column), args.png)
   print(table)
   print(f"wrote {', '.join(figures)} and {args.md}")
   return 0

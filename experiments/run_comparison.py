@@ -635,6 +635,9 @@ def figure_jobs(
       ):
         continue
       argv = [py, script, "--runs", *(os.path.join(out, "synthesis", n) for n in group)]
+      if setting in captures:  # "car_chair" -> "chair, car setting"
+        base = setting_of(setting)
+        argv += ["--column", f"{setting.removeprefix(base + '_')}, {base} setting"]
       argv += ["--png", os.path.join(out, f"noise_{setting}.png")]
       argv += ["--md", os.path.join(out, f"noise_{setting}.md")]
       jobs.append(Job(f"noise_figure_{setting}", argv, "", 10))

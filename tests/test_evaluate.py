@@ -298,6 +298,12 @@ def test_noise_figure_groups_seeds_by_pose_input_with_a_band(tmp_path):
   assert len(ax.collections) == 2
   band = ax.collections[0].get_paths()[0].vertices[:, 1]
   assert band.min() == pytest.approx(18.0) and band.max() == pytest.approx(22.0)
+  assert ax.get_title() == "PSNR vs pose noise (gqn)"
+  named = nf.figure([nf.load(w) for w in runs], "chair, car setting")
+  assert [a.get_title() for a in named.axes] == [
+    "PSNR vs pose noise (chair, car setting)",
+    "SSIM vs pose noise (chair, car setting)",
+  ]
   # Redrawn from the table: the same means and bands.
   back = nf.from_markdown(text, "gqn")
   assert back[0]["seeds"] == 3 and back[0]["psnr"] == [21.0, 19.0]

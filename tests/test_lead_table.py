@@ -51,7 +51,11 @@ def test_lead_table_rows_intervals_and_verdicts(tmp_path):
     _run(root, "car_chair", "quat", 1e-3, seed, {"rotation_error_deg": _errors(5.0, seed)})
   text = lt.build(root)
   lines = {line.split("|")[1].strip(): line for line in text.splitlines()[2:]}
-  assert set(lines) == {"car rotation (deg)", "chair rotation (deg; capture)"}
+  assert set(lines) == {
+    "car rotation (deg)",
+    "chair rotation (deg; capture)",
+    "chair rotation (deg, median; capture)",
+  }
   car = [c.strip() for c in lines["car rotation (deg)"].split("|")[1:-1]]
   assert car[1] == "2.85 vs 4.28 ((x, y, q))"  # the paper's ours and its best baseline
   assert car[2].endswith("(sincos)") and car[2].startswith("3.")  # 3.0 beats quat's 4.0
@@ -96,3 +100,50 @@ def test_lead_table_paper_cells_come_from_the_paper_tables():
   assert cols["rooms yaw (deg)"].paper_best == ("quat", 5.34)
   assert cols["area x (m)"].paper_best == ("logq", 0.028)
   assert cols["car rotation (deg)"].paper_ours == 2.85
+
+
+def test_lead_table_capture_median_row_is_robust_to_one_outlier_view(tmp_path):
+  """A capture's median row: one test view that ours gets 150 degrees wrong puts its mean above
+  the baseline's (a tie: the bootstrap leaves that view out of some draws) while every other view
+  is twice as good; the median row says better, and picks its best representation by the median."""
+  lt = load_experiment("lead_table")
+  root = str(tmp_path / "regression")
+  for seed in range(3):
+    ours = 0.5 * _errors(4.0, seed)
+    ours[0] = 150.0  # a mirrored pose, in every seed
+    _run(root, "car_head", "ours", 1e-3, seed, {"rotation_error_deg": ours})
+    _run(root, "car_head", "quat", 1e-3, seed, {"rotation_error_deg": _errors(4.0, seed)})
+  lines = {line.split("|")[1].strip(): line for line in lt.build(root).splitlines()[2:]}
+  mean = [c.strip() for c in lines["head rotation (deg; capture)"].split("|")[1:-1]]
+  median = [c.strip() for c in lines["head rotation (deg, median; capture)"].split("|")[1:-1]]
+  assert mean[5] == "**tie**" and float(mean[4].split()[0]) > 1.3
+  assert median[5] == "**better**" and median[2].endswith("(quat)")
+  assert abs(float(median[4].split()[0]) - 0.5) < 0.1
+
+
+def test_view_failures_counts_gross_failures_and_views_everyone_fails(tmp_path, capsys):
+  """experiments/view_failures.py: per representation at its chosen lr, the mean, the median
+  and the views each run gets more than the threshold wrong; the views every run fails."""
+  vf = load_experiment("view_failures")
+  root = str(tmp_path / "regression")
+  for seed in range(3):
+    ours, quat = 0.5 * _errors(4.0, seed), _errors(4.0, seed)
+    ours[0] = quat[0] = 150.0  # no representation can place view 0
+    quat[[5, 6]] = 100.0 + seed  # two more failures for the quaternion
+    _run(root, "car_head", "ours", 1e-3, seed, {"rotation_error_deg": ours})
+    _run(root, "car_head", "quat", 1e-3, seed, {"rotation_error_deg": quat})
+    _run(root, "car_head", "quat", 1e-2, seed, {"rotation_error_deg": 3 * quat})  # not chosen
+  out = tmp_path / "failures.md"
+  assert vf.main(["--runs", root, "--columns", "car_head", "--out", str(out)]) == 0
+  text = out.read_text()
+  rows = {
+    r.split("|")[1].strip(): [c.strip() for c in r.split("|")[2:-1]]
+    for r in text.splitlines()
+    if r.startswith("| ") and "---" not in r
+  }
+  assert rows["ours"][0] == "1e-3" and rows["ours"][3] == "1, 1, 1"
+  assert rows["(x, y, q)"][3] == "3, 3, 3"
+  assert abs(float(rows["ours"][2]) - 2.0) < 0.3  # the median ignores the failed view
+  assert "40 test views" in text and "more than 45 wrong: 0" in text
+  assert vf.main(["--runs", root, "--columns", "nothing"]) == 2
+  assert "no regression runs" in capsys.readouterr().err

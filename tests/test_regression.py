@@ -463,6 +463,7 @@ def test_run_comparison_converge_plan(tmp_path, capsys):
   assert rc.synthesis_column("car_mlp_seed0", launch.data) == "car"
   noise = next(j for j in launch.figures if j.name == "noise_figure_car_chair")
   assert os.path.join(out, "synthesis", "car_chair_mlp_seed1") in noise.argv
+  assert noise.argv[noise.argv.index("--column") + 1] == "chair, car setting"  # not "(car)"
   # The grid extends: car quat chose the highest lr of (3e-4, 1e-3, 3e-3) -> 1e-2 next.
   reg = os.path.join(out, "regression")
 
