@@ -5,8 +5,10 @@ Reads the results.json files of `camrep.regression` runs of the seven_scenes set
 directory prepared by `camrep.data.prepare`; the data is stated under the table), picks each
 representation's learning rate on the validation errors (`camrep.regression.tables`), and writes a
 Markdown table: per scene the median position error (m) and median rotation error (deg) of the
-test trajectory, ours vs quaternion vs log quaternion, each the mean ± sample std over seeds at
-the chosen lr; "average" is the mean over scenes of the per-scene medians (as the paper). The
+test trajectory, ours vs quaternion vs log quaternion, each the mean over seeds at the chosen lr
+with a 95% bootstrap interval (seeds and the scene's test views resampled; mean ± sample std over
+seeds for runs without per-view errors); "average" is the mean over scenes of the per-scene
+medians (as the paper). The
 paper's real-data medians of ours are given alongside, labelled as such.
 
   python experiments/table2.py --runs 'DIR/regression/seven_scenes/*/*' --out results/table2.md
@@ -46,6 +48,25 @@ def _cell(values: list[tuple[float, float]]) -> str:
   p = C.fmt_mean_std(float(pos.mean()), sd(pos), digits=2)
   r = C.fmt_mean_std(float(rot.mean()), sd(rot), digits=1)
   return f"{p} m, {r}°"
+
+
+def _scene_interval_cell(runs: Sequence[dict], sid: str) -> str | None:
+  """A scene's cell with 95% intervals: each seed's median over the scene's test views, averaged
+  over seeds [bootstrap: seeds and the scene's views resampled]; None without per-view errors
+  (errors_test.npz) or without that scene's views."""
+  cells = []
+  for error, digits in zip(ERRORS, (2, 1)):
+    m = stats.seed_matrix(runs, error)
+    if m is None:
+      return None
+    errors, scenes, _ = m
+    views = np.asarray(scenes).astype(str) == str(sid)
+    if not views.any():
+      return None
+    cells.append(
+      stats.fmt_interval(stats.interval(errors[:, views], None, "median"), digits=digits)
+    )
+  return f"{cells[0]} m, {cells[1]}°"
 
 
 def comparison_cells(selections, reps) -> list[str]:
@@ -92,7 +113,9 @@ def build(results: Sequence[dict]) -> str:
     name = names[sid]
     row = [name]
     for rep in reps:
-      row.append(_cell([_scene_medians(run, sid) for run in selections["seven_scenes", rep].runs]))
+      runs = selections["seven_scenes", rep].runs
+      cell = _scene_interval_cell(runs, sid)
+      row.append(cell or _cell([_scene_medians(run, sid) for run in runs]))
     ref = C.PAPER_TABLE2.get(name)
     row.append(f"{ref[0]:.2f} m, {ref[1]:.2f}°" if ref else "–")
     rows.append(row)
@@ -139,8 +162,14 @@ def build(results: Sequence[dict]) -> str:
     title,
     "",
     what + " Per scene: median position error (m), median rotation error "
-    "(deg); mean ± sample std over seeds at the learning rate chosen on the validation split "
-    "(the end of each training trajectory). "
+    "(deg), the mean over seeds at the learning rate chosen on the validation split "
+    "(the end of each training trajectory)"
+    + (
+      f" [95% bootstrap interval: seeds and the scene's test views resampled, {stats.B} "
+      "replicates; ± sample std over seeds where a run has no per-view errors]. "
+      if intervals
+      else " ± sample std over seeds. "
+    )
     + (
       "Average: the mean over scenes of the per-scene medians, over seeds [95% bootstrap "
       f"interval: seeds resampled, and test views within each scene, {stats.B} replicates]; "

@@ -128,7 +128,8 @@ def test_table2_average_intervals_and_verdicts(tmp_path):
         for k in ("all", 0, 1)
       }
       r = dict(setting="seven_scenes", representation=rep, seed=seed, lr=1e-3, variant="quick")
-      r.update(validation=summ, test=summ, data={"test_split": "test"})
+      r.update(validation=summ, test=summ)
+      r["data"] = {"test_split": "test", "scene_names": {"0": "chess", "1": "stairs"}}
       with open(os.path.join(wd, "results.json"), "w") as f:
         json.dump(r, f)
   text = load_experiment("table2").build(tables.load_results([os.path.join(root, "*", "*", "*")]))
@@ -137,3 +138,20 @@ def test_table2_average_intervals_and_verdicts(tmp_path):
   assert "position 0.50 [0.50, 0.50] better (vs quat)" in row
   assert "rotation 1.00 [1.00, 1.00] tie (vs quat)" in row
   assert "95% bootstrap interval" in text
+  # Each scene's cell: the mean over seeds of the scene's median, with its own interval.
+  runs = tables.select(tables.load_results([os.path.join(root, "*", "*", "*")]))
+  ours = runs["seven_scenes", "ours"].runs
+  pos = stats.seed_matrix(ours, "position_error")[0][:, scenes == 1]
+  rot = stats.seed_matrix(ours, "rotation_error_deg")[0][:, scenes == 1]
+  iv_pos, iv_rot = stats.interval(pos, None, "median"), stats.interval(rot, None, "median")
+  stairs = next(x for x in text.splitlines() if x.startswith("| stairs |"))
+  cell = f"{stats.fmt_interval(iv_pos, digits=2)} m, {stats.fmt_interval(iv_rot, digits=1)}°"
+  assert stairs.split("|")[ours_column(text)].strip() == cell
+  assert iv_pos.lo < iv_pos.value < iv_pos.hi
+  assert abs(iv_pos.value - np.median(pos, axis=1).mean()) < 1e-12
+
+
+def ours_column(text: str) -> int:
+  """The index (in a `|`-split row) of Table 2's "ours" column."""
+  header = next(x for x in text.splitlines() if x.startswith("| scene |"))
+  return [c.strip() for c in header.split("|")].index("ours")
