@@ -55,7 +55,7 @@ def _scene_interval_cell(runs: Sequence[dict], sid: str) -> str | None:
   over seeds [bootstrap: seeds and the scene's views resampled]; None without per-view errors
   (errors_test.npz) or without that scene's views."""
   cells = []
-  for error, digits in zip(ERRORS, (2, 1)):
+  for error, digits in zip(ERRORS, (2, 1), strict=True):
     m = stats.seed_matrix(runs, error)
     if m is None:
       return None
