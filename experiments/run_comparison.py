@@ -104,6 +104,7 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 
+from camrep.configs import gqn_convdraw as gqn_convdraw_config
 from camrep.regression import tables as C
 from camrep.runtime import progress as progress_lib
 from camrep.runtime import session
@@ -159,6 +160,9 @@ class Plan:
   # evaluations), capped at these steps per synthesis config ("gqn_convdraw": GQN's generator);
   # a config not named keeps its own total_steps and no rule. Empty: no rule anywhere.
   synthesis_caps: dict[str, int] = dataclasses.field(default_factory=dict)
+  # GQN's ConvDRAW trained for this many steps with its schedules stretched to them (no plateau
+  # rule: `synthesis_flags`); 0: its config's own length.
+  convdraw_steps: int = 0
 
 
 # Per-step times at quick size on this 2-core CPU, shared with other jobs (load average 3-9 at
@@ -168,7 +172,7 @@ class Plan:
 # 10 views and the context encoder). A car view-synthesis run of 120 steps: 0.38 s a step (steps
 # 20-120), 91 s wall (~45 s start-up, data, evaluations). The GQN decoder's quick step: 2.5-3.0
 # steps/s alone (BUILD_NOTES "quick GQN"), i.e. 0.33-0.4 s: 0.38 s taken. GQN's ConvDRAW quick
-# step: 2.0-2.4 steps/s at load ~10 (BUILD_NOTES "ConvDRAW"): 0.45 s taken.
+# step: 2.0-2.4 steps/s at load ~10 (BUILD_NOTES "ConvDRAW"); measured again below.
 # NOT MEASURED (scaled or guessed): gibson and seven_scenes regression steps (the car's x 1.3 and
 # x 1.1, from the older quick estimates); gibson and seven_scenes synthesis steps (the car's
 # 0.38 s); ~30 s a regression run of start-up, compilation and evaluation; ~3 s per held-out
@@ -182,7 +186,9 @@ class Plan:
 CONVERGE_REG_STEP_S = {"car": 0.0075, "gqn": 0.055, "gibson": 0.0097, "seven_scenes": 0.0107}
 CONVERGE_REG_OVERHEAD_S = 30.0
 CONVERGE_SYNTHESIS_STEP_S = {"gqn": 0.38, "car": 0.38, "gibson": 0.38, "seven_scenes": 0.38}
-CONVERGE_CONVDRAW_STEP_S = 0.45
+# ConvDRAW MEASURED 2026-11-26 in the converge noise launch: seed 0's 2,000 quick steps took
+# 8 min 48 s wall (start and evaluations included), mostly alone on the 2 cores: 0.26 s a step.
+CONVERGE_CONVDRAW_STEP_S = 0.26
 # A capture column's synthesis step (one instance a step, `scenes_per_device=1`): measured
 # 2026-11-26 beside another job, the three captures' seed-0 runs of 1,200-2,400 steps took
 # 65-110 s each (whole runs, start included; the grey chair 2,400 steps in 65 s); ~0.05 s a step.
@@ -195,11 +201,15 @@ QUICK_CONVDRAW_STEPS = 2000
 # evaluation every cap / 20 steps, the same rule as the regressions (2% over the last quarter of
 # the steps, on the held-out MSE 10^(-PSNR/10): ~0.09 dB), not before the quick length (so no
 # converge pose system is trained less than the quick one). GQN's ConvDRAW (noise figure only)
-# is left at its quick length without the rule: its learning-rate, sigma and KL schedules are
-# fractions of that length (configs/gqn_convdraw.py), which a cap or an early stop would cut.
+# has no rule: its learning-rate, sigma and KL schedules are fractions of its length
+# (configs/gqn_convdraw.py `quick_schedules`), which an early stop would cut. It trains for the
+# rooms' cap instead (CONVERGE_CONVDRAW_STEPS, 4x its quick length) with its schedules stretched
+# to that length: at the quick length it was 2.7 dB under the GQN decoder's runs, and a 4x run of
+# seed 0 was still 0.7 dB higher at step 3,200 (BUILD_NOTES, the fifth session).
 # The car's cap is 8x: its first converge run (seed 0) reached 4x (2,400 steps) still improving,
 # 19.37 -> 19.70 dB over the last quarter (7% in held-out MSE; BUILD_NOTES "The converge launch").
 CONVERGE_SYNTHESIS_CAPS = {s: 4 * n for s, n in QUICK_SYNTHESIS_STEPS.items()} | {"car": 8 * 600}
+CONVERGE_CONVDRAW_STEPS = 4 * QUICK_CONVDRAW_STEPS
 # Expected steps trained as a share of the cap, for the estimates only (the rules decide).
 # car MEASURED twice: configs/shapenet_car.py:quick, seed 0, stopped at step 960 of 2,400 in one
 # session (18.62 dB) and ran to the 2,400 cap in the next (19.70 dB; the held-out PSNR wobbles by
@@ -250,7 +260,7 @@ def _converge_plan() -> Plan:
       "gibson": (1e-3, 3e-3, 1e-2),
       "seven_scenes": (1e-4, 3e-4, 1e-3),
     },
-    synthesis_s={**syn, "gqn_convdraw": 45.0 + QUICK_CONVDRAW_STEPS * CONVERGE_CONVDRAW_STEP_S},
+    synthesis_s={**syn, "gqn_convdraw": 45.0 + CONVERGE_CONVDRAW_STEPS * CONVERGE_CONVDRAW_STEP_S},
     regression_s=reg_s,
     data_s={"gqn": 45, "car": 30, "gibson": 30, "seven_scenes": 20},
     evaluate_s=120,
@@ -261,14 +271,23 @@ def _converge_plan() -> Plan:
     paired_synthesis=True,
     extend_grid=2,
     synthesis_caps=dict(CONVERGE_SYNTHESIS_CAPS),
+    convdraw_steps=CONVERGE_CONVDRAW_STEPS,
   )
 
 
 def synthesis_flags(plan: Plan, setting: str, kind: str = "") -> list[str]:
-  """The plan's plateau flags of a view-synthesis run of `setting` with pose input `kind`
-  ("convdraw": GQN's generator, not capped), none without `synthesis_caps`."""
-  key = f"{setting}_convdraw" if kind == "convdraw" else setting
-  cap = plan.synthesis_caps.get(key)
+  """The plan's plateau flags of a view-synthesis run of `setting` with pose input `kind`, none
+  without `synthesis_caps`; for GQN's generator ("convdraw") its length and the schedules
+  stretched to it (`plan.convdraw_steps`; no rule, and no resuming at another length)."""
+  if kind == "convdraw":
+    n = plan.convdraw_steps
+    if not n:
+      return []
+    stretched = gqn_convdraw_config.quick_schedules(n)
+    return [f"--config.total_steps={n}", f"--config.eval_every_steps={n // 20}"] + [
+      f"--config.{field}={steps}" for field, steps in stretched.items()
+    ]
+  cap = plan.synthesis_caps.get(setting)
   if not cap:
     return []
   return [
@@ -1114,6 +1133,18 @@ def run_synthesis(launch: Launch, jobs: Sequence[Job], logs: str, kw: dict) -> l
       todo.append(j)
     else:
       print(f"[synthesis: skipped] {j.name}: archived, nothing left needs it", flush=True)
+  for j in list(todo):
+    wd = os.path.dirname(j.done_file)
+    if session.is_complete(wd) and not j.done() and not resumable(j.argv):
+      # Complete at another length, and its schedules are fractions of its length (ConvDRAW):
+      # training on would not give the run the command asks for.
+      print(
+        f"[synthesis] {j.name}: complete at step {session.read_final(wd).get('step')}, not at "
+        f"the {flag_value(j.argv, '--config.total_steps')} steps asked, and its schedules follow "
+        "its length; training it again from scratch",
+        flush=True,
+      )
+      shutil.rmtree(wd)
   for j in todo:  # a run that trains on (a raised cap) makes its old evaluation stale
     stale = os.path.join(os.path.dirname(j.done_file), "eval", "noise.json")
     if not j.done() and os.path.exists(stale):
@@ -1123,6 +1154,19 @@ def run_synthesis(launch: Launch, jobs: Sequence[Job], logs: str, kw: dict) -> l
   evaluations = [j for j in L.figures if j.name.removeprefix("evaluate_") in names]
   failed += run_jobs(evaluations, logs, label="evaluate: ", **kw)
   return failed
+
+
+def resumable(argv: Sequence[str]) -> bool:
+  """Whether a view-synthesis command may resume a run trained to another length: its
+  `--config.allow_changes` names total_steps (the plateau runs), which ConvDRAW's does not."""
+  allowed = flag_value(argv, "--config.allow_changes") or ""
+  return "total_steps" in allowed.split(",")
+
+
+def flag_value(argv: Sequence[str], flag: str) -> str | None:
+  """The value of the last `flag=VALUE` in argv, or None."""
+  values = [a.split("=", 1)[1] for a in argv if a.startswith(flag + "=")]
+  return values[-1] if values else None
 
 
 def pending_synthesis(launch: Launch) -> set[str]:

@@ -503,7 +503,8 @@ def _synthesis_quick(rc, setting):
 
 def test_run_comparison_converge_synthesis_to_its_plateau(tmp_path, capsys):
   """--size converge (issue 29 part 3): every view-synthesis run but GQN's ConvDRAW gets a cap
-  of 4x its quick steps and the plateau rule, flags its config accepts; the held-out PSNR
+  of 4x its quick steps and the plateau rule, flags its config accepts (ConvDRAW: 4x its quick
+  length with its schedules stretched, no rule); the held-out PSNR
   curves of each column's synthesis runs are drawn with bands over seeds."""
   rc = load_experiment("run_comparison")
   out = str(tmp_path / "cmp")
@@ -517,7 +518,12 @@ def test_run_comparison_converge_synthesis_to_its_plateau(tmp_path, capsys):
   g = flags["synthesis_gqn_lowdim_seed1"]
   assert g["--config.total_steps"] == "8000" and g["--config.eval_every_steps"] == "400"
   assert g["--config.stop.min_improvement"] == "0.02" and g["--config.seed"] == "1"
-  assert "--config.total_steps" not in flags["synthesis_gqn_convdraw_seed0"]
+  # GQN's generator: 4x its quick length, its schedules stretched to it, no plateau rule.
+  draw = flags["synthesis_gqn_convdraw_seed0"]
+  assert draw["--config.total_steps"] == "8000" and draw["--config.optax.anneal_steps"] == "6400"
+  assert "--config.stop.window" not in draw
+  quick = importlib.import_module("camrep.configs.gqn_convdraw").get_config("quick")
+  assert quick.optax.anneal_steps == 2000 * 8 // 10  # the fractions the stretch keeps
   # The flags fit the configs they go with: caps 4x their quick steps (the car 8x), the rule
   # and the permission to raise a cap accepted.
   for name in rc.SETTINGS:

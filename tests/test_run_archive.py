@@ -196,6 +196,35 @@ def test_a_synthesis_run_that_trains_on_loses_its_old_evaluation(rc, tmp_path, m
   assert ran == ["synthesis_car_seed0", "evaluate_car_seed0"]
 
 
+def test_a_convdraw_run_of_another_length_is_trained_again_from_scratch(
+  rc, tmp_path, monkeypatch, capsys
+):
+  """GQN's ConvDRAW at converge size trains 4x its quick length with its schedules stretched to
+  it. A run complete at the quick length cannot resume (its schedules were fractions of 2,000
+  steps): the launcher removes it, says so, and trains it again; a plateau run at an old cap
+  resumes instead (`--config.allow_changes` names total_steps)."""
+  ran = []
+  monkeypatch.setattr(rc, "run_job", lambda job, logs, **kw: ran.append(job.name) or True)
+  args = _args(tmp_path / "out", tmp_path / "archive")[:-2]
+  args[args.index("car")] = "gqn"
+  launch = rc.make_launch(rc._parse_args([*args, "--noise_runs", "--noise_kinds", "convdraw"]))
+  job = next(j for j in launch.synth if j.name == "synthesis_gqn_convdraw_seed0")
+  assert _flag(job.argv, "total_steps") == str(rc.CONVERGE_CONVDRAW_STEPS) == "8000"
+  assert _flag(job.argv, "loss.sigma_anneal_steps") == "800"
+  assert _flag(job.argv, "optax.anneal_steps") == "6400"
+  assert _flag(job.argv, "loss.kl_anneal_steps") == "4000"
+  assert not rc.resumable(job.argv) and "--config.stop.window=0.25" not in job.argv
+  plateau = next(j for j in launch.synth if j.name == "synthesis_gqn_seed0")
+  assert rc.resumable(plateau.argv)
+  wd = tmp_path / "out" / "synthesis" / "gqn_convdraw_seed0"
+  os.makedirs(wd / "checkpoints" / "2000")
+  with open(wd / "final_metrics.json", "w") as f:
+    json.dump({"complete": True, "step": 2000}, f)
+  assert rc.run_synthesis(launch, [job], str(tmp_path / "logs"), dict(at_once=1)) == []
+  assert ran == ["synthesis_gqn_convdraw_seed0"] and not wd.exists()  # removed, then trained
+  assert "complete at step 2000, not at the 8000 steps asked" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("how", ["ctrl-c", "sigterm"])
 def test_an_interrupted_launch_says_how_to_resume_instead_of_a_traceback(
   rc, tmp_path, monkeypatch, capsys, how

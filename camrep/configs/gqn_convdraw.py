@@ -35,6 +35,18 @@ from __future__ import annotations
 from camrep.configs import common, gqn
 
 
+def quick_schedules(total_steps: int) -> dict[str, int]:
+  """The quick run's schedules as fractions of its length (GQN's schedules compressed into a
+  short run): the pixel std annealed over the first 10%, the learning rate over 80%, the KL
+  weight over the first half. {flat config field: steps}; a run of another length (e.g. the
+  converge comparison's 4x, experiments/run_comparison.py) sets them all from its own length."""
+  return {
+    "loss.sigma_anneal_steps": total_steps // 10,
+    "optax.anneal_steps": (8 * total_steps) // 10,
+    "loss.kl_anneal_steps": total_steps // 2,
+  }
+
+
 def get_config(arg: str | None = None):
   common.parse_arg(arg, common.NO_MEDIUM)  # no `:medium` size for the generator yet
   c = gqn.get_config(arg)  # data, layout and durations of the GQN-rooms setting and variant
@@ -74,14 +86,15 @@ def get_config(arg: str | None = None):
     # GQN's schedules compressed into the short run (sigma over the first 10% of it, the learning
     # rate over 80%); the quick decoder's 10x-paper rate as the starting rate.
     c.optax.lr_model = 1e-3
-    c.loss.sigma_anneal_steps = c.total_steps // 10
-    c.optax.anneal_steps = (8 * c.total_steps) // 10
+    schedules = quick_schedules(c.total_steps)
+    c.loss.sigma_anneal_steps = schedules["loss.sigma_anneal_steps"]
+    c.optax.anneal_steps = schedules["optax.anneal_steps"]
     # The KL weight beta 10 -> 1 over the first half: with the plain ELBO (beta = 1) the short
     # run keeps the pose information in the posterior's latents and the prior ignores the pose
     # (18.92 dB, below the context-mean baseline); beta > 1 early pushes it into the
     # pose-conditioned path (19.72 dB). camrep option; GQN's paper size keeps beta = 1.
     c.loss.kl_weight_initial = 10.0
-    c.loss.kl_anneal_steps = c.total_steps // 2
+    c.loss.kl_anneal_steps = schedules["loss.kl_anneal_steps"]
   elif arg == "smoke":
     c.model.draw_steps = 2
     c.loss.sigma_anneal_steps = c.total_steps
