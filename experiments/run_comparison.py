@@ -18,7 +18,8 @@ GQN noise runs), `synthesis/<name>_seed<k>`, regression seed k of
 "ours" regressing synthesis seed k's pose system; every view-synthesis run but GQN's ConvDRAW is
 trained to its own plateau (the trainer's `--config.stop.*` rule at its held-out evaluations,
 capped at 4x its quick steps (the car 8x), CONVERGE_SYNTHESIS_CAPS; its curve in final_metrics.json
-"stopping" and DIR/curve_synthesis_<column>.{png,md}). Estimates come from per-step times
+"stopping" and DIR/curve_synthesis_<column>.{png,md}); ConvDRAW trains 4x its quick length with
+its schedules stretched to it (CONVERGE_CONVDRAW_STEPS). Estimates come from per-step times
 measured on the shared 2-core CPU and from guessed shares of the caps (CONVERGE_* constants). `--max_hours H` starts no run after H hours (the
 running one finishes); rerunning the same command resumes, skipping finished runs.
 `--crossed COLUMN` (converge, off by default) adds, after phase 2, the crossed runs of that
