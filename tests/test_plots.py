@@ -34,6 +34,19 @@ def test_curves_figure_draws_a_band_only_for_seeds():
   ]
 
 
+def test_panels_with_the_same_series_share_one_legend_below_them():
+  x = [0.0, 0.1]
+  series = {"ours": [1.0, 2.0], "quat": np.array([[1.0, 1.5], [2.0, 2.5]])}
+  fig = plots.curves_figure(x, [plots.Panel("a", "y", series), plots.Panel("b", "z", series)])
+  assert all(ax.get_legend() is None for ax in fig.axes)  # no legend over either panel's curves
+  (legend,) = fig.legends
+  assert [t.get_text() for t in legend.get_texts()] == ["ours", "quat (mean of 2 seeds)"]
+  # Panels with different series keep a legend each.
+  other = {"mlp": [0.0, 1.0]}
+  fig = plots.curves_figure(x, [plots.Panel("a", "y", series), plots.Panel("b", "z", other)])
+  assert not fig.legends and all(ax.get_legend() is not None for ax in fig.axes)
+
+
 def test_gram_ticks_are_in_the_dofs_units():
   k = 360
   yaw = plots.gram_axis(np.deg2rad(np.arange(k)), name="yaw", angular=True)

@@ -86,7 +86,9 @@ def mean_and_band(values) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
 
 def curves_figure(x, panels: Sequence[Panel], *, suptitle: str = "") -> Figure:
   """Panels side by side, one line per series (markers at the points), a band where a series
-  has several seeds, one legend per panel placed where it covers the fewest points."""
+  has several seeds. Panels that plot the same series share one legend below them, where it
+  cannot cover a curve; otherwise each panel has its own, placed where it covers the fewest
+  points."""
   x = np.asarray(x, np.float64)
   w, h = PANEL_SIZE
   # A long title is wrapped to the figure's width (~13 characters an inch at its font size).
@@ -112,8 +114,26 @@ def curves_figure(x, panels: Sequence[Panel], *, suptitle: str = "") -> Figure:
     ax.grid(True, color="0.9")
     ax.set_axisbelow(True)
     ax.xaxis.set_major_locator(MaxNLocator(nbins=7, steps=[1, 2, 2.5, 5, 10]))
-    if any(panel.series) and any(panel.series.keys()):
-      ax.legend(loc="best", fontsize=8, framealpha=0.85)
+  labels = [tuple(panel.series) for panel in panels]
+  named = any(any(series) for series in labels)
+  if named and len(panels) > 1 and len(set(labels)) == 1:
+    handles, names = axes[0].get_legend_handles_labels()
+    # As many columns as fit the figure's width (~12 characters an inch at 8 pt, plus the
+    # marker), then spread evenly over the rows.
+    fit = max(1, int(12 * w * len(panels)) // (max(map(len, names)) + 6))
+    rows = -(-len(names) // fit)
+    fig.legend(
+      handles,
+      names,
+      loc="outside lower center",
+      ncol=-(-len(names) // rows),
+      fontsize=8,
+      frameon=False,
+    )
+  elif named:
+    for ax, series in zip(axes, labels, strict=True):
+      if any(series):
+        ax.legend(loc="best", fontsize=8, framealpha=0.85)
   if title:
     fig.suptitle("\n".join(title), fontsize=9 if len(title) > 1 else 11)
   return fig
