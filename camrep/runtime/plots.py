@@ -121,12 +121,12 @@ def curves_figure(x, panels: Sequence[Panel], *, suptitle: str = "") -> Figure:
     # As many columns as fit the figure's width (~12 characters an inch at 8 pt, plus the
     # marker), then spread evenly over the rows.
     fit = max(1, int(12 * w * len(panels)) // (max(map(len, names)) + 6))
-    rows = -(-len(names) // fit)
+    rows = math.ceil(len(names) / fit)
     fig.legend(
       handles,
       names,
       loc="outside lower center",
-      ncol=-(-len(names) // rows),
+      ncol=math.ceil(len(names) / rows),
       fontsize=8,
       frameon=False,
     )
