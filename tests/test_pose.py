@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import pathlib
 import re
@@ -543,8 +542,10 @@ def test_nan_pose_decodes_to_nan_not_a_grid_corner(method, variant):
   """The issue's example: decode(embed([[nan, -0.3, 1.0]])) used to give a finite grid corner.
   NaN values embed to NaN vectors and decode to NaN; the other DOFs are untouched. Jitted, as the
   runs call them (eager decoding dispatches op by op, several times slower here)."""
+  xy = GQN_SMALL.dofs[0]
+  fields = dict(low=xy.low, high=xy.high, spacing=xy.spacing, n_directions=xy.n_directions)
   spec = P.PoseSystemSpec(
-    dofs=(dataclasses.replace(GQN_SMALL.dofs[0], variant=variant), GQN_SMALL.dofs[1]),
+    dofs=(P.polar_dof(variant, **fields), GQN_SMALL.dofs[1]),
     n_blocks=2,
     block_size=4,
     exp_method=method,
@@ -722,3 +723,26 @@ def test_outputs_match_stored_reference():
     assert np.all(mine[name] <= theirs[name] + 1e-5 * (1 + theirs[name])), name
     same = np.isclose(got[name], stored[name], rtol=1e-6, atol=1e-6)
     assert same.mean() >= 0.75, f"{name}: only {same.mean():.0%} of the decoded values agree"
+
+
+def test_the_polar_variants_are_two_classes_recorded_as_before():
+  """The binned and continuous polar DOFs are two classes (no variant switch); `PolarDof(...,
+  variant=...)` still builds them, and their records are those of the one class before, so
+  that record.json files written then compare equal at resume."""
+  binned, cont = P.PolarDof(n_directions=12), P.PolarDof(variant="continuous", block_norm=False)
+  assert type(binned) is P.BinnedPolarDof and type(cont) is P.ContinuousPolarDof
+  assert isinstance(cont, P.PolarDof) and P.POLAR_VARIANTS == {
+    "binned": P.BinnedPolarDof,
+    "continuous": P.ContinuousPolarDof,
+  }
+  old = dict(name="xy", low=-1.0, high=1.0, spacing=0.1, n_directions=12, variant="binned")
+  assert binned.record() == {"kind": "PolarDof", **old, "block_norm": True, "pair_radius": 2.0}
+  assert cont.record() == {
+    "kind": "PolarDof",
+    **old,
+    "n_directions": 144,  # no bins, but the config's value, recorded as before
+    "variant": "continuous",
+    "block_norm": False,
+    "pair_radius": 2.0,
+  }
+  assert P.AngularDof("yaw").record()["kind"] == "AngularDof"

@@ -109,9 +109,10 @@ def pose_spec(config) -> P.PoseSystemSpec:
 
 
 def spec_record(spec: P.PoseSystemSpec) -> dict:
-  """A pose-system spec as JSON values: its fields, each DOF's with its class ("kind")."""
+  """A pose-system spec as JSON values: its fields, each DOF's `record` (its class, "kind", and
+  fields)."""
   fields = {f.name: getattr(spec, f.name) for f in dataclasses.fields(spec) if f.name != "dofs"}
-  dofs = [{"kind": type(d).__name__, **dataclasses.asdict(d)} for d in spec.dofs]
+  dofs = [d.record() for d in spec.dofs]
   return fingerprint.plain({**fields, "dofs": dofs})
 
 
