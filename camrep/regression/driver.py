@@ -47,7 +47,7 @@ evaluation split is, and the number of test views.
 Representations (`pose_system.representation_params`): baselines need nothing more; "ours"
 restores the frozen pose system of a view-synthesis workdir (`pose_system.load_pose_system`, via
 `camrep.synthesis`'s `load_run`); "mlp" uses that workdir's MLP embedding when it was trained with
-rep.kind="mlp", else a frozen randomly initialised MLP embedding (`MlpPoseInput`; the
+rep.kind="mlp", else a frozen randomly initialised MLP embedding (`MlpEncoding`; the
 supplement's MLP is trained by view synthesis). The synthesis workdir must have been trained on
 the same data (`pose_system.check_same_data`: same source, same prepared directory and dataset)
 and, for "ours", with the learned grid system.
