@@ -1,10 +1,11 @@
 """The degrees of freedom of a pose system and its spec (Zhu et al., CVPR 2021, section 3).
 
 `Dof` is the interface of one degree of freedom (documented once), implemented by `LinearDof`,
-`AngularDof` and `PolarDof`: its pose columns, grid, grid index, rotation exp(B delta), range
-policy, pair sampling and decoding candidates. `PoseSystemSpec` groups them with the vector size
-and exp method; `check_range` checks poses on the host. `camrep.pose` builds the parameters,
-embedding, losses and decoding on these and re-exports every public name here.
+`AngularDof` and the polar DOFs `BinnedPolarDof` and `ContinuousPolarDof`: its pose columns,
+grid, grid index, rotation exp(B delta), range policy, pair sampling and decoding candidates.
+`PoseSystemSpec` groups them with the vector size and exp method; `check_range` checks poses on
+the host. `camrep.pose` builds the parameters, embedding, losses and decoding on these and
+re-exports every public name here.
 """
 
 from __future__ import annotations
@@ -193,6 +194,10 @@ class Dof(abc.ABC):
     """One line describing a Gram map over k values of this DOF (figure captions)."""
     return f"{k} grid points, {self.low:g} to {self.high:g} step {self.spacing:g}"
 
+  def record(self) -> dict:
+    """The DOF as JSON values for a run's record.json: its class ("kind") and its fields."""
+    return {"kind": type(self).__name__, **dataclasses.asdict(self)}
+
   def range_problems(self, values: np.ndarray, *, atol: float) -> list[str]:
     """Host-side: what is wrong with `values` (numpy, from `values`): non-finite entries, and
     (for "clamp" DOFs) entries beyond [low - atol, high + atol]. Empty when all is well."""
@@ -312,21 +317,33 @@ class AngularDof(Dof):
     return f"{k} values, 1-degree steps from {math.degrees(self.low):.0f} deg"
 
 
-@dataclasses.dataclass(frozen=True)
-class PolarDof(Dof):
+# The fields of the one polar class these replaced, in its order (positional arguments of
+# `PolarDof(...)`).
+_POLAR_FIELDS = (
+  "name", "low", "high", "spacing", "n_directions", "variant", "block_norm", "pair_radius"
+)  # fmt: skip
+
+
+class _PolarMeta(abc.ABCMeta):
+  """`PolarDof(..., variant="binned" | "continuous")` builds that variant's class (`polar_dof`),
+  as the single polar class before them was built; the variants' own classes build as usual."""
+
+  def __call__(cls, *args, **kwargs):
+    if cls is not PolarDof:
+      return super().__call__(*args, **kwargs)
+    fields = {**dict(zip(_POLAR_FIELDS[: len(args)], args, strict=True)), **kwargs}
+    return polar_dof(fields.pop("variant", "binned"), **fields)
+
+
+class PolarDof(Dof, metaclass=_PolarMeta):
   """2-D position with the polar generator B(theta) of section 3.2 (eqs. 4-5).
 
   Grid: (L + 1) x (L + 1) vectors over [low, high]^2 with L = (high - low) / spacing, flat index
-  gx * (L + 1) + gy (the authors' code). Out-of-range positions are clamped per axis.
-
-  variant="binned" (the authors' code): B(theta) is a table of `n_directions` free generators,
-  theta rounded to the nearest bin (mod n_directions: the authors' index could reach
-  n_directions, out of range), softly tied by `direction_loss` (B_{j+D} ~ exp(C D dtheta) B_j).
-  Parameters {"grid", "generator_coeffs": (n_directions, n_blocks, s(s-1)/2),
-  "direction_coeffs": (n_blocks, s(s-1)/2)} (B_j and C).
-  variant="continuous" (camrep): B(theta) = exp(C theta) B0 exp(-C theta), exact conjugation, so
-  no bins and no direction loss. Parameters {"grid", "generator0_coeffs", "direction_coeffs"}
-  (B0 and C, (n_blocks, s(s-1)/2) each).
+  gx * (L + 1) + gy (the authors' code). Out-of-range positions are clamped per axis. Two
+  implementations differ in how B depends on the direction theta of a move:
+  `BinnedPolarDof` (the authors': a table of generators) and `ContinuousPolarDof` (camrep's:
+  one conjugated generator). `POLAR_VARIANTS` names them for `config.rep.polar_variant`;
+  `PolarDof(..., variant=NAME)` builds one.
 
   block_norm=True: each block of a grid vector has norm 1 / n_blocks as in the authors' code
   (whole vector 1/sqrt(n_blocks)); False: unit vectors like the other DOFs (the paper's text).
@@ -334,34 +351,20 @@ class PolarDof(Dof):
   Gibson 2.2).
   """
 
-  name: str = "xy"
-  low: float = -1.0
-  high: float = 1.0
-  spacing: float = 0.1
-  n_directions: int = 144
-  variant: str = "binned"
-  block_norm: bool = True
-  pair_radius: float = 2.0
+  name: str
+  low: float
+  high: float
+  spacing: float
+  block_norm: bool
+  pair_radius: float
 
   width = 2
+  variant = ""  # the key of `POLAR_VARIANTS` (config.rep.polar_variant) and of the records
 
-  def __post_init__(self):
-    self._validate()
-    _require(
-      self.variant in ("binned", "continuous"), self, "variant", "must be 'binned' or 'continuous'"
-    )
-    _require(
-      isinstance(self.n_directions, int) and self.n_directions >= 1,
-      self,
-      "n_directions",
-      "must be an int >= 1",
-    )
+  def _validate(self):
+    super()._validate()
     _require(self.pair_radius > 0, self, "pair_radius", "must be > 0")
     _require(self.n_side >= 2, self, "spacing", "must leave at least 2 grid points per axis")
-
-  @property
-  def has_direction_loss(self) -> bool:
-    return self.variant == "binned"
 
   @property
   def n_side(self) -> int:
@@ -385,22 +388,6 @@ class PolarDof(Dof):
     return values
 
   @override
-  def init_params(self, key, spec, *, dtype):
-    kg, kb, kc = jax.random.split(key, 3)
-    grid = _init_grid(kg, self, spec, dtype)
-    if self.variant == "binned":
-      return {
-        GRID: grid,
-        GENERATOR: _init_gen(kb, (self.n_directions, spec.n_blocks), spec, dtype),
-        DIRECTION: _init_gen(kc, (spec.n_blocks,), spec, dtype),
-      }
-    return {
-      GRID: grid,
-      GENERATOR0: _init_gen(kb, (spec.n_blocks,), spec, dtype),
-      DIRECTION: _init_gen(kc, (spec.n_blocks,), spec, dtype),
-    }
-
-  @override
   def grid_index(self, g, mode, key):
     if g.shape[-1] != 2:
       raise ValueError(f"polar DOF {self.name!r} takes (..., 2) positions, got {g.shape}")
@@ -409,35 +396,18 @@ class PolarDof(Dof):
     ki = k.astype(jnp.int32)
     return ki[..., 0] * self.n_side + ki[..., 1], rest
 
-  @override
-  def rotate(self, params, spec, delta, v):
-    """exp(B(theta) r) v for displacements (..., 2) in physical units (eq. 4, exp form)."""
-    r, theta = _safe_polar(delta)
-    method, n_steps = spec.exp_method, spec.n_steps
-    if self.variant == "binned":
-      B = lie.skew(params[GENERATOR], block_size=spec.block_size)  # (n_dir, n_b, s, s)
-      bins = jnp.round(theta / (TWO_PI / self.n_directions)).astype(jnp.int32)
-      j = jnp.mod(bins, self.n_directions)
-      return lie.apply_exp_blocks(B, r, v, method=method, n_steps=n_steps, index=j)
-    C = lie.skew(params[DIRECTION], block_size=spec.block_size)
-    B0 = lie.skew(params[GENERATOR0], block_size=spec.block_size)
-    # exp(r e^{C th} B0 e^{-C th}) = e^{C th} e^{r B0} e^{-C th}.
-    u = lie.apply_exp_blocks(C, -theta, v, method=method, n_steps=n_steps)
-    u = lie.apply_exp_blocks(B0, r, u, method=method, n_steps=n_steps)
-    return lie.apply_exp_blocks(C, theta, u, method=method, n_steps=n_steps)
+  @abc.abstractmethod
+  def _directions(self, key: Array, n: int) -> Array:
+    """Directions (n,) in radians of the extra pairs' moves (`sample_pairs`)."""
 
   @override
   def sample_pairs(self, key, n):
-    """Polar: p0 ~ U(1, L - 1)^2 grid units, direction uniform (binned variant: one of
-    n_directions bins, fixed to exclude the out-of-range index), r ~ U(0, pair_radius),
-    p1 = clip(p0 + r (cos, sin), 0, L); (n, 2) each."""
+    """Polar: p0 ~ U(1, L - 1)^2 grid units, direction from `_directions`,
+    r ~ U(0, pair_radius), p1 = clip(p0 + r (cos, sin), 0, L); (n, 2) each."""
     k0, k1, k2 = jax.random.split(key, 3)
     L = self.n_side - 1
     p0 = jax.random.uniform(k0, (n, 2), minval=1.0, maxval=L - 1.0)
-    if self.variant == "binned":
-      direction = jax.random.randint(k1, (n,), 0, self.n_directions) * (TWO_PI / self.n_directions)
-    else:
-      direction = jax.random.uniform(k1, (n,), maxval=TWO_PI)
+    direction = self._directions(k1, n)
     r = jax.random.uniform(k2, (n,), maxval=self.pair_radius)
     step = r[:, None] * jnp.stack([jnp.cos(direction), jnp.sin(direction)], -1)
     p1 = jnp.clip(p0 + step, 0.0, L)
@@ -450,9 +420,80 @@ class PolarDof(Dof):
     return np.stack([gx.ravel(), gy.ravel()], -1)
 
   @override
+  def describe_grid(self, k):
+    return f"{self.n_side} x {self.n_side} grid points, flat index gx * {self.n_side} + gy"
+
+  @override
+  def record(self):
+    """The layout of the single polar class these two replaced (kind "PolarDof" with its
+    `variant` and `n_directions`), so that records written before compare equal."""
+    fields = dataclasses.asdict(self)
+    return {
+      "kind": "PolarDof",
+      **{k: fields[k] for k in ("name", "low", "high", "spacing")},
+      "n_directions": self.n_directions,
+      "variant": self.variant,
+      "block_norm": self.block_norm,
+      "pair_radius": self.pair_radius,
+    }
+
+
+@dataclasses.dataclass(frozen=True)
+class BinnedPolarDof(PolarDof):
+  """The authors' polar DOF: B(theta) is a table of `n_directions` free generators, theta rounded
+  to the nearest bin (mod n_directions: the authors' index could reach n_directions, out of
+  range), softly tied by `direction_loss` (B_{j+D} ~ exp(C D dtheta) B_j).
+
+  Parameters {"grid", "generator_coeffs": (n_directions, n_blocks, s(s-1)/2),
+  "direction_coeffs": (n_blocks, s(s-1)/2)} (B_j and C).
+  """
+
+  name: str = "xy"
+  low: float = -1.0
+  high: float = 1.0
+  spacing: float = 0.1
+  n_directions: int = 144
+  block_norm: bool = True
+  pair_radius: float = 2.0
+
+  variant = "binned"
+  has_direction_loss = True
+
+  def __post_init__(self):
+    self._validate()
+    _require(
+      isinstance(self.n_directions, int) and self.n_directions >= 1,
+      self,
+      "n_directions",
+      "must be an int >= 1",
+    )
+
+  @override
+  def init_params(self, key, spec, *, dtype):
+    kg, kb, kc = jax.random.split(key, 3)
+    return {
+      GRID: _init_grid(kg, self, spec, dtype),
+      GENERATOR: _init_gen(kb, (self.n_directions, spec.n_blocks), spec, dtype),
+      DIRECTION: _init_gen(kc, (spec.n_blocks,), spec, dtype),
+    }
+
+  @override
+  def rotate(self, params, spec, delta, v):
+    """exp(B_j r) v for displacements (..., 2) in physical units, j the bin of their direction
+    (eq. 4, exp form)."""
+    r, theta = _safe_polar(delta)
+    B = lie.skew(params[GENERATOR], block_size=spec.block_size)  # (n_dir, n_b, s, s)
+    bins = jnp.round(theta / (TWO_PI / self.n_directions)).astype(jnp.int32)
+    j = jnp.mod(bins, self.n_directions)
+    return lie.apply_exp_blocks(B, r, v, method=spec.exp_method, n_steps=spec.n_steps, index=j)
+
+  @override
+  def _directions(self, key, n):
+    """One of the n_directions bins (which excludes the out-of-range index)."""
+    return jax.random.randint(key, (n,), 0, self.n_directions) * (TWO_PI / self.n_directions)
+
+  @override
   def direction_loss(self, params, spec, *, max_shift):
-    if self.variant == "continuous":
-      return jnp.zeros((), params[GRID].dtype)
     B = lie.skew(params[GENERATOR], block_size=spec.block_size)  # (n, n_b, s, s)
     C = lie.skew(params[DIRECTION], block_size=spec.block_size)  # (n_b, s, s)
     shifts = jnp.arange(1, max_shift + 1)
@@ -463,9 +504,80 @@ class PolarDof(Dof):
     sq = jnp.sum((RB - target) ** 2, axis=(-3, -2, -1))
     return spec.direction_loss_scale * jnp.mean(sq)
 
+
+@dataclasses.dataclass(frozen=True)
+class ContinuousPolarDof(PolarDof):
+  """camrep's polar DOF: B(theta) = exp(C theta) B0 exp(-C theta), exact conjugation, so no bins
+  and no direction loss (it holds exactly).
+
+  Parameters {"grid", "generator0_coeffs", "direction_coeffs"} (B0 and C, (n_blocks, s(s-1)/2)
+  each).
+
+  Attributes:
+    n_directions: unused (no bins): the config's `rep.n_directions`, kept in the DOF and its
+      record as the single polar class kept it, so that a workdir's record.json compares equal.
+  """
+
+  name: str = "xy"
+  low: float = -1.0
+  high: float = 1.0
+  spacing: float = 0.1
+  n_directions: int = 144
+  block_norm: bool = True
+  pair_radius: float = 2.0
+
+  variant = "continuous"
+
+  def __post_init__(self):
+    self._validate()
+
   @override
-  def describe_grid(self, k):
-    return f"{self.n_side} x {self.n_side} grid points, flat index gx * {self.n_side} + gy"
+  def init_params(self, key, spec, *, dtype):
+    kg, kb, kc = jax.random.split(key, 3)
+    return {
+      GRID: _init_grid(kg, self, spec, dtype),
+      GENERATOR0: _init_gen(kb, (spec.n_blocks,), spec, dtype),
+      DIRECTION: _init_gen(kc, (spec.n_blocks,), spec, dtype),
+    }
+
+  @override
+  def rotate(self, params, spec, delta, v):
+    """exp(B(theta) r) v for displacements (..., 2) in physical units (eq. 4, exp form)."""
+    r, theta = _safe_polar(delta)
+    method, n_steps = spec.exp_method, spec.n_steps
+    C = lie.skew(params[DIRECTION], block_size=spec.block_size)
+    B0 = lie.skew(params[GENERATOR0], block_size=spec.block_size)
+    # exp(r e^{C th} B0 e^{-C th}) = e^{C th} e^{r B0} e^{-C th}.
+    u = lie.apply_exp_blocks(C, -theta, v, method=method, n_steps=n_steps)
+    u = lie.apply_exp_blocks(B0, r, u, method=method, n_steps=n_steps)
+    return lie.apply_exp_blocks(C, theta, u, method=method, n_steps=n_steps)
+
+  @override
+  def _directions(self, key, n):
+    """Uniform on [0, 2 pi)."""
+    return jax.random.uniform(key, (n,), maxval=TWO_PI)
+
+  @override
+  def direction_loss(self, params, spec, *, max_shift):
+    """0: the conjugated generator satisfies the relation exactly."""
+    return jnp.zeros((), params[GRID].dtype)
+
+
+POLAR_VARIANTS: dict[str, type[PolarDof]] = {
+  cls.variant: cls for cls in (BinnedPolarDof, ContinuousPolarDof)
+}
+"""`config.rep.polar_variant` -> its polar DOF class."""
+
+
+def polar_dof(variant: str, **fields) -> PolarDof:
+  """The polar DOF of a variant (a key of `POLAR_VARIANTS`) with `fields`.
+
+  Raises:
+    ValueError: an unknown variant, or fields the DOF refuses.
+  """
+  if variant not in POLAR_VARIANTS:
+    raise ValueError(f"unknown polar variant {variant!r}; choose one of {tuple(POLAR_VARIANTS)}")
+  return POLAR_VARIANTS[variant](**fields)
 
 
 def _init_grid(key: Array, d: Dof, spec: PoseSystemSpec, dtype) -> Array:

@@ -13,9 +13,9 @@ parameters are a plain nested dict of arrays:
   {dof.name: {"grid": (n_grid_points, d), "generator_coeffs": (n_blocks, s(s-1)/2), ...}}
 
 where "*_coeffs" entries are the free coefficients of skew-symmetric blocks (`lie.skew` makes
-the matrices B, C of the paper). Each DOF kind (`LinearDof`, `AngularDof`, `PolarDof`, defined
-in `camrep.dofs` with `PoseSystemSpec` and re-exported here) implements the `Dof` interface: its
-columns, grid index, rotation, range policy and decoding candidates.
+the matrices B, C of the paper). Each DOF kind (`LinearDof`, `AngularDof`, the `PolarDof`s,
+defined in `camrep.dofs` with `PoseSystemSpec` and re-exported here) implements the `Dof`
+interface: its columns, grid index, rotation, range policy and decoding candidates.
 
 Poses are arrays (..., pose_dim) whose columns follow the spec's DOFs in order (a polar DOF takes
 two columns, x then y); angles are in radians, positions in the dataset's unit.
@@ -37,14 +37,18 @@ from camrep.dofs import DIRECTION as DIRECTION
 from camrep.dofs import GENERATOR as GENERATOR
 from camrep.dofs import GENERATOR0 as GENERATOR0
 from camrep.dofs import GRID as GRID
+from camrep.dofs import POLAR_VARIANTS as POLAR_VARIANTS
 from camrep.dofs import QUANTISATION_MODES as QUANTISATION_MODES
 from camrep.dofs import TWO_PI as TWO_PI
 from camrep.dofs import AngularDof as AngularDof
+from camrep.dofs import BinnedPolarDof as BinnedPolarDof
+from camrep.dofs import ContinuousPolarDof as ContinuousPolarDof
 from camrep.dofs import Dof as Dof
 from camrep.dofs import LinearDof as LinearDof
 from camrep.dofs import PolarDof as PolarDof
 from camrep.dofs import PoseSystemSpec as PoseSystemSpec
 from camrep.dofs import check_range as check_range
+from camrep.dofs import polar_dof as polar_dof
 from camrep.dofs import wrap_angle as wrap_angle
 
 Array = jax.Array
@@ -59,8 +63,9 @@ def init(key: Array, spec: PoseSystemSpec, *, dtype=jnp.float32) -> Params:
 
   Returns:
     {name: {"grid": (n_grid, d), "generator_coeffs": (n_blocks, s(s-1)/2)}} for linear and
-    angular DOFs; polar DOFs as `PolarDof` documents. The "*_coeffs" entries are the free
-    coefficients of skew blocks: `lie.skew` (or `generator_blocks`) turns them into matrices.
+    angular DOFs; polar DOFs as `BinnedPolarDof` and `ContinuousPolarDof` document. The
+    "*_coeffs" entries are the free coefficients of skew blocks: `lie.skew` (or
+    `generator_blocks`) turns them into matrices.
   """
   return {
     d.name: d.init_params(jax.random.fold_in(key, i), spec, dtype=dtype)
@@ -175,6 +180,14 @@ def split(v: Array, spec: PoseSystemSpec) -> dict[str, Array]:
 
 # --------------------------------------------------------------------------------------------
 # Rotation losses (eqs. 9 and 9.2) and pair sampling (the authors' code).
+
+
+def dof_poses(spec: PoseSystemSpec, name: str, values: Array) -> Array:
+  """Poses (K, pose_dim) whose DOF `name` takes `values` ((K,) or (K, 2)), other columns 0."""
+  values = jnp.asarray(values, jnp.float32)
+  cols = values if values.ndim == 2 else values[:, None]
+  poses = jnp.zeros((cols.shape[0], spec.pose_dim), jnp.float32)
+  return poses.at[:, spec.columns(name)].set(cols)
 
 
 def pose_delta(spec: PoseSystemSpec, pose0: Array, pose1: Array) -> Array:

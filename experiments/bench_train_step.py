@@ -255,12 +255,12 @@ class RegressionTimer(StepTimer):
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
     from configs import regression
 
-    config = regression.get_config(variant)
-    config.setting, config.representation = setting, representation
+    config = regression.get_config(f"{setting},{variant}")
+    config.representation = representation
     config.data.cache_dir = cache_dir
     if width is not None:
       config.model.width = width
-    config = driver.resolve_config(config)
+    driver.check_config(config)
     setup = driver.prepare(config, log=log)
     pipe = views_lib.train_pipeline(config, setup.data.train)
     b0 = views_lib.learner_batch(config, setup.data.train, pipe.batch(0))

@@ -390,8 +390,8 @@ def phase_medium(args) -> dict:
   cache = os.path.join(tmp, "cache")
   for i, lr in enumerate(plan.lrs["gqn"]):
     wd = os.path.join(tmp, f"regression_{i}")
-    argv = [py, "-m", "camrep.regression", f"--config=configs/regression.py:{variant}"]
-    argv += [f"--workdir={wd}", "--config.setting=gqn", "--config.representation=quat"]
+    argv = [py, "-m", "camrep.regression", f"--config=configs/regression.py:gqn,{variant}"]
+    argv += [f"--workdir={wd}", "--config.representation=quat"]
     argv += [f"--config.optax.lr={lr:g}", f"--config.data.cache_dir={cache}"]
     sec, code = _run_timed(argv, os.path.join(tmp, f"regression_{i}.log"), left())
     out["runs"].append(

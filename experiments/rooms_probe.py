@@ -63,10 +63,9 @@ def main():
   ap.add_argument("--cache_dir", default="/tmp/rooms_probe_cache")
   a = ap.parse_args()
 
-  c = regression_config.get_config("quick")
-  c.setting, c.representation = "gqn", a.rep
-  g = c.settings.gqn
-  g.family.update(
+  c = regression_config.get_config("gqn,quick")
+  c.representation = a.rep
+  c.data.family.update(
     dict(
       num_train_scenes=a.rooms,
       num_test_scenes=a.test_rooms,
@@ -76,14 +75,14 @@ def main():
     )
   )
   if a.light is not None:
-    g.family.light_azimuth_deg = a.light
-  g.total_steps, g.batch_size, g.width = a.steps, a.bs, a.width
+    c.data.family.light_azimuth_deg = a.light
+  c.total_steps, c.data.batch_size, c.model.width = a.steps, a.bs, a.width
   c.data.cache_dir = a.cache_dir
   c.evals.extra_splits = "test"
   if a.lr:
     c.optax.lr = a.lr
   layers.adain = _adain_variant(a.norm)  # read by the regressor at trace time
-  c = driver.resolve_config(c)
+  driver.check_config(c)
   setup = driver.prepare(c)
   train = setup.data.train
   sub = train.subset(np.isin(train.scenes, train.scene_ids()[:40]))

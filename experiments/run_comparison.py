@@ -491,7 +491,7 @@ def regression_job(
 ) -> Job:
   """One regression run's job (lr None: a placeholder "<LR>", for --dry_run's phase 2), on the
   setting's prepared real data when `data` names it."""
-  suffix = f":{plan.variant}" if plan.variant else ""
+  suffix = f",{plan.variant}" if plan.variant else ""
   tag = "lr<LR>" if lr is None else lr_tag(lr)
   column, setting = setting, setting_of(setting)
   wd = os.path.join(out, "regression", column, rep, f"{tag}_seed{seed}")
@@ -499,9 +499,8 @@ def regression_job(
     py,
     "-m",
     "camrep.regression",
-    f"--config=configs/regression.py{suffix}",
+    f"--config=configs/regression.py:{setting}{suffix}",
     f"--workdir={wd}",
-    f"--config.setting={setting}",
     f"--config.representation={rep}",
     f"--config.seed={seed}",
     f"--config.optax.lr={'<LR>' if lr is None else format(lr, 'g')}",

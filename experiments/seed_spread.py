@@ -6,7 +6,7 @@ the regression seed, crossed.
 (`--config.seed=k`). A converge launch pairs them (j = k); crossing them, every regression seed on
 every synthesis seed,
 
-  python -m camrep.regression --config=configs/regression.py:quick --config.setting=car \\
+  python -m camrep.regression --config=configs/regression.py:car,quick \\
       --config.representation=ours --config.seed=K --config.synthesis_workdir=DIR/synthesis/car_seedJ \\
       --config.optax.lr=LR --workdir=DIR/crossed/car/lrLR_seedK_synJ ...
 

@@ -1,4 +1,4 @@
-"""Stored outputs of camrep.pose and camrep.pose_inputs, to prove a refactor changes no number.
+"""Stored outputs of camrep.pose and camrep.pose_encodings, to prove a refactor changes no number.
 
 `outputs()` computes init, embed (three quantisation modes, in and out of range), rotate, the
 rotation and direction losses, pair sampling, decode (with and without refinement), candidates,
@@ -22,7 +22,7 @@ import ml_collections
 import numpy as np
 
 from camrep import pose as P
-from camrep import pose_inputs
+from camrep import pose_encodings
 
 PATH = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "pose_reference.npz")
 
@@ -39,7 +39,7 @@ def _specs() -> dict[str, P.PoseSystemSpec]:
     out[f"1d_{method}"] = P.PoseSystemSpec(
       dofs=dofs_1d, n_blocks=2, block_size=4, exp_method=method
     )
-  polar = P.PolarDof(spacing=0.25, n_directions=12)
+  polar = P.BinnedPolarDof(spacing=0.25, n_directions=12)
   for method in ("spectral",):
     out[f"binned_{method}"] = P.PoseSystemSpec(
       dofs=(polar, P.AngularDof("yaw", spacing=math.pi / 6)),
@@ -47,7 +47,7 @@ def _specs() -> dict[str, P.PoseSystemSpec]:
       block_size=4,
       exp_method=method,
     )
-  cont = P.PolarDof(spacing=0.25, variant="continuous", block_norm=False, pair_radius=2.2)
+  cont = P.ContinuousPolarDof(spacing=0.25, block_norm=False, pair_radius=2.2)
   for method in ("expm",):
     out[f"continuous_{method}"] = P.PoseSystemSpec(
       dofs=(cont,), n_blocks=2, block_size=4, exp_method=method
@@ -164,9 +164,9 @@ def _spec_outputs(
       out[f"{d.name}/direction"] = P.direction_loss(params, spec, d.name, max_shift=3)
   # The other pose inputs.
   for source in ("rooms", "object"):
-    vecs = pose_inputs.from_config(_lowdim_config(source), spec).embed({}, poses)
+    vecs = pose_encodings.from_config(_lowdim_config(source), spec).embed({}, poses)
     out.update(_flat(f"lowdim_{source}", vecs))
-  mlp_input = pose_inputs.MlpPoseInput(spec)
+  mlp_input = pose_encodings.MlpEncoding(spec)
   mlp = mlp_input.init(key(4))
   out.update(_flat("mlp_init", mlp))
   mlp_vectors = mlp_input.embed(mlp, poses)

@@ -473,7 +473,7 @@ def test_not_object_centric_is_refused_or_routed_to_6dof(tmp_path):
                                 overrides={"image_size": 16}, progress=False)  # fmt: skip
   meta = storage.load_metadata(path)
   assert meta["splits"]["train"]["num_scenes"] == 2
-  assert views_lib.seven_scenes_names(meta) == []
+  assert views_lib.scene_names(meta) == []
 
 
 # ------------------------------------------------------------------------------- splits, prepare

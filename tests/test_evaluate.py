@@ -14,7 +14,7 @@ import orbax.checkpoint as ocp
 import pytest
 
 from camrep import pose as P
-from camrep import pose_inputs
+from camrep import pose_encodings, settings
 from camrep.configs import gibson, gqn, seven_scenes, shapenet_car
 from camrep.runtime import checkpoint as ckpt_lib
 from camrep.runtime import writers
@@ -45,7 +45,7 @@ def _train_eval(workdir):
 
 
 def test_load_run_restores_checkpoint_params(workdir, run):
-  assert run.step == 4 and components.setting(run.config) == "gqn"
+  assert run.step == 4 and components.setting(run.config) is settings.GQN
   assert run.config.data.n_context == 3 and run.spec == components.pose_spec(
     gqn.get_config("smoke")
   )
@@ -187,12 +187,12 @@ def test_other_pose_inputs_train_and_take_noise(kind, tmp_path):
   run = restore.load_run(str(tmp_path))
   spec = run.spec
   poses = jnp.asarray([[0.1, -0.2, 1.0], [0.5, 0.3, 4.0]], jnp.float32)
-  pose_input = pose_inputs.from_config(run.config, spec)
+  pose_input = pose_encodings.from_config(run.config, spec)
   vecs = pose_input.embed(run.params["rep"], poses)
   betas = noise_lib.grid_betas(run.params["rep"], spec, run.model)
   if kind == "lowdim":
     assert run.params["rep"] == {}
-    z, pitch = pose_inputs.gqn_lowdim_constants(run.config.data.family)
+    z, pitch = pose_encodings.gqn_lowdim_constants(run.config.data.family)
     assert (pose_input.camera_height, pose_input.pitch) == (z, pitch)
     np.testing.assert_allclose(vecs["xy"], [[0.1, -0.2, z], [0.5, 0.3, z]], atol=1e-7)
     np.testing.assert_allclose(

@@ -179,9 +179,14 @@ def test_fields_the_run_does_not_use_are_refused_when_set(capsys):
   with pytest.raises(runconfig.ConfigError, match="model.kind='convdraw'"):
     synthesis_schema.validate(config, overridden={"model.draw_steps"})
   define, body = _config_tool(regression_schema)
-  argv = ["--config=configs/regression.py:smoke", "--config.settings.gqn.batch_size=3"]
+  # A regression config holds one setting's fields: another setting's is an unknown field, and
+  # the setting itself is the config argument's.
+  argv = ["--config=configs/regression.py:smoke", "--config.data.n_context=3"]
   assert cli.call(define, body, argv) == 2
-  _assert_one_error(capsys.readouterr().err, "setting is not 'gqn'")
+  _assert_one_error(capsys.readouterr().err, "--config.data.n_context=3", "no field")
+  argv = ["--config=configs/regression.py:smoke", "--config.setting=gqn"]
+  assert cli.call(define, body, argv) == 2
+  _assert_one_error(capsys.readouterr().err, "--config=configs/regression.py:gqn")
 
 
 def _fake_prepared(root: pathlib.Path, name: str, config: str, shape, poses=None) -> None:

@@ -2,15 +2,17 @@
 
 Layers, lowest first (a module may import its own layer and those below):
 
-  0  camrep.lie, .spectral, .metrics,       Lie operators and their exact exponential, image
-     .rotations, camrep.configs               metrics, rotations of 3-space, experiment configs
-  1  camrep.dofs, camrep.pose, camrep.data,     the pose system's DOFs and the system; data;
-     camrep.runtime                             checkpoints, writers, plots
-  2  camrep.pose_inputs                         every pose input a decoder can take
-  3  camrep.models                              Flax modules
-  4  camrep.synthesis                           view-synthesis training and evaluation
-  5  camrep.regression                          pose regression and its tables
-  6  camrep.main                                the entry point
+  0  camrep.lie, .spectral, .metrics,         Lie operators and their exact exponential, image
+     .rotations                                metrics, rotations of 3-space
+  1  camrep.dofs, camrep.pose                  the pose system's DOFs and the system
+  2  camrep.settings                           the paper's settings (poses, errors, splits)
+  3  camrep.data, camrep.runtime,              data; checkpoints, writers, plots; experiment
+     camrep.configs                            configs
+  4  camrep.pose_encodings                     every pose encoding of both stages
+  5  camrep.models                             Flax modules
+  6  camrep.synthesis                          view-synthesis training and evaluation
+  7  camrep.regression                         pose regression and its tables
+  8  camrep.main                               the entry point
 """
 
 from __future__ import annotations
@@ -28,16 +30,17 @@ LAYERS = {
   "camrep.metrics": 0,
   "camrep.rotations": 0,
   "camrep.spectral": 0,
-  "camrep.configs": 0,
   "camrep.dofs": 1,
   "camrep.pose": 1,
-  "camrep.data": 1,
-  "camrep.runtime": 1,
-  "camrep.pose_inputs": 2,
-  "camrep.models": 3,
-  "camrep.synthesis": 4,
-  "camrep.regression": 5,
-  "camrep.main": 6,
+  "camrep.settings": 2,
+  "camrep.data": 3,
+  "camrep.runtime": 3,
+  "camrep.configs": 3,
+  "camrep.pose_encodings": 4,
+  "camrep.models": 5,
+  "camrep.synthesis": 6,
+  "camrep.regression": 7,
+  "camrep.main": 8,
 }
 # Near-twins that name a real pair, not a muddle.
 NOT_TWINS = {frozenset({"decoder", "encoder"})}
@@ -153,4 +156,41 @@ def test_no_module_names_are_twins():
 
 def test_the_twin_check_catches_the_old_names():
   assert ("regress", "regression") in twins(["regress", "regression", "targets"])
-  assert twins(["pose", "pose_inputs"]) == []
+  assert twins(["pose", "pose_encodings"]) == []
+
+
+def _setting_name_comparisons(path: pathlib.Path, names: set[str]) -> list[str]:
+  """`x == "gqn"`, `x != "car"`, `x in ("gqn", "gibson")`: comparisons with a setting's name."""
+
+  def constants(node):
+    if isinstance(node, ast.Constant) and isinstance(node.value, str):
+      return {node.value}
+    if isinstance(node, ast.Tuple | ast.List | ast.Set):
+      return {e.value for e in node.elts if isinstance(e, ast.Constant)}
+    return set()
+
+  out = []
+  for node in ast.walk(ast.parse(path.read_text())):
+    if isinstance(node, ast.Compare):
+      found = set().union(*(constants(n) for n in (node.left, *node.comparators)))
+      if found & names:
+        out.append(f"{path.name}:{node.lineno}: {ast.unparse(node)}")
+  return out
+
+
+def test_setting_names_are_compared_in_the_registry_only():
+  """Code takes a `camrep.settings.Setting`, never compares its name: the names appear in the
+  registry (camrep/settings.py) and where a config or record names one (looked up there)."""
+  from camrep import settings
+
+  names = set(settings.names())
+  hits = [
+    h for p in MODULES if p.name != "settings.py" for h in _setting_name_comparisons(p, names)
+  ]
+  assert hits == []
+
+
+def test_the_comparison_check_sees_every_form(tmp_path):
+  src = tmp_path / "m.py"
+  src.write_text('a == "gqn"\nb in ("car", "x")\n"gibson" != c\nd == "table"\n')
+  assert len(_setting_name_comparisons(src, {"gqn", "car", "gibson"})) == 3

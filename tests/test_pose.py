@@ -2,20 +2,18 @@
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import pathlib
 import re
 
 import jax
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 import optax
 import pytest
 import scipy.linalg
 
-from camrep import lie, pose_inputs
+from camrep import lie
 from camrep import pose as P
 from tests.utils import assert_close, x64
 
@@ -87,11 +85,11 @@ def test_grid_sizes_periodic_and_authors():
   assert P.AngularDof("a", periodic=False, n_grid_override=36).n_grid == 36  # their 7-Scenes grid
   assert P.AngularDof("phi", high=math.pi, periodic=False).n_grid == 19
   assert P.LinearDof("x", 0.0, 4.0, 0.1).n_grid == 41
-  assert P.PolarDof().n_side == 21 and P.PolarDof().n_grid == 441
+  assert P.BinnedPolarDof().n_side == 21 and P.BinnedPolarDof().n_grid == 441
 
 
 def test_init_shapes_and_dtypes():
-  spec = P.PoseSystemSpec(dofs=(P.PolarDof(), P.AngularDof("yaw")))
+  spec = P.PoseSystemSpec(dofs=(P.BinnedPolarDof(), P.AngularDof("yaw")))
   params = P.init(jax.random.key(0), spec)
   assert params["xy"]["grid"].shape == (441, 96)
   assert params["xy"][P.GENERATOR].shape == (144, 6, 120)
@@ -100,7 +98,7 @@ def test_init_shapes_and_dtypes():
   # The generator keys say they hold coefficients (lie calls the matrices B and C).
   assert set(params["yaw"]) == {"grid", "generator_coeffs"}
   assert set(params["xy"]) == {"grid", "generator_coeffs", "direction_coeffs"}
-  cont = P.PoseSystemSpec(dofs=(P.PolarDof(variant="continuous"),), n_blocks=4, block_size=8)
+  cont = P.PoseSystemSpec(dofs=(P.ContinuousPolarDof(),), n_blocks=4, block_size=8)
   pc = P.init(jax.random.key(0), cont)
   assert set(pc["xy"]) == {"grid", "generator0_coeffs", "direction_coeffs"} and pc["xy"][
     P.GENERATOR0
@@ -114,20 +112,20 @@ def test_init_shapes_and_dtypes():
 def test_spec_validation():
   with pytest.raises(ValueError, match="unique"):
     P.PoseSystemSpec(dofs=(P.AngularDof("a"), P.AngularDof("a")))
-  with pytest.raises(ValueError, match="variant"):
-    P.PoseSystemSpec(dofs=(P.PolarDof(variant="spline"),))
+  with pytest.raises(ValueError, match="unknown polar variant 'spline'"):
+    P.polar_dof("spline")
   with pytest.raises(ValueError, match="exp_method"):
     P.PoseSystemSpec(dofs=(P.AngularDof("a"),), exp_method="pade")
 
 
 def test_normalisation_in_forward_pass():
-  spec = P.PoseSystemSpec(dofs=(P.PolarDof(), P.AngularDof("yaw")))
+  spec = P.PoseSystemSpec(dofs=(P.BinnedPolarDof(), P.AngularDof("yaw")))
   params = P.init(jax.random.key(1), spec)
   yaw = P.grid_vectors(params, spec, "yaw")
   assert_close(jnp.linalg.norm(yaw, axis=-1), np.ones(36), atol=1e-6)
   xy = P.grid_vectors(params, spec, "xy").reshape(441, 6, 16)
   assert_close(jnp.linalg.norm(xy, axis=-1), np.full((441, 6), 1 / 6), atol=1e-6)  # authors: 1/n_b
-  unit = P.PoseSystemSpec(dofs=(P.PolarDof(block_norm=False),))
+  unit = P.PoseSystemSpec(dofs=(P.BinnedPolarDof(block_norm=False),))
   assert_close(
     jnp.linalg.norm(P.grid_vectors(params, unit, "xy"), axis=-1), np.ones(441), atol=1e-6
   )
@@ -140,7 +138,7 @@ def test_normalisation_in_forward_pass():
 @pytest.mark.parametrize("batch", [(), (5,), (2, 3)])
 def test_embed_shapes_jit_vmap(batch):
   spec = P.PoseSystemSpec(
-    dofs=(P.PolarDof(n_directions=12), P.AngularDof("yaw")), n_blocks=2, block_size=4
+    dofs=(P.BinnedPolarDof(n_directions=12), P.AngularDof("yaw")), n_blocks=2, block_size=4
   )
   params = P.init(jax.random.key(0), spec)
   rng = np.random.default_rng(0)
@@ -243,7 +241,7 @@ def test_polar_direction_bin_wraps_mod_n():
   """Regression for the authors' out-of-range direction index: a move at angle just below 2 pi
   rounds to bin n_directions, which must wrap to bin 0 (TF silently used M = I there)."""
   with x64():
-    spec = P.PoseSystemSpec(dofs=(P.PolarDof(n_directions=144),), n_blocks=1, block_size=4)
+    spec = P.PoseSystemSpec(dofs=(P.BinnedPolarDof(n_directions=144),), n_blocks=1, block_size=4)
     params = P.init(jax.random.key(5), spec, dtype=jnp.float64)
     params["xy"][P.GENERATOR] = params["xy"][P.GENERATOR] * 300  # visible rotations
     v = P.grid_vectors(params, spec, "xy")[:1]
@@ -259,7 +257,7 @@ def test_polar_direction_bin_wraps_mod_n():
 def test_polar_continuous_variant_is_conjugated_generator():
   """B(theta) = exp(C theta) B0 exp(-C theta): exp(r B(theta)) against scipy on the full matrix."""
   with x64():
-    spec = P.PoseSystemSpec(dofs=(P.PolarDof(variant="continuous"),), n_blocks=2, block_size=4)
+    spec = P.PoseSystemSpec(dofs=(P.ContinuousPolarDof(),), n_blocks=2, block_size=4)
     params = P.init(jax.random.key(6), spec, dtype=jnp.float64)
     params = jax.tree.map(lambda x: x * 500, params)
     params["xy"]["grid"] = params["xy"]["grid"] / 500
@@ -274,7 +272,7 @@ def test_polar_continuous_variant_is_conjugated_generator():
 
 
 def test_polar_gradient_finite_at_zero_displacement():
-  spec = P.PoseSystemSpec(dofs=(P.PolarDof(variant="continuous"),), n_blocks=2, block_size=4)
+  spec = P.PoseSystemSpec(dofs=(P.ContinuousPolarDof(),), n_blocks=2, block_size=4)
   params = P.init(jax.random.key(7), spec)
   grad = jax.jit(
     jax.grad(lambda p: jnp.sum(P.embed_dof(params, spec, "xy", p) ** 2 * jnp.arange(8)))
@@ -287,7 +285,7 @@ def test_polar_gradient_finite_at_zero_displacement():
 
 
 def test_pair_sampling_ranges():
-  spec = P.PoseSystemSpec(dofs=SPEC_1D.dofs + (P.PolarDof(),), n_blocks=2, block_size=4)
+  spec = P.PoseSystemSpec(dofs=SPEC_1D.dofs + (P.BinnedPolarDof(),), n_blocks=2, block_size=4)
   key = jax.random.key(8)
   a0, a1 = P.sample_pairs(key, spec, "x", 5000)  # authors' non-periodic recipe
   assert float(a0.min()) >= 0 and float(a1.max()) <= 2.0 + 1e-6
@@ -345,7 +343,7 @@ def test_dof_rotation_loss_matches_formula():
 def test_direction_loss_matches_formula():
   with x64():
     spec = P.PoseSystemSpec(
-      dofs=(P.PolarDof(n_directions=12),), n_blocks=2, block_size=4, exp_method="expm"
+      dofs=(P.BinnedPolarDof(n_directions=12),), n_blocks=2, block_size=4, exp_method="expm"
     )
     params = P.init(jax.random.key(11), spec, dtype=jnp.float64)
     params = jax.tree.map(lambda x: x * 300, params)
@@ -365,9 +363,7 @@ def test_direction_loss_matches_formula():
     assert (
       float(
         P.direction_loss(
-          P.init(
-            jax.random.key(0), _cont := P.PoseSystemSpec(dofs=(P.PolarDof(variant="continuous"),))
-          ),
+          P.init(jax.random.key(0), _cont := P.PoseSystemSpec(dofs=(P.ContinuousPolarDof(),))),
           _cont,
           "xy",
         )
@@ -415,7 +411,7 @@ def _random_poses(spec, n, seed=0):
   "dofs",
   [
     (P.AngularDof("yaw"), P.LinearDof("x", 0.0, 2.0, 0.1)),
-    (P.PolarDof(variant="continuous", block_norm=False),),
+    (P.ContinuousPolarDof(block_norm=False),),
   ],
   ids=["yaw_x", "polar"],
 )
@@ -444,7 +440,7 @@ def test_decode_shapes_and_candidates():
   params = P.init(jax.random.key(12), SPEC_1D)
   assert P.candidates(SPEC_1D, "yaw").shape == (1440,)  # 0.25 degrees, [0, 360)
   assert P.candidates(SPEC_1D, "x").shape == (81,)  # 0.25 grid units over [0, 2]
-  assert P.candidates(P.PoseSystemSpec(dofs=(P.PolarDof(),)), "xy").shape == (81 * 81, 2)
+  assert P.candidates(P.PoseSystemSpec(dofs=(P.BinnedPolarDof(),)), "xy").shape == (81 * 81, 2)
   v = jax.jit(P.embed, static_argnums=1)(params, SPEC_1D, np.zeros((2, 3, 3), np.float32))
   decode = jax.jit(P.decode, static_argnums=(1,))
   assert decode(params, SPEC_1D, v).shape == (2, 3, 3)
@@ -489,11 +485,11 @@ def _line_of(text):
 
 def test_dof_columns_and_policies():
   yaw, x, pitch = SPEC_1D.dofs
-  xy = P.PolarDof(variant="binned")
+  xy = P.BinnedPolarDof()
   assert [d.out_of_range for d in (yaw, x, pitch, xy)] == ["wrap", "clamp", "clamp", "clamp"]
   assert [d.is_angle for d in (yaw, x, pitch, xy)] == [True, False, True, False]
   assert xy.column_names == ("x", "y") and x.column_names == ("x",)
-  assert xy.has_direction_loss and not P.PolarDof(variant="continuous").has_direction_loss
+  assert xy.has_direction_loss and not P.ContinuousPolarDof().has_direction_loss
   assert not yaw.has_direction_loss
   cols = jnp.arange(6.0).reshape(3, 2)
   assert xy.values(cols).shape == (3, 2) and x.values(cols[:, :1]).shape == (3,)
@@ -524,7 +520,7 @@ def test_out_of_range_clamps_and_extrapolates_or_wraps():
 
 
 GQN_SMALL = P.PoseSystemSpec(
-  dofs=(P.PolarDof(spacing=0.25, n_directions=12), P.AngularDof("yaw", spacing=math.pi / 6)),
+  dofs=(P.BinnedPolarDof(spacing=0.25, n_directions=12), P.AngularDof("yaw", spacing=math.pi / 6)),
   n_blocks=2,
   block_size=4,
 )
@@ -543,8 +539,10 @@ def test_nan_pose_decodes_to_nan_not_a_grid_corner(method, variant):
   """The issue's example: decode(embed([[nan, -0.3, 1.0]])) used to give a finite grid corner.
   NaN values embed to NaN vectors and decode to NaN; the other DOFs are untouched. Jitted, as the
   runs call them (eager decoding dispatches op by op, several times slower here)."""
+  xy = GQN_SMALL.dofs[0]
+  fields = dict(low=xy.low, high=xy.high, spacing=xy.spacing, n_directions=xy.n_directions)
   spec = P.PoseSystemSpec(
-    dofs=(dataclasses.replace(GQN_SMALL.dofs[0], variant=variant), GQN_SMALL.dofs[1]),
+    dofs=(P.polar_dof(variant, **fields), GQN_SMALL.dofs[1]),
     n_blocks=2,
     block_size=4,
     exp_method=method,
@@ -606,11 +604,11 @@ def test_check_range():
     (lambda: P.AngularDof("a", spacing=0.7), "spacing"),  # does not divide 2 pi
     (lambda: P.AngularDof("a", low=1.0, high=0.5, periodic=False), "high"),
     (lambda: P.AngularDof("a", n_grid_override=1, periodic=False), "n_grid_override"),
-    (lambda: P.PolarDof(spacing=0.0), "spacing"),
-    (lambda: P.PolarDof(low=1.0, high=-1.0), "high"),
-    (lambda: P.PolarDof(n_directions=0), "n_directions"),
-    (lambda: P.PolarDof(pair_radius=0.0), "pair_radius"),
-    (lambda: P.PolarDof(variant="spline"), "variant"),
+    (lambda: P.BinnedPolarDof(spacing=0.0), "spacing"),
+    (lambda: P.BinnedPolarDof(low=1.0, high=-1.0), "high"),
+    (lambda: P.BinnedPolarDof(n_directions=0), "n_directions"),
+    (lambda: P.BinnedPolarDof(pair_radius=0.0), "pair_radius"),
+    (lambda: P.polar_dof("spline"), "polar variant"),
     (lambda: P.PoseSystemSpec(dofs=()), "dofs"),
     (lambda: P.PoseSystemSpec(dofs=(P.AngularDof("a"),), n_blocks=0), "n_blocks"),
     (lambda: P.PoseSystemSpec(dofs=(P.AngularDof("a"),), block_size=1), "block_size"),
@@ -622,59 +620,6 @@ def test_check_range():
 def test_constructors_refuse_impossible_specs(build, field):
   with pytest.raises(ValueError, match=field):
     build()
-
-
-# ---------------------------------------------------------------------------- pose inputs
-
-
-def _config(kind, source="rooms", family=None):
-  c = ml_collections.ConfigDict()
-  c.rep = {"kind": kind}
-  c.data = {"source": source, "family": family or {}}
-  return c
-
-
-@pytest.mark.slow  # ~10 s of compiles; the fast tier keeps the factory's lowdim test below
-def test_pose_inputs_one_interface_one_factory():
-  spec = GQN_SMALL
-  kinds = {"grid": pose_inputs.GridPoseInput, "lowdim": pose_inputs.LowDimPoseInput}
-  kinds["mlp"] = pose_inputs.MlpPoseInput
-  poses = jnp.asarray([[0.1, -0.2, 1.0], [0.5, 0.3, 5.9]], jnp.float32)
-  for kind, cls in kinds.items():
-    pi = pose_inputs.from_config(_config(kind), spec)
-    assert type(pi) is cls and isinstance(pi, pose_inputs.PoseInput)
-    assert pi.learned_grid == (kind == "grid")
-    hash(pi)  # a static jit argument
-    params = pi.init(jax.random.key(0))
-    v = jax.jit(lambda p, x, pi=pi: pi.embed(p, x))(params, poses)
-    assert set(v) == {"xy", "yaw"}
-    assert jax.jit(lambda p, v, pi=pi: pi.decode(p, v))(params, v).shape == poses.shape
-  with pytest.raises(ValueError, match="rep.kind"):
-    pose_inputs.from_config(_config("spline"), spec)
-  grid = pose_inputs.GridPoseInput(spec, refine_steps=0)
-  params = grid.init(jax.random.key(1))
-  v = grid.embed(params, poses)
-  want = jax.jit(P.decode, static_argnums=1, static_argnames="refine_steps")
-  assert_close(jax.jit(grid.decode)(params, v), want(params, spec, v, refine_steps=0), atol=0)
-
-
-def test_lowdim_takes_explicit_constants_and_inverts():
-  spec = GQN_SMALL
-  poses = jnp.asarray([[0.1, -0.2, 1.0], [0.5, 0.3, 5.9]], jnp.float32)
-  gqn = pose_inputs.LowDimPoseInput(spec, camera_height=0.3, pitch=-0.2)
-  v = gqn.embed({}, poses)
-  assert_close(v["xy"][:, 2], [0.3, 0.3], atol=1e-7)
-  assert_close(v["yaw"][:, 2:], [[np.sin(-0.2), np.cos(-0.2)]] * 2, atol=1e-7)
-  assert_close(gqn.decode({}, v), poses, atol=1e-6)
-  plain = pose_inputs.LowDimPoseInput(spec)
-  assert plain.embed({}, poses)["xy"].shape == (2, 2)
-  assert_close(plain.decode({}, plain.embed({}, poses)), poses, atol=1e-6)
-  with pytest.raises(ValueError, match="camera_height"):
-    pose_inputs.LowDimPoseInput(spec, camera_height=0.3)
-  # The factory reads the rooms' constants from the family given, the renderer's defaults else.
-  pi = pose_inputs.from_config(_config("lowdim", family={"camera_height": 0.7}), spec)
-  assert pi.camera_height == 0.7 and pi.pitch == pose_inputs.gqn_lowdim_constants({})[1]
-  assert pose_inputs.from_config(_config("lowdim", source="object"), spec).camera_height is None
 
 
 # ---------------------------------------------------------------------------- stored reference
@@ -722,3 +667,26 @@ def test_outputs_match_stored_reference():
     assert np.all(mine[name] <= theirs[name] + 1e-5 * (1 + theirs[name])), name
     same = np.isclose(got[name], stored[name], rtol=1e-6, atol=1e-6)
     assert same.mean() >= 0.75, f"{name}: only {same.mean():.0%} of the decoded values agree"
+
+
+def test_the_polar_variants_are_two_classes_recorded_as_before():
+  """The binned and continuous polar DOFs are two classes (no variant switch); `PolarDof(...,
+  variant=...)` still builds them, and their records are those of the one class before, so
+  that record.json files written then compare equal at resume."""
+  binned, cont = P.PolarDof(n_directions=12), P.PolarDof(variant="continuous", block_norm=False)
+  assert type(binned) is P.BinnedPolarDof and type(cont) is P.ContinuousPolarDof
+  assert isinstance(cont, P.PolarDof) and P.POLAR_VARIANTS == {
+    "binned": P.BinnedPolarDof,
+    "continuous": P.ContinuousPolarDof,
+  }
+  old = dict(name="xy", low=-1.0, high=1.0, spacing=0.1, n_directions=12, variant="binned")
+  assert binned.record() == {"kind": "PolarDof", **old, "block_norm": True, "pair_radius": 2.0}
+  assert cont.record() == {
+    "kind": "PolarDof",
+    **old,
+    "n_directions": 144,  # no bins, but the config's value, recorded as before
+    "variant": "continuous",
+    "block_norm": False,
+    "pair_radius": 2.0,
+  }
+  assert P.AngularDof("yaw").record()["kind"] == "AngularDof"

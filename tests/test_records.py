@@ -177,17 +177,18 @@ def test_a_moved_prepared_dataset_keeps_its_fingerprint_a_swapped_one_is_refused
 
 
 def _regression(workdir, **family):
-  config = regression.get_config("smoke")
-  config.setting, config.representation = "gqn", "ours"
+  config = regression.get_config("gqn,smoke")
+  config.representation = "ours"
   config.synthesis_workdir = str(workdir)
   for k, v in family.items():
-    config.settings.gqn.family[k] = v
+    config.data.family[k] = v
+  R.check_config(config)
   return config
 
 
 def test_regression_ours_refuses_a_pose_system_learned_on_other_rooms(gqn_smoke_run, tmp_path):
   # The same rooms: accepted (load_pose_system restores only the checkpoint).
-  config = R.resolve_config(_regression(gqn_smoke_run))
+  config = _regression(gqn_smoke_run)
   assert pose_system.load_pose_system(gqn_smoke_run, "gqn", config=config)["step"] == 4
   # Rooms of another wall style: the source and the directory are the same, the rooms are not.
   other = _regression(gqn_smoke_run, wall_style="distinct")
@@ -201,7 +202,7 @@ def test_regression_ours_refuses_a_pose_system_learned_on_other_rooms(gqn_smoke_
     pose_system.load_pose_system(
       gqn_smoke_run,
       "gqn",
-      config=R.resolve_config(_regression(gqn_smoke_run, light_azimuth_deg=30.0, seed=3)),
+      config=_regression(gqn_smoke_run, light_azimuth_deg=30.0, seed=3),
     )
 
 

@@ -17,6 +17,7 @@ import sys
 import numpy as np
 import pytest
 
+from camrep import settings
 from camrep.configs import regression as regression_config
 from camrep.configs import shapenet_car
 from camrep.regression import driver as R
@@ -40,8 +41,8 @@ def cache(tmp_path_factory):
 
 
 def _config(setting="car", representation="euler", **kw):
-  c = regression_config.get_config("smoke")
-  c.setting, c.representation = setting, representation
+  c = regression_config.get_config(f"{setting},smoke")
+  c.representation = representation
   for k, v in kw.items():
     node = c
     *path, last = k.split(".")
@@ -49,6 +50,12 @@ def _config(setting="car", representation="euler", **kw):
       node = node[p]
     node[last] = v
   return c
+
+
+def _checked(config):
+  """The config, checked by the driver (`check_config`)."""
+  R.check_config(config)
+  return config
 
 
 # ------------------------------------------------------------------------------- the driver
@@ -72,7 +79,7 @@ def test_baseline_end_to_end(tmp_path, cache):
     assert json.load(f) == json.loads(json.dumps(results))
   # record.json: the data's fingerprint (a baseline has no pose system to record).
   record = workdir_lib.read_record(wd)
-  assert record["data"] == views_lib.data_record(R.resolve_config(config))
+  assert record["data"] == views_lib.data_record(_checked(config))
   assert "pose_spec" not in record
   assert (results["setting"], results["representation"], results["seed"]) == ("car", "euler", 1)
   assert results["lr"] == 3e-3 and results["steps"] == 3 and results["params"] > 0
@@ -107,9 +114,9 @@ def test_baseline_end_to_end(tmp_path, cache):
   # the pixels a fresh render gives.
   assert os.path.isfile(os.path.join(cache, "object", os.listdir(os.path.join(cache, "object"))[0],
                                      "1.0.0", "camrep_source.json"))  # fmt: skip
-  cached = views_lib.make_data(R.resolve_config(config)).train
+  cached = views_lib.make_data(_checked(config)).train
   config.data.cache_dir = ""
-  rendered = views_lib.make_data(R.resolve_config(config)).train
+  rendered = views_lib.make_data(_checked(config)).train
   rows = np.arange(len(rendered))
   np.testing.assert_array_equal(cached.images(rows), rendered.images(rows))
   np.testing.assert_array_equal(cached.poses, rendered.poses)
@@ -151,13 +158,13 @@ def test_ours_from_a_synthesis_workdir(tmp_path, cache, car_synthesis):
   assert info["workdir"] == os.path.abspath(car_synthesis)
   assert results["lr"] == 1e-3  # the paper's car lr (configs/regression.py hparams.car)
   assert np.isfinite(results["test"]["all"]["rotation_error_deg"]["mean"])
-  spec, rep, info = pose_system.representation_params(R.resolve_config(config))
+  spec, rep, info = pose_system.representation_params(_checked(config))
   assert spec == components.pose_spec(shapenet_car.get_config("smoke")) and info["step"] == 1
   # The system it read, by content: the digest of the parameters it regressed.
   assert results["representation_params"]["digest"] == pose_system.params_digest(rep)
   # "mlp" with a learned-grid run: its pose spec, a frozen random MLP embedding.
   mlp = _config("car", "mlp", synthesis_workdir=car_synthesis, **{"data.cache_dir": cache})
-  spec, params, info = pose_system.representation_params(R.resolve_config(mlp))
+  spec, params, info = pose_system.representation_params(_checked(mlp))
   assert info["source"] == "random_init" and set(params) == set(spec.names)
   # A synthesis run of another setting is refused.
   other = _config("gibson", "ours", synthesis_workdir=car_synthesis)
@@ -167,23 +174,64 @@ def test_ours_from_a_synthesis_workdir(tmp_path, cache, car_synthesis):
 
 def test_config_errors(tmp_path):
   with pytest.raises(runconfig.ConfigError, match="synthesis_workdir"):
-    R.resolve_config(_config("car", "ours"))
+    _checked(_config("car", "ours"))
   with pytest.raises(runconfig.ConfigError, match="unknown representation"):
-    R.resolve_config(_config("car", "quaternion"))
-  with pytest.raises(runconfig.ConfigError, match="unknown setting"):
-    R.resolve_config(_config("shapenet", "quat"))
+    _checked(_config("car", "quaternion"))
+  with pytest.raises(ValueError, match="unknown config variant 'shapenet'"):
+    _config("shapenet", "quat")
+  bad = _config("car", "quat")
+  bad.setting = "shapenet"
+  with pytest.raises(runconfig.ConfigError, match="unknown setting 'shapenet'"):
+    R.check_config(bad)
   with pytest.raises(runconfig.ConfigError, match="no checkpoint|config.json"):
     R.run(_config("car", "ours", synthesis_workdir=str(tmp_path)), str(tmp_path / "x"))
   # gqn: a context larger than a scene's views, on procedural and real data alike.
   with pytest.raises(runconfig.ConfigError, match="a scene has 10 views, 41 needed"):
     R.run(_config("gqn", "quat", **{"data.n_context": 40}), str(tmp_path / "y"))
-  c = R.resolve_config(_config("gqn", "quat"))
+  c = _checked(_config("gqn", "quat"))
   assert (c.total_steps, c.data.batch_size, c.evals.test_split) == (3, 2, "test_scenes")
   assert c.optax.lr == 1e-4 and c.model.width == 1 / 32
-  paper = regression_config.get_config()
-  paper.setting, paper.representation = "seven_scenes", "logq"
-  paper = R.resolve_config(paper)
+  paper = regression_config.get_config("seven_scenes")
+  paper.representation = "logq"
+  paper = _checked(paper)
   assert (paper.total_steps, paper.data.batch_size, paper.optax.lr) == (24_000, 64, 5e-5)
+
+
+def test_a_workdir_of_the_old_config_layout_is_refused(tmp_path):
+  """A config.json with every setting's tables (written before the per-setting configs) is
+  refused with the way out, before anything is written."""
+  wd = tmp_path / "old"
+  wd.mkdir()
+  old = {**_config("car", "quat").to_dict(), "settings": {"car": {"total_steps": 3}}}
+  (wd / "config.json").write_text(json.dumps(old))
+  before = snapshot(str(wd))
+  with pytest.raises(runconfig.ConfigError, match="rerun in a new workdir"):
+    R.run(_config("car", "quat"), str(wd), log=lambda s: None)
+  assert snapshot(str(wd)) == before
+
+
+def test_the_setting_is_the_config_argument(tmp_path):
+  base = [sys.executable, "-m", "camrep.regression", "--config=configs/regression.py:smoke"]
+  out = subprocess.run(
+    base + [f"--workdir={tmp_path / 'cli'}", "--config.setting=gqn"],
+    cwd=ROOT,
+    capture_output=True,
+    text=True,
+  )
+  assert out.returncode == 2 and "Traceback" not in out.stderr
+  assert "--config=configs/regression.py:gqn[,quick|,medium|,smoke]" in out.stderr
+  assert not (tmp_path / "cli").exists()
+  # Each setting's config holds its own fields only.
+  gqn, seven, car = (
+    regression_config.get_config(f"{s},smoke") for s in ("gqn", "seven_scenes", "car")
+  )
+  assert "n_context" in gqn.data and "n_context" not in car.data and "n_context" not in seven.data
+  assert "resnet_stages" in seven.model and "resnet_stages" not in gqn.model
+  assert "settings" not in car and set(car.hparams) == {"ours", "baselines"}
+  assert regression_config.get_config("quick").setting == "car"  # the default setting
+  assert regression_config.get_config("quick,gibson").data.family.num_scenes == 4
+  with pytest.raises(ValueError, match="at most one setting"):
+    regression_config.get_config("car,gqn")
 
 
 def test_command_line_errors(tmp_path):
@@ -213,14 +261,14 @@ def _views(n_scenes, n_views, p=3, size=4):
 
 def test_validation_split_and_batches():
   views = _views(5, 10)
-  train_v, val = views_lib.split_validation("car", views, 0.2)
+  train_v, val = views_lib.split_validation(settings.CAR, views, 0.2)
   assert len(val) == 10 and len(train_v) == 40
   for s in range(5):  # the two last views by id of every scene
     assert sorted(val.views[val.scenes == s]) == [8, 9]
-  train_v, val = views_lib.split_validation("gqn", views, 0.2)
+  train_v, val = views_lib.split_validation(settings.GQN, views, 0.2)
   assert set(val.scenes) == {4} and set(train_v.scenes) == {0, 1, 2, 3}
 
-  config = R.resolve_config(_config("gqn", "quat", **{"evals.batch_size": 7}))
+  config = _checked(_config("gqn", "quat", **{"evals.batch_size": 7}))
   batch = next(views_lib.train_batches(config, train_v))
   assert batch["context_image"].shape == (2, 3, 4, 4, 3) and batch["image"].shape == (2, 2, 4, 4, 3)
   assert batch["pose"].shape == (2, 2, 3) and batch["scene"].shape == (2,)
@@ -232,7 +280,7 @@ def test_validation_split_and_batches():
   np.testing.assert_array_equal(b["context_pose"][0], views.poses[rows[:3]])
   np.testing.assert_array_equal(b["pose"][0], views.poses[rows[3:]])
 
-  config = R.resolve_config(_config("car", "quat", **{"evals.batch_size": 16}))
+  config = _checked(_config("car", "quat", **{"evals.batch_size": 16}))
   ev = list(views_lib.eval_batches(config, views_lib.EvalSet(_views(5, 5, p=2))))
   assert [b["mask"].sum() for b in ev] == [16, 9] and ev[1]["image"].shape[0] == 16
   b0, b1 = (next(views_lib.train_batches(config, _views(5, 5, p=2))) for _ in range(2))
@@ -268,7 +316,7 @@ def _reference_batch(config, views, step):
 @pytest.mark.parametrize("setting", ["gqn", "car"])
 def test_training_batches_keep_the_stages_draws(setting):
   views = _views(6, 10)
-  config = R.resolve_config(_config(setting, "quat", **{"data.batch_size": 2, "seed": 3}))
+  config = _checked(_config(setting, "quat", **{"data.batch_size": 2, "seed": 3}))
   got = views_lib.train_batches(config, views)
   steps = 3 * len(views.scene_ids()) // 2 if setting == "gqn" else len(views)  # 3 epochs, 2
   for step in range(steps):
@@ -372,13 +420,13 @@ def test_run_comparison_dry_run(tmp_path, capsys):
   _write(reg, "car", "quat", 3e-3, 0, _summary("car", 2.0), _summary("car", 9.0))
   assert rc.chosen_lr(str(tmp_path), "car", "quat", plan) == 3e-3
   assert rc.main(["--size", "paper", "--out", str(tmp_path), "--dry_run", "--settings", "car"]) == 0
-  assert "--config=configs/regression.py " in capsys.readouterr().out
+  assert "--config=configs/regression.py:car " in capsys.readouterr().out
   args = ["--size", "medium", "--out", str(tmp_path), "--dry_run", "--jobs", "4"]
   assert rc.main(args) == 0
   text = capsys.readouterr().out
   assert "4 jobs at a time" in text.splitlines()[0] and "derived, not measured" in text
   assert "--config=configs/gqn.py:medium" in text
-  assert "--config=configs/regression.py:medium" in text
+  assert "--config=configs/regression.py:car,medium" in text
   # --noise_runs: the GQN noise figure's other pose inputs and GQN's own generator (not medium).
   noise = ["--out", str(tmp_path), "--dry_run", "--settings", "gqn", "--noise_runs"]
   assert rc.main(["--size", "quick", *noise]) == 0

@@ -1,5 +1,7 @@
-"""configs/regression.py resolves to the regression runs recorded before the hyper-parameters
-moved into it (they were a table in camrep/regression/targets.py until then).
+"""configs/regression.py:SETTING[,VARIANT] is the config every regression run of that setting had
+before: the runs recorded before the hyper-parameters moved into the config (they were a table in
+camrep/regression/targets.py until then), and before the config was one per setting (it held
+every setting's tables and the driver resolved them at run time).
 
 tests/data/regression_configs.json was generated once, at commit c3c8414 (before the move), by a
 throwaway script that did what `effective` below does with that commit's code: for every variant
@@ -11,7 +13,9 @@ as `driver.make_regressor(resolved, spec, 1).config` held it, spec `targets.defa
 learned representations) as `hparams.<field>`. It then checked that the config part does not
 depend on the representation and the hyper-parameters not on the variant, and stored them
 factored: "configs" per variant (a "common" dict and one dict per setting) and "hparams" per
-setting (a "common" dict and one dict per representation).
+setting (a "common" dict and one dict per representation). A setting's config now holds its own
+fields only: the fields of GQN's context views and of 7-Scenes' ResNet (`OWN_FIELDS`) are absent
+from the other settings' configs.
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import pathlib
 
 import pytest
 
+from camrep import pose_encodings, settings
 from camrep.configs import regression as regression_config
 from camrep.regression import driver, learner
 from camrep.regression import targets as T
@@ -57,24 +62,29 @@ def _flat(d, prefix=""):
   return out
 
 
+# The fields of one setting only: GQN's context views (and real GQN's held-out scenes), 7-Scenes'
+# ResNet.
+OWN_FIELDS = {
+  "gqn": ("data.n_context", "data.n_query", "data.test_scenes_fraction"),
+  "seven_scenes": ("model.resnet_stages", "model.fc_dim", "model.resnet_weights"),
+}
+
+
 def _config(variant, setting, rep):
-  c = regression_config.get_config(None if variant == "paper" else variant)
-  c.setting, c.representation = setting, rep
+  c = regression_config.get_config(setting if variant == "paper" else f"{setting},{variant}")
+  c.representation = rep
   if rep == "ours":
     c.synthesis_workdir = "/synthesis"
   return c
 
 
 def effective(variant, setting, rep):
-  """(resolved config without its tables, flattened; the regressor's hyper-parameters)."""
-  resolved = driver.resolve_config(_config(variant, setting, rep))
-  flat = {
-    k: v
-    for k, v in _flat(resolved.to_dict()).items()
-    if not k.startswith(("settings.", "hparams."))
-  }
-  spec = T.default_spec(setting) if rep in T.LEARNED else None
-  hp = dataclasses.asdict(driver.make_regressor(resolved, spec, 1).hparams)
+  """(config without its hyper-parameter table, flattened; the regressor's hyper-parameters)."""
+  config = _config(variant, setting, rep)
+  driver.check_config(config)
+  flat = {k: v for k, v in _flat(config.to_dict()).items() if not k.startswith("hparams.")}
+  spec = settings.get(setting).pose_spec() if rep in T.LEARNED else None
+  hp = dataclasses.asdict(driver.make_regressor(config, spec, 1).hparams)
   return flat, {k: list(v) if isinstance(v, tuple) else v for k, v in hp.items()}
 
 
@@ -84,9 +94,11 @@ def reference():
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
-@pytest.mark.parametrize("setting", regression_config.SETTINGS)
+@pytest.mark.parametrize("setting", list(regression_config.RECIPES))
 def test_configs_resolve_to_the_recorded_runs(reference, variant, setting):
   cfg_ref = {**reference["configs"][variant]["common"], **reference["configs"][variant][setting]}
+  others = [f for s, fields in OWN_FIELDS.items() if s != setting for f in fields]
+  cfg_ref = {k: v for k, v in cfg_ref.items() if k not in others}
   hp_common = reference["hparams"][setting]["common"]
   assert sorted(T.REPRESENTATIONS) == sorted(
     k for k in reference["hparams"][setting] if k != "common"
@@ -106,24 +118,25 @@ def test_configs_resolve_to_the_recorded_runs(reference, variant, setting):
 
 def test_the_paper_values_are_where_a_reader_looks():
   """Spot checks against the paper and its supplement, readable without the reference file."""
-  c = regression_config.get_config()
-  assert c.hparams.gqn.ours.loss.init_s == pytest.approx((-math.log(20), -math.log(5)))
-  assert c.hparams.gibson.ours.loss.weights == (20.0, 10.0)
-  assert c.hparams.gibson.ours.model.quantisation == "nearest"
-  s7 = c.hparams.seven_scenes.ours
+  c = {s: regression_config.get_config(s) for s in regression_config.RECIPES}
+  assert c["gqn"].hparams.ours.loss.init_s == pytest.approx((-math.log(20), -math.log(5)))
+  assert c["gibson"].hparams.ours.loss.weights == (20.0, 10.0)
+  assert c["gibson"].hparams.ours.model.quantisation == "nearest"
+  s7 = c["seven_scenes"].hparams.ours
   assert (s7.loss.kind, s7.loss.init_s, s7.loss.s_factor) == ("l1", (-3.0, -3.0), 3.0)
-  assert (s7.optax.lr, s7.optax.weight_decay) == (5e-5, 5e-4)
+  assert (c["seven_scenes"].optax.lr, s7.optax.weight_decay) == (5e-5, 5e-4)
   for setting, fc in (("gqn", 196), ("car", 256), ("gibson", 192), ("seven_scenes", None)):
-    assert c.hparams[setting].baselines.model.extra_fc == fc
+    assert c[setting].hparams.baselines.model.extra_fc == fc
   want = {"euler": "mse", "sincos": "mse", "rot6d": "gram_schmidt_frobenius"}
   for rep in T.BASELINES:
-    assert T.codec(rep).loss == {**want, "svd9d": "svd_frobenius"}.get(rep, "l1")
+    assert pose_encodings.get(rep).loss == {**want, "svd9d": "svd_frobenius"}.get(rep, "l1")
 
 
 def test_command_line_values_win_and_bad_ones_are_named():
   c = _config("smoke", "seven_scenes", "quat")
   c.optax.lr, c.loss.kind, c.model.extra_fc = 3e-3, "mse", 7
-  hp = learner.resolve_hparams(driver.resolve_config(c))
+  driver.check_config(c)
+  hp = learner.resolve_hparams(c)
   assert (hp.lr, hp.loss, hp.extra_fc, hp.weight_decay) == (3e-3, "mse", 7, 5e-4)
   for field, value, match in (
     ("weighting", "kendall", "unknown loss.weighting"),
@@ -132,7 +145,7 @@ def test_command_line_values_win_and_bad_ones_are_named():
     c = _config("smoke", "car", "quat")
     c.loss[field] = value
     with pytest.raises(ConfigError, match=match):
-      driver.resolve_config(c)
+      driver.check_config(c)
 
 
 def test_pose_system_digest_names_the_parameters():

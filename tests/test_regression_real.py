@@ -145,9 +145,15 @@ def cache(tmp_path_factory):
   return str(tmp_path_factory.mktemp("real_cache"))
 
 
+def _checked(config):
+  """The config, checked by the driver (`check_config`)."""
+  R.check_config(config)
+  return config
+
+
 def _config(source: str, data_dir: str, representation: str, cache: str = "", **kw):
-  c = regression_config.get_config("smoke")
-  c.setting, c.representation = SETTING.get(source, "car"), representation
+  c = regression_config.get_config(f"{SETTING.get(source, 'car')},smoke")
+  c.representation = representation
   c.data.source, c.data.dir, c.data.cache_dir = source, data_dir, cache
   for k, v in kw.items():
     node = c
@@ -217,7 +223,7 @@ def test_ours_end_to_end(tmp_path, synthesis, prepared, cache, source, test_spli
 
 def test_decoded_splits_are_resized_and_streamed_alike(tmp_path, prepared):
   data_dir = prepared("gibson")
-  config = R.resolve_config(_config("gibson", data_dir, "euler", **{"data.image_size": 16}))
+  config = _checked(_config("gibson", data_dir, "euler", **{"data.image_size": 16}))
   data = views_lib.make_data(config)
   rows = np.arange(len(data.train))
   assert data.train.image_shape == (16, 16) and data.train.images(rows).shape[1:] == (16, 16, 3)
@@ -253,21 +259,21 @@ def test_streamed_run_matches_in_memory(tmp_path, prepared, cache, source):
 
 def test_refusals(tmp_path, prepared):
   data_dir = prepared("gibson")
-  with pytest.raises(ConfigError, match="--config.setting=gibson"):
-    R.resolve_config(_config("gibson", data_dir, "euler", setting="car"))
+  with pytest.raises(ConfigError, match="--config=configs/regression.py:gibson"):
+    R.check_config(_config("gibson", data_dir, "euler", setting="car"))
   with pytest.raises(ConfigError, match="does not exist"):
-    R.resolve_config(_config("gibson", str(tmp_path / "absent"), "euler"))
+    _checked(_config("gibson", str(tmp_path / "absent"), "euler"))
   with pytest.raises(ConfigError, match="--config.data.dir=DIR"):
-    R.resolve_config(_config("gibson", "", "euler"))
+    _checked(_config("gibson", "", "euler"))
   with pytest.raises(ConfigError, match="unknown data source"):
-    R.resolve_config(_config("nope", data_dir, "euler"))
+    _checked(_config("nope", data_dir, "euler"))
   with pytest.raises(ConfigError, match="no prepared dataset 'srn_cars'"):
     R.run(_config("srn_cars", data_dir, "euler"), str(tmp_path / "a"), log=lambda s: None)
   with pytest.raises(ConfigError, match="cannot provide evaluation split 'test_scenes'"):
     extra = _config("gibson", data_dir, "euler", **{"evals.extra_splits": "test_scenes"})
     R.run(extra, str(tmp_path / "b"), log=lambda s: None)
   assert not os.path.exists(tmp_path / "a") and not os.path.exists(tmp_path / "b")
-  path, meta = views_lib.open_dataset(R.resolve_config(_config("gibson", data_dir, "euler")))
+  path, meta = views_lib.open_dataset(_checked(_config("gibson", data_dir, "euler")))
   meta = json.loads(json.dumps(meta))
   meta["splits"]["test"]["num_views"] = 0
   with pytest.raises(ConfigError, match="holds no views"):
@@ -280,8 +286,8 @@ def test_ours_refuses_a_synthesis_run_on_other_data(tmp_path, prepared, synthesi
   data_dir = prepared("srn_cars")
   syn = synthesis("srn_cars")
   # The procedural car family, not the prepared SRN cars.
-  procedural = regression_config.get_config("smoke")
-  procedural.setting, procedural.representation = "car", "ours"
+  procedural = regression_config.get_config("car,smoke")
+  procedural.representation = "ours"
   procedural.synthesis_workdir = syn
   with pytest.raises(ConfigError, match="same data"):
     R.run(procedural, str(tmp_path / "a"), log=lambda s: None)
@@ -343,7 +349,7 @@ def _torchvision_npz(path, stages, *, seed=0, width=1.0):
 
 
 def _resnet_state(config):
-  config = R.resolve_config(config)
+  R.check_config(config)
   reg = R.make_regressor(config, None, 1)
   batch = {
     "image": np.zeros((2, 32, 32, 3), np.uint8),
@@ -358,8 +364,8 @@ def _resnet_state(config):
 def test_resnet_weights_are_loaded(tmp_path):
   path = str(tmp_path / "resnet34.npz")
   sd = _torchvision_npz(path, (1,))
-  c = regression_config.get_config("smoke")
-  c.setting, c.representation = "seven_scenes", "quat"
+  c = regression_config.get_config("seven_scenes,smoke")
+  c.representation = "quat"
   c.model.width, c.model.resnet_stages, c.model.resnet_weights = 1.0, (1,), path
   config, reg, state = _resnet_state(c)
   assert reg.image_norm == "imagenet"
@@ -386,8 +392,8 @@ def test_resnet_weights_are_loaded(tmp_path):
 def test_resnet_weights_refusals(tmp_path):
   path = str(tmp_path / "resnet34.npz")
   _torchvision_npz(path, (1,))
-  c = regression_config.get_config("smoke")
-  c.setting, c.representation = "seven_scenes", "quat"
+  c = regression_config.get_config("seven_scenes,smoke")
+  c.representation = "quat"
   c.model.resnet_stages, c.model.resnet_weights = (1,), path  # smoke width 1/32: shapes differ
   config, _, state = _resnet_state(c)
   with pytest.raises(ConfigError, match="model.width=1"):
@@ -398,10 +404,9 @@ def test_resnet_weights_refusals(tmp_path):
     R.load_resnet_weights(config, state)
   c.model.resnet_weights = str(tmp_path / "absent.npz")
   with pytest.raises(ConfigError, match="does not exist"):
-    R.resolve_config(c)
-  c.setting, c.model.resnet_weights = "car", path
-  with pytest.raises(ConfigError, match="no ResNet"):
-    R.resolve_config(c)
+    R.check_config(c)
+  # Only the 7-Scenes config has a ResNet: another setting's has no such field.
+  assert "resnet_weights" not in regression_config.get_config("car,smoke").model
 
 
 # ------------------------------------------------------------------------------- tables

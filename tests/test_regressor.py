@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from camrep import pose as P
-from camrep import pose_inputs
+from camrep import pose_encodings, settings
 from camrep.models import layers
 from camrep.models import pose_regressor as R
 from camrep.regression import learner, scoring
@@ -64,7 +64,7 @@ def _rep_params(setting, rep, spec, key=0):
   if rep == "ours":
     return jax.jit(P.init, static_argnums=1)(jax.random.key(key), spec)
   if rep == "mlp":
-    return pose_inputs.MlpPoseInput(spec).init(jax.random.key(key))
+    return pose_encodings.MlpEncoding(spec).init(jax.random.key(key))
   return None
 
 
@@ -72,7 +72,7 @@ def _make(setting, rep, **kw):
   kw.setdefault("width", TINY)
   kw.setdefault("num_scenes", 2)
   if rep in T.LEARNED:
-    kw.setdefault("spec", T.default_spec(setting, **SMALL_SPEC))
+    kw.setdefault("spec", settings.get(setting).pose_spec(**SMALL_SPEC))
   if setting == "seven_scenes":
     kw.setdefault("stage_sizes", (1,))
     kw.setdefault("fc_dim", 16)
@@ -350,7 +350,7 @@ def test_training_reduces_the_loss():
   (orbit-consistent) pose system: the loss falls several-fold and poses decode."""
   rng = np.random.default_rng(0)
   data = _synthetic_car_batch(_random_poses("car", (64,), rng))
-  spec = T.default_spec("car", **SMALL_SPEC)
+  spec = settings.CAR.pose_spec(**SMALL_SPEC)
   reg = _regressor("car", "ours", spec=spec, width=1 / 8, refine_steps=0)
   state = learner.init(jax.random.key(0), reg, data, rep_params=consistent_params(spec))
   step = jax.jit(learner.train_step)

@@ -27,17 +27,17 @@ pytestmark = pytest.mark.slow
 def _small_quick_config(**family):
   """configs/regression.py:quick's gqn setting (its rooms' look) at a size that trains in
   seconds: 32 px, 40 rooms of 10 views, 300 steps at lr 1e-3."""
-  c = regression_config.get_config("quick")
-  c.setting, c.representation = "gqn", "quat"
-  g = c.settings.gqn
-  g.family.update(
+  c = regression_config.get_config("gqn,quick")
+  c.representation = "quat"
+  c.data.family.update(
     dict(image_size=32, num_train_scenes=40, num_test_scenes=8, train_views=10, test_views=2),
   )
-  g.family.update(family)
-  g.total_steps, g.batch_size = 300, 4
+  c.data.family.update(family)
+  c.total_steps, c.data.batch_size = 300, 4
   c.optax.lr = 1e-3
   c.evals.extra_splits = "test"
-  return driver.resolve_config(c)
+  driver.check_config(c)
+  return c
 
 
 def _train_and_score(config):

@@ -4,19 +4,21 @@ from __future__ import annotations
 
 import pytest
 
+from camrep import settings
 from camrep.data import procedural, sources
 from camrep.data.errors import DataError
 
 
 def test_every_setting_has_one_procedural_stand_in_and_the_tables_agree():
-  assert {sources.procedural_of(s) for s in sources.SETTINGS} == set(procedural.FAMILIES)
+  paper = (settings.GQN, settings.CAR, settings.GIBSON, settings.SEVEN_SCENES)
+  assert {sources.procedural_of(s) for s in paper} == set(procedural.FAMILIES)
   for name, entry in sources.SOURCES.items():
     assert entry.name == name
-    assert sources.setting_of(name) == entry.setting
+    assert sources.setting_of(name) is entry.setting
     assert sources.is_procedural(name) == (name in procedural.FAMILIES)
-    # A setting's sources share its pose columns (the regressor and pose system read them).
+    # A setting's sources have its pose columns (the regressor and pose system read them).
     stand_in = sources.get(sources.procedural_of(entry.setting))
-    assert entry.pose_names == stand_in.pose_names
+    assert entry.pose_names == stand_in.pose_names == entry.setting.pose_columns
 
 
 @pytest.mark.parametrize("name", procedural.FAMILIES)
@@ -67,7 +69,12 @@ def test_register_adds_a_source_once(monkeypatch):
   assert sources.register(entry) is entry and sources.get("tiny") is entry
   with pytest.raises(ValueError, match="already registered"):
     sources.register(entry)
-  with pytest.raises(ValueError, match="setting must be one of"):
-    sources.register(sources.Source("bad", "m", "a", False, "nope", (), (), ""))
+  with pytest.raises(ValueError, match="unknown setting 'nope'"):
+    sources.Source("bad", "m", "a", False, "nope", None, (), "")
+  with pytest.raises(ValueError, match="not the car setting's columns"):
+    sources.Source("bad", "m", "a", False, "car", ("x",), (), "")
+  # A setting given by name is the registered one, and its columns are the source's.
+  by_name = sources.Source("named", "m", "a", False, "car", None, ("train",), "")
+  assert by_name.setting is settings.CAR and by_name.pose_names == ("azimuth", "polar")
   with pytest.raises(DataError, match="belongs to no paper setting"):
     sources.setting_of("tiny")

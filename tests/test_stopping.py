@@ -52,8 +52,8 @@ def test_rule_on_given_curves():
 def _run(tmp_path, cache, monkeypatch, scores, **stop):
   calls = iter(scores)
   monkeypatch.setattr(R.tables_lib, "validation_score", lambda setting, summary: next(calls))
-  c = regression_config.get_config("smoke")
-  c.setting, c.representation = "car", "euler"
+  c = regression_config.get_config("car,smoke")
+  c.representation = "euler"
   c.total_steps, c.eval_every_steps, c.data.cache_dir = 12, 2, cache
   c.stop.update(stop)
   wd = str(tmp_path)
@@ -93,10 +93,10 @@ def test_an_active_rule_needs_periodic_validation(tmp_path):
   c = regression_config.get_config("smoke")
   c.stop.min_improvement = 0.02
   with pytest.raises(ConfigError, match="eval_every_steps"):
-    R.resolve_config(c)
+    R.check_config(c)
   c.eval_every_steps, c.stop.window = 10, 0.0
   with pytest.raises(ConfigError, match="window"):
-    R.resolve_config(c)
+    R.check_config(c)
 
 
 # --------------------------------------------------------------------------------------------

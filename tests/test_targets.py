@@ -1,6 +1,8 @@
-"""Tests of camrep.regression.targets: setting conventions, round trips, losses, defaults.
+"""Tests of the pose encodings as regression targets (camrep.pose_encodings through
+camrep.regression.targets): round trips, head sizes, losses, defaults.
 
-The rotation conversions themselves are tested in tests/test_rotations.py.
+The rotation conversions themselves are tested in tests/test_rotations.py, the settings'
+conventions in tests/test_settings.py.
 """
 
 from __future__ import annotations
@@ -14,22 +16,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from camrep import lie, pose_inputs, rotations
+from camrep import lie, pose_encodings, rotations, settings
 from camrep import pose as P
 from camrep.models import pose_regressor
 from camrep.regression import targets as T
-from tests.utils import assert_close, regression_hparams, slow_except, x64
+from tests.utils import assert_close, regression_hparams, slow_except
 
 TWO_PI = 2 * math.pi
 
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
-
-
-def _wxyz(rot: Rotation) -> np.ndarray:
-  """scipy (x, y, z, w) -> (w, x, y, z) with w >= 0."""
-  q = np.roll(rot.as_quat(), 1, axis=-1)
-  return np.where(q[..., :1] < 0, -q, q)
 
 
 def _angle_close(a, b, atol):
@@ -68,22 +64,6 @@ def test_matrix_losses_are_the_frobenius_distance_of_rotations():
   assert float(g["orientation"]) == pytest.approx(0, abs=1e-10)
 
 
-def test_car_rotation_is_intrinsic_zxz_and_inverts():
-  rng = np.random.default_rng(3)
-  az = rng.uniform(0, TWO_PI, 100)
-  pol = rng.uniform(0.01, math.pi - 0.01, 100)
-  with x64():
-    R = T.car_rotation(jnp.asarray(az), jnp.asarray(pol))
-    ref = Rotation.from_euler(
-      "ZXZ", np.stack([az - math.pi / 2, math.pi - pol, np.full(100, math.pi)], -1)
-    )
-    assert_close(R, ref.as_matrix(), atol=1e-12)
-    # The optical axis points at the centre from the camera on the z-up sphere.
-    centre = np.stack([np.sin(pol) * np.cos(az), np.sin(pol) * np.sin(az), np.cos(pol)], -1)
-    assert_close(np.asarray(R)[:, :, 2], -centre, atol=1e-12)
-    assert_close(T.car_angles(R), np.stack([az, pol], -1), atol=1e-9)
-
-
 def _poses(setting, n=64, seed=0):
   rng = np.random.default_rng(seed)
   u = lambda lo, hi: rng.uniform(lo, hi, n)
@@ -105,7 +85,7 @@ def _poses(setting, n=64, seed=0):
 
 
 def _check_poses_close(setting, got, want, *, pos_atol, ang_atol):
-  k = T.POSITION_DIM[setting]
+  k = settings.get(setting).position_dim
   got, want = np.asarray(got), np.asarray(want)
   assert got.shape == want.shape
   if k:
@@ -113,7 +93,7 @@ def _check_poses_close(setting, got, want, *, pos_atol, ang_atol):
   _angle_close(got[..., k:], want[..., k:], ang_atol)
 
 
-@pytest.mark.parametrize("setting", T.SETTINGS)
+@pytest.mark.parametrize("setting", settings.names())
 def test_baseline_round_trip(setting):
   poses = _poses(setting)
 
@@ -147,16 +127,6 @@ def test_baseline_target_values():
   # Predictions outside the range decode into it.
   dec = T.decode("euler", "car", {"orientation": jnp.array([[-0.5, 4.0]])})
   assert_close(dec, [[TWO_PI - 0.5, math.pi]], atol=1e-6)
-
-
-def test_orientation_quat_seven_scenes_matches_dofs_to_c2w():
-  from camrep.data import seven_scenes
-
-  poses = _poses("seven_scenes", n=16, seed=4).astype(np.float64)
-  with x64():
-    c2w = seven_scenes.dofs_to_c2w(poses, np.zeros(3))
-    q = T.orientation_quat("seven_scenes", jnp.asarray(poses))
-    assert_close(q, _wxyz(Rotation.from_matrix(c2w[:, :3, :3])), atol=1e-12)
 
 
 def _integer_planes(rng, n_blocks, s, freqs):
@@ -226,9 +196,9 @@ def consistent_params(spec, seed=0):
 SMALL = dict(n_blocks=2, block_size=4, exp_method="taylor2")
 
 
-@pytest.mark.parametrize("setting", slow_except(T.SETTINGS, ["car", "gibson"]))
+@pytest.mark.parametrize("setting", slow_except(settings.names(), ["car", "gibson"]))
 def test_ours_round_trip_refines_below_candidate_spacing(setting):
-  spec = T.default_spec(setting, **SMALL)
+  spec = settings.get(setting).pose_spec(**SMALL)
   params = consistent_params(spec, seed=1)
   poses = _poses(setting, n=32, seed=5)
   mode = regression_hparams(setting, "ours").quantisation  # gibson "nearest", else "floor"
@@ -246,7 +216,7 @@ def test_ours_round_trip_refines_below_candidate_spacing(setting):
   # discontinuous at cell boundaries). Polar positions: the binned direction of B(theta) makes the
   # embedding non-smooth (flat in one direction on grid lines), so refinement cannot improve on
   # the arg-min there and only the candidate-step bound is checked.
-  k = T.POSITION_DIM[setting]
+  k = settings.get(setting).position_dim
   cand = np.array(
     [0.25 * (0.05 if setting == "gibson" else 0.1)] * k
     + [math.radians(0.25)] * (poses.shape[-1] - k)
@@ -259,7 +229,7 @@ def test_ours_round_trip_refines_below_candidate_spacing(setting):
 
 
 def test_ours_targets_are_frozen_embeddings():
-  spec = T.default_spec("car", **SMALL)
+  spec = settings.get("car").pose_spec(**SMALL)
   params = P.init(jax.random.key(0), spec)
   poses = _poses("car", n=8)
 
@@ -280,8 +250,8 @@ def test_ours_targets_are_frozen_embeddings():
 
 
 def test_mlp_embedding_round_trip():
-  spec = T.default_spec("car")
-  mlp = pose_inputs.MlpPoseInput(spec).init(jax.random.key(3))
+  spec = settings.get("car").pose_spec()
+  mlp = pose_encodings.MlpEncoding(spec).init(jax.random.key(3))
   assert set(mlp) == {"azimuth", "polar"}
   assert mlp["azimuth"]["hidden"]["kernel"].shape == (1, 128)
   assert mlp["azimuth"]["out"]["kernel"].shape == (128, 96)
@@ -294,7 +264,7 @@ def test_mlp_embedding_round_trip():
 
 
 def test_normalise_head_matches_pose_system():
-  spec = T.default_spec("gqn")
+  spec = settings.get("gqn").pose_spec()
   params = P.init(jax.random.key(1), spec)
   heads = {h.name: h for h in T.head_specs("ours", "gqn", spec=spec)}
   assert heads["xy"].norm == "block" and heads["xy"].n_blocks == 6
@@ -334,13 +304,17 @@ def test_invalid_inputs():
     T.head_specs("quat", "kitti")
   with pytest.raises(ValueError, match="rep_params"):
     T.encode("ours", "gqn", np.zeros((2, 3)))
-  params = P.init(jax.random.key(0), T.default_spec("gqn", **SMALL))
+  params = P.init(jax.random.key(0), settings.get("gqn").pose_spec(**SMALL))
   with pytest.raises(ValueError, match="quantisation mode"):
     T.encode(
-      "ours", "gqn", np.zeros((2, 3)), spec=T.default_spec("gqn", **SMALL), rep_params=params
+      "ours",
+      "gqn",
+      np.zeros((2, 3)),
+      spec=settings.get("gqn").pose_spec(**SMALL),
+      rep_params=params,
     )
   with pytest.raises(ValueError, match="do not match"):
-    T.head_specs("ours", "gqn", spec=T.default_spec("seven_scenes"))
+    T.head_specs("ours", "gqn", spec=settings.get("seven_scenes").pose_spec())
 
 
 # ---------------------------------------------------------------------------- losses and table
@@ -356,7 +330,7 @@ def test_head_losses_hand_computed():
   with pytest.raises(ValueError, match="unknown loss"):
     T.head_loss("huber", pred, tgt)
   heads = T.head_specs(
-    "ours", "seven_scenes", spec=T.default_spec("seven_scenes", n_blocks=1, block_size=2)
+    "ours", "seven_scenes", spec=settings.get("seven_scenes").pose_spec(n_blocks=1, block_size=2)
   )
   p = {h.name: jnp.zeros((1, 2)) for h in heads}
   t = {h.name: jnp.full((1, 2), i + 1.0) for i, h in enumerate(heads)}
@@ -418,23 +392,30 @@ def test_homoscedastic_gradient_wrt_s():
   assert float(g["orientation"]) == pytest.approx(1 - math.exp(3) * 0.5, rel=1e-6)
 
 
-# ---------------------------------------------------------------------------- the codec table
+# ---------------------------------------------------------------------------- the registry
 
 
-def test_one_codec_record_per_representation():
-  assert tuple(T.CODECS) == T.REPRESENTATIONS and len(T.REPRESENTATIONS) == 9
+def test_one_encoding_class_per_representation():
+  assert T.REPRESENTATIONS == (
+    "ours", "mlp", "euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d"
+  )  # fmt: skip
   assert set(T.LEARNED) == {"ours", "mlp"} and set(T.BASELINES) == set(T.REPRESENTATIONS) - {
     "ours",
     "mlp",
   }
-  for name, c in T.CODECS.items():
-    assert c.name == name and c.loss in T.LOSSES
-    assert T.codec(name) is c
-  with pytest.raises(ValueError, match="unknown representation 'rotation6d'"):
-    T.codec("rotation6d")
+  for name in T.REPRESENTATIONS:
+    cls = pose_encodings.get(name)
+    assert cls.table_name() == name and cls.loss in T.LOSSES and cls.regression_target
+    assert pose_encodings.ENCODINGS[cls.name] is cls
+  assert pose_encodings.get("ours") is pose_encodings.get("grid") is pose_encodings.GridEncoding
+  with pytest.raises(ValueError, match="unknown pose encoding 'rotation6d'"):
+    pose_encodings.get("rotation6d")
+  with pytest.raises(ValueError, match="unknown representation 'lowdim'"):
+    T.encoding("lowdim", "gqn")  # a view-synthesis input only
+  enc = T.encoding("quat", "car")
   with pytest.raises(dataclasses.FrozenInstanceError):
-    T.CODECS["quat"].loss = "mse"  # type: ignore[misc]
-  # Learned codecs need their parameters, the baselines nothing but the setting.
-  space = T.target_space("euler", "car", spec=T.default_spec("car"))
-  assert space.spec is None and T.codec("euler").size(space) == 2
-  assert T.target_space("ours", "car").spec == T.default_spec("car")
+    enc.setting = settings.GQN  # type: ignore[misc]
+  # Learned encodings take a pose system, the hand-designed ones nothing but the setting.
+  euler = T.encoding("euler", "car", spec=settings.CAR.pose_spec())
+  assert euler.spec is None and euler.size() == 2 and euler.setting is settings.CAR
+  assert T.encoding("ours", "car").spec == settings.CAR.pose_spec()

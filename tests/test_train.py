@@ -59,10 +59,10 @@ def test_medium_variant_sits_between_quick_and_paper():
     assert quick.model.width < medium.model.width < paper.model.width, name
     assert quick.total_steps < medium.total_steps < paper.total_steps, name
     assert medium.data.in_memory and medium.model.image_size == quick.model.image_size, name
-  reg = {v: regression_config.get_config(v) for v in ("quick", "medium")}
-  for setting in regression_config.SETTINGS:
-    q, m = (reg[v].settings[setting] for v in ("quick", "medium"))
-    assert q.width < m.width and q.total_steps < m.total_steps and q.batch_size < m.batch_size
+  for setting in regression_config.RECIPES:
+    q, m = (regression_config.get_config(f"{setting},{v}") for v in ("quick", "medium"))
+    assert q.model.width < m.model.width and q.total_steps < m.total_steps
+    assert q.data.batch_size < m.data.batch_size
 
 
 def test_check_config_rejects_layouts_the_step_cannot_run(tmp_path):

@@ -123,6 +123,6 @@ def regression_hparams(setting: str, representation: str):
   from camrep.configs import regression as regression_config
   from camrep.regression import learner
 
-  c = regression_config.get_config("smoke")
-  c.setting, c.representation = setting, representation
+  c = regression_config.get_config(f"{setting},smoke")
+  c.representation = representation
   return learner.resolve_hparams(c)

@@ -24,7 +24,7 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
-from camrep.data import sources
+from camrep import settings
 from camrep.data.errors import DataError
 from camrep.data.imageio import PathLike, crop_and_resize, read_image
 
@@ -187,7 +187,7 @@ class GibsonRooms:
   """
 
   name = "gibson"
-  pose_names = sources.get("gibson").pose_names
+  pose_names = settings.GIBSON.pose_columns
   splits = SPLITS
 
   def __init__(

@@ -37,7 +37,7 @@ import numpy as np
 from google.protobuf.message import DecodeError
 from tfrecord import example_pb2
 
-from camrep.data import sources
+from camrep import settings
 from camrep.data.errors import DataError
 from camrep.data.imageio import PathLike, check_image_size, decode_image
 
@@ -288,7 +288,7 @@ class GQN:
   """
 
   name = "gqn"
-  pose_names = sources.get("gqn").pose_names
+  pose_names = settings.GQN.pose_columns
   splits = SPLITS
 
   def __init__(

@@ -29,15 +29,14 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
-from camrep.data import sources, textio
+from camrep import settings
+from camrep.data import textio
 from camrep.data.errors import DataError
 from camrep.data.imageio import PathLike, check_image_size, crop_and_resize, read_image
-from camrep.rotations import (
-  euler_sxyz_to_matrix,
-  matrix_to_euler_sxyz,
-  orthonormalize,
-  quat_to_matrix,
-)
+from camrep.rotations import euler_sxyz_to_matrix as euler_sxyz_to_matrix
+from camrep.rotations import matrix_to_euler_sxyz as matrix_to_euler_sxyz
+from camrep.rotations import orthonormalize as orthonormalize
+from camrep.rotations import quat_to_matrix
 
 DEFAULT_EXTENT = (4.0, 1.5, 3.0)
 """Grid cuboid (x, y, z) in metres the re-based translations must fit (paper, authors' code)."""
@@ -69,8 +68,6 @@ def _check_split(split: str) -> None:
 # ---------------------------------------------------------------------------------------------
 # Pose conversion.
 
-_ANGLE_SHIFT = np.array([np.pi, np.pi / 2, np.pi])
-
 
 def translation_min(poses_c2w: np.ndarray) -> np.ndarray:
   """Component-wise minimum camera position; pass TRAINING poses only.
@@ -95,7 +92,8 @@ def c2w_to_dofs(poses_c2w: np.ndarray, translation_min: np.ndarray) -> np.ndarra
 
   Translation minus `translation_min`; rotation projected onto SO(3), decomposed as
   R = Rz(psi) Ry(phi) Rx(theta) (transforms3d 'sxyz') and shifted by (pi, pi/2, pi), so that
-  theta, psi are in [0, 2 pi] and phi in [0, pi] (authors' `compress_dataset.py`).
+  theta, psi are in [0, 2 pi] and phi in [0, pi] (authors' `compress_dataset.py`; the
+  setting's `camrep.settings.SevenScenes.poses_from_c2w`).
 
   Args:
     poses_c2w: (N, 4, 4) camera-to-world matrices.
@@ -108,8 +106,9 @@ def c2w_to_dofs(poses_c2w: np.ndarray, translation_min: np.ndarray) -> np.ndarra
   if poses.ndim != 3 or poses.shape[1:] != (4, 4):
     raise ValueError(f"poses_c2w must be (N, 4, 4), got {poses.shape}")
   t_min = np.asarray(translation_min, dtype=np.float64).reshape(3)
-  angles = matrix_to_euler_sxyz(orthonormalize(poses[:, :3, :3])) + _ANGLE_SHIFT
-  return np.concatenate([poses[:, :3, 3] - t_min, angles], axis=-1)
+  dofs = settings.SEVEN_SCENES.poses_from_c2w(poses)
+  dofs[:, :3] -= t_min
+  return dofs
 
 
 def dofs_to_c2w(dofs: np.ndarray, translation_min: np.ndarray) -> np.ndarray:
@@ -125,10 +124,8 @@ def dofs_to_c2w(dofs: np.ndarray, translation_min: np.ndarray) -> np.ndarray:
   d = np.asarray(dofs, dtype=np.float64)
   if d.ndim != 2 or d.shape[1] != 6:
     raise ValueError(f"dofs must be (N, 6), got {d.shape}")
-  out = np.zeros((d.shape[0], 4, 4))
-  out[:, :3, :3] = euler_sxyz_to_matrix(d[:, 3:] - _ANGLE_SHIFT)
-  out[:, :3, 3] = d[:, :3] + np.asarray(translation_min, dtype=np.float64).reshape(3)
-  out[:, 3, 3] = 1.0
+  out = settings.SEVEN_SCENES.c2w_from_poses(d)
+  out[:, :3, 3] += np.asarray(translation_min, dtype=np.float64).reshape(3)
   return out
 
 
@@ -468,7 +465,7 @@ class SevenScenes:
   """
 
   name = "seven_scenes"
-  pose_names = sources.get("seven_scenes").pose_names
+  pose_names = settings.SEVEN_SCENES.pose_columns
   splits = SPLITS
 
   def __init__(

@@ -13,8 +13,9 @@ module that defines it (imported before use):
     presets={"small": {"image_size": 64}}))
 
 after which `python -m camrep.data.prepare --source nerf --input ROOT ...` prepares it and
-`prepare --list` lists it. `setting` names the paper setting whose pose system and regressor can
-read the source (None: prepare and the pipelines only).
+`prepare --list` lists it. `setting` is the paper setting (`camrep.settings`) whose pose system
+and regressor read the source (None: prepare and the pipelines only); its pose columns are the
+setting's.
 """
 
 from __future__ import annotations
@@ -27,10 +28,8 @@ import pathlib
 from collections.abc import Mapping
 from typing import Any
 
+from camrep import settings as settings_lib
 from camrep.data.errors import DataError
-
-SETTINGS = ("gqn", "car", "gibson", "seven_scenes")
-"""The paper's four settings (Tables 1 and 2), each with one procedural stand-in."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,9 +44,11 @@ class Source:
       `attr(name, preset=..., **overrides)` (`procedural.make_family`).
     procedural: True: rendered by camrep, `prepare` renders every view and takes no `--input`;
       False: `prepare` reads the dataset at `--input PATH` and stores it.
-    setting: the paper setting ("gqn", "car", "gibson", "seven_scenes") whose pose system reads
-      this source's poses; None for a source that has none (prepare and pipelines only).
-    pose_names: the P pose columns of its records (units in `camrep.data.records`).
+    setting: the paper setting (a `camrep.settings.Setting`, or its registered name) whose pose
+      system reads this source's poses; None for a source that has none (prepare and pipelines
+      only).
+    pose_names: the P pose columns of its records (units in `camrep.data.records`); None: the
+      setting's (`Setting.pose_columns`).
     splits: the splits it can provide (a reader may provide fewer, e.g. SRN's "test_scenes"
       only when that folder exists).
     description: one line for `prepare --list`.
@@ -59,11 +60,26 @@ class Source:
   module: str
   attr: str
   procedural: bool
-  setting: str | None
-  pose_names: tuple[str, ...]
+  setting: settings_lib.Setting | None
+  pose_names: tuple[str, ...] | None
   splits: tuple[str, ...]
   description: str
   presets: Mapping[str, Mapping[str, Any]] = dataclasses.field(default_factory=dict)
+
+  def __post_init__(self):
+    if self.setting is None:
+      if self.pose_names is None:
+        raise ValueError(f"source {self.name!r}: give its pose_names or its setting")
+      return
+    setting = settings_lib.get(self.setting)  # a name: the registered setting
+    object.__setattr__(self, "setting", setting)
+    if self.pose_names is None:
+      object.__setattr__(self, "pose_names", setting.pose_columns)
+    elif tuple(self.pose_names) != setting.pose_columns:
+      raise ValueError(
+        f"source {self.name!r}: pose_names {self.pose_names} are not the {setting.name} "
+        f"setting's columns {setting.pose_columns}"
+      )
 
   @property
   def needs_input(self) -> bool:
@@ -79,48 +95,50 @@ def register(source: Source) -> Source:
   """Adds a source to `SOURCES`.
 
   Raises:
-    ValueError: the name is taken, or `setting` is not one of `SETTINGS` (or None).
+    ValueError: the name is taken.
   """
   if source.name in SOURCES:
     raise ValueError(f"a source named {source.name!r} is already registered")
-  if source.setting is not None and source.setting not in SETTINGS:
-    raise ValueError(f"source {source.name!r}: setting must be one of {SETTINGS} or None")
   SOURCES[source.name] = source
   return source
 
 
-_ROOMS_POSE = ("x", "y", "yaw")
-_VIEW_SPHERE = ("azimuth", "polar")
-_SIX_DOF = ("x", "y", "z", "theta", "phi", "psi")
+def unregister(name: str) -> None:
+  """Removes a registered source (a test's own)."""
+  SOURCES.pop(name, None)
+
+
 _PROCEDURAL = "camrep.data.procedural"
+_GQN, _CAR, _GIBSON, _7S = (
+  settings_lib.GQN, settings_lib.CAR, settings_lib.GIBSON, settings_lib.SEVEN_SCENES
+)  # fmt: skip
 
 for _source in (
-  Source("rooms", _PROCEDURAL, "make_family", True, "gqn", _ROOMS_POSE,
-         ("train", "test", "test_scenes"), "procedural GQN-rooms-like scenes"),
-  Source("object", _PROCEDURAL, "make_family", True, "car", _VIEW_SPHERE,
+  Source("rooms", _PROCEDURAL, "make_family", True, _GQN, None,
+         ("train", "test", "test_scenes"), "procedural _GQN-rooms-like scenes"),
+  Source("object", _PROCEDURAL, "make_family", True, _CAR, None,
          ("train", "test", "test_scenes"), "procedural object on a view sphere (car)"),
-  Source("area", _PROCEDURAL, "make_family", True, "gibson", _ROOMS_POSE, ("train", "test"),
+  Source("area", _PROCEDURAL, "make_family", True, _GIBSON, None, ("train", "test"),
          "procedural Gibson-like areas"),
-  Source("scene6dof", _PROCEDURAL, "make_family", True, "seven_scenes", _SIX_DOF,
+  Source("scene6dof", _PROCEDURAL, "make_family", True, _7S, None,
          ("train", "test"), "procedural 6-DOF scenes (7-Scenes)"),
-  Source("gqn", "camrep.data.gqn", "GQN", False, "gqn", _ROOMS_POSE, ("train", "test"),
-         "DeepMind GQN TFRecords (rooms)", {"small": {"max_files": 1, "max_scenes": 200}}),
-  Source("srn_cars", "camrep.data.srn", "SRNCars", False, "car", _VIEW_SPHERE,
+  Source("gqn", "camrep.data.gqn", "GQN", False, _GQN, None, ("train", "test"),
+         "DeepMind _GQN TFRecords (rooms)", {"small": {"max_files": 1, "max_scenes": 200}}),
+  Source("srn_cars", "camrep.data.srn", "SRNCars", False, _CAR, None,
          ("train", "test", "test_scenes"), "SRN ShapeNet cars renders",
          {"small": {"image_size": 64}}),
-  Source("gibson", "camrep.data.gibson", "GibsonRooms", False, "gibson", _ROOMS_POSE,
+  Source("gibson", "camrep.data.gibson", "GibsonRooms", False, _GIBSON, None,
          ("train", "test"), "authors' Gibson renders", {"small": {"image_size": 64}}),
-  Source("seven_scenes", "camrep.data.seven_scenes", "SevenScenes", False, "seven_scenes",
-         _SIX_DOF, ("train", "test"), "Microsoft 7-Scenes RGB-D",
+  Source("seven_scenes", "camrep.data.seven_scenes", "SevenScenes", False, _7S,
+         None, ("train", "test"), "Microsoft 7-Scenes RGB-D",
          {"small": {"image_size": 64, "scenes": ["chess"]}}),
   # Posed captures (camrep.data.captures.collection), one --input folder per instance.
   *(
     Source(f"{fmt}{suffix}", "camrep.data.captures.collection", f"{fmt}_{kind}", False, setting,
-           poses, ("train", "test", "test_scenes"), f"{what} captures, {setting} setting",
+           None, ("train", "test", "test_scenes"), f"{what} captures, {setting.name} setting",
            {"small": {"image_size": 64}})
     for fmt, what in (("nerf", "NeRF transforms.json"), ("llff", "LLFF"), ("colmap", "COLMAP"))
-    for suffix, kind, setting, poses in (
-      ("", "car", "car", _VIEW_SPHERE), ("_6dof", "6dof", "seven_scenes", _SIX_DOF))
+    for suffix, kind, setting in (("", "car", _CAR), ("_6dof", "6dof", _7S))
   ),
 ):  # fmt: skip
   register(_source)
@@ -143,8 +161,8 @@ def is_procedural(name: str) -> bool:
   return name in SOURCES and SOURCES[name].procedural
 
 
-def setting_of(name: str) -> str:
-  """The paper setting (gqn, car, gibson, seven_scenes) of a source, real or procedural.
+def setting_of(name: str) -> settings_lib.Setting:
+  """The paper setting of a source, real or procedural.
 
   Raises:
     DataError: an unknown source, or one without a setting.
@@ -155,16 +173,20 @@ def setting_of(name: str) -> str:
   return setting
 
 
-def procedural_of(setting: str) -> str:
+def procedural_of(setting: settings_lib.Setting | str) -> str:
   """The procedural family standing in for a setting's real dataset (gqn -> rooms, ...).
 
   Raises:
-    DataError: an unknown setting.
+    DataError: an unknown setting, or one without a procedural source.
   """
+  try:
+    setting = settings_lib.get(setting)
+  except ValueError as e:
+    raise DataError(None, str(e)) from None
   for s in SOURCES.values():
-    if s.procedural and s.setting == setting:
+    if s.procedural and s.setting is setting:
       return s.name
-  raise DataError(None, f"unknown setting {setting!r}; choose one of {SETTINGS}")
+  raise DataError(None, f"setting {setting.name!r} has no procedural data source")
 
 
 def is_available(name: str) -> bool:

@@ -28,7 +28,8 @@ from collections.abc import Iterator, Mapping
 
 import numpy as np
 
-from camrep.data import sources, textio
+from camrep import settings
+from camrep.data import textio
 from camrep.data.errors import DataError
 from camrep.data.imageio import PathLike, check_image_size, crop_and_resize, read_image
 
@@ -103,12 +104,7 @@ def c2w_to_angles(poses_c2w: np.ndarray) -> np.ndarray:
   Returns:
     (..., 2) float64 angles (radians).
   """
-  c = np.asarray(poses_c2w, dtype=np.float64)[..., :3, 3]
-  r = np.linalg.norm(c, axis=-1)
-  azimuth = np.mod(np.arctan2(c[..., 1], c[..., 0]), _TWO_PI)
-  azimuth = np.where(azimuth >= _TWO_PI, 0.0, azimuth)
-  polar = np.arccos(np.clip(c[..., 2] / np.where(r > 0, r, 1.0), -1.0, 1.0))
-  return np.stack([azimuth, polar], axis=-1)
+  return settings.CAR.poses_from_c2w(poses_c2w)
 
 
 def list_instances(split_dir: PathLike) -> list[str]:
@@ -183,7 +179,7 @@ class SRNCars:
   """
 
   name = "srn_cars"
-  pose_names = sources.get("srn_cars").pose_names
+  pose_names = settings.CAR.pose_columns
 
   def __init__(
     self,

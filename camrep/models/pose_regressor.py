@@ -50,6 +50,8 @@ import numpy as np
 
 from camrep.models import layers
 from camrep.models.encoder import Head, SceneEncoder
+from camrep.pose_encodings import GROUPS as GROUPS
+from camrep.pose_encodings import HeadSpec as HeadSpec
 
 Array = jax.Array
 
@@ -73,7 +75,7 @@ class PoseHeads(nn.Module):
   """Optional extra dense layer, then one dense + normalisation per head.
 
   Attributes:
-    heads: the head specs (`camrep.regression.targets.head_specs`).
+    heads: the head specs (`camrep.pose_encodings.PoseEncoding.heads`).
     extra_fc: units of the extra layer (followed by lrelu), or None.
     kernel_init: kernel initialiser of the dense layers (glorot for the TF models).
     extra_fc_match: with `extra_fc`, size the extra layer by the feature size F instead: the
@@ -492,44 +494,33 @@ def flax_unfreeze(tree: Any) -> Any:
 
 
 # Size variants.
+NETWORKS: dict[str, type[nn.Module]] = {
+  "adain_context": GQNRegressor,
+  "conv5": CarRegressor,
+  "conv5_area_norm": GibsonRegressor,
+  "resnet": ResNetRegressor,
+}
+"""The regressor networks by name (a `camrep.settings.Setting`'s `network`)."""
+
+
+def make_network(name: str, heads: tuple[HeadSpec, ...], **options: Any) -> nn.Module:
+  """The network `name` (a key of `NETWORKS`) with `heads`; of `options` (width, extra_fc,
+  extra_fc_match, num_scenes, stage_sizes, fc_dim, ...) it takes the fields the network has.
+
+  Raises:
+    ValueError: an unknown name.
+  """
+  if name not in NETWORKS:
+    raise ValueError(f"unknown regressor network {name!r}; choose one of {tuple(NETWORKS)}")
+  cls = NETWORKS[name]
+  fields = {f.name for f in dataclasses.fields(cls)}
+  return cls(heads, **{k: v for k, v in options.items() if k in fields})
+
+
 ResNet34Regressor = functools.partial(ResNetRegressor, width=1.0, stage_sizes=RESNET34_STAGES)
 ResNetRegressorTiny = functools.partial(
   ResNetRegressor, width=1 / 16, stage_sizes=(1, 1, 1, 1), fc_dim=32
 )
-
-
-GROUPS = ("position", "orientation")
-
-
-NORMS = ("none", "unit", "block")
-
-
-@dataclasses.dataclass(frozen=True)
-class HeadSpec:
-  """One output head of a pose regressor.
-
-  Attributes:
-    name: "position" / "orientation" for baselines, the DOF name for learned representations.
-    size: output size.
-    group: loss group, "position" or "orientation".
-    norm: "none"; "unit" (divide by the L2 norm); "block" (each of `n_blocks` blocks scaled to
-      norm 1 / n_blocks, camrep.pose's polar block_norm).
-    n_blocks: number of blocks for norm="block".
-  """
-
-  name: str
-  size: int
-  group: str
-  norm: str = "none"
-  n_blocks: int = 1
-
-  def __post_init__(self):
-    if self.group not in GROUPS:
-      raise ValueError(f"head {self.name}: group must be one of {GROUPS}, got {self.group!r}")
-    if self.norm not in NORMS:
-      raise ValueError(f"head {self.name}: norm must be one of {NORMS}, got {self.norm!r}")
-    if self.norm == "block" and self.size % self.n_blocks:
-      raise ValueError(f"head {self.name}: size {self.size} not divisible by {self.n_blocks}")
 
 
 def normalise_head(v: Array, head: HeadSpec) -> Array:

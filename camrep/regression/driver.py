@@ -5,7 +5,7 @@
 pose regressor (`learner`) for one (setting, representation, learning rate, seed) and
 writes into DIR:
 
-  config.json        the resolved config (per-setting sizes filled in)
+  config.json        the config (its setting's sizes and hyper-parameters)
   record.json        what identifies its data and pose system beyond the config
                      (`views.data_record`: the family's resolved parameters or the prepared
                      dataset's identity, their fingerprints; the pose spec of a learned
@@ -30,8 +30,8 @@ ArrayRecord dataset in `data.cache_dir` when set), batched by the view-synthesis
               `validation_fraction` of the training scenes (whole scenes, like the test), the
               other settings the last `validation_fraction` of every training scene's views by
               view id (for 7-Scenes, the end of the training trajectory);
-  test        the split of the paper's protocol (`settings.<s>.test_split`): gqn "test_scenes"
-              (held-out rooms; context = views 0..n_context-1 of the scene, queries = its other
+  test        the split of the paper's protocol (`evals.test_split`): gqn "test_scenes" (held-out
+              rooms; context = views 0..n_context-1 of the scene, queries = its other
               views), car / gibson / seven_scenes "test" (held-out views of the training cars,
               areas and 7-Scenes test trajectories). `evals.extra_splits` adds the other one
               (rooms "test": held-out views of training rooms, context from their training
@@ -47,7 +47,7 @@ evaluation split is, and the number of test views.
 Representations (`pose_system.representation_params`): baselines need nothing more; "ours"
 restores the frozen pose system of a view-synthesis workdir (`pose_system.load_pose_system`, via
 `camrep.synthesis`'s `load_run`); "mlp" uses that workdir's MLP embedding when it was trained with
-rep.kind="mlp", else a frozen randomly initialised MLP embedding (`MlpPoseInput`; the
+rep.kind="mlp", else a frozen randomly initialised MLP embedding (`MlpEncoding`; the
 supplement's MLP is trained by view synthesis). The synthesis workdir must have been trained on
 the same data (`pose_system.check_same_data`: same source, same prepared directory and dataset)
 and, for "ours", with the learned grid system.
@@ -70,6 +70,9 @@ import jax
 import ml_collections
 import numpy as np
 
+from camrep import pose_encodings
+from camrep import settings as settings_lib
+from camrep.configs import regression as regression_config
 from camrep.data import sources
 from camrep.regression import learner, pose_system, scoring
 from camrep.regression import tables as tables_lib
@@ -89,75 +92,55 @@ SPLITS = ("test", "test_scenes")
 # Config.
 
 
-def resolve_config(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
-  """Checks the config and fills the per-setting values (a new, unlocked ConfigDict).
-
-  Adds `data.family` (the setting's family overrides) and `evals.test_split`; sets
-  `total_steps`, `data.batch_size`, `model.width` from `settings.<setting>` unless given, and
-  `optax.lr` from `hparams.<setting>` unless given; checks the other hyper-parameters, which
-  `learner.resolve_hparams` reads from `hparams.<setting>` where they are not given.
+def check_config(config: ml_collections.ConfigDict) -> None:
+  """Checks the fields of a config together (a config of `configs/regression.py`, which holds
+  its setting's sizes and hyper-parameters): the setting and representation, "ours" with its
+  `synthesis_workdir`, the data source (`check_source`), the hyper-parameters
+  (`learner.resolve_hparams`), the test splits, the sizes and the stopping rule.
 
   Raises:
     ConfigError: unknown setting / representation / split, a non-positive size, or "ours"
       without `synthesis_workdir`.
   """
-  if config.setting not in T.SETTINGS:
-    raise ConfigError(f"unknown setting {config.setting!r}; choose one of {T.SETTINGS}")
+  try:
+    settings_lib.get(config.setting)
+  except ValueError as e:
+    raise ConfigError(str(e)) from None
   if config.representation not in T.REPRESENTATIONS:
     raise ConfigError(
       f"unknown representation {config.representation!r}; choose one of {T.REPRESENTATIONS}"
     )
-  if config.representation == "ours" and not config.synthesis_workdir:
+  encoding = pose_encodings.get(config.representation)
+  if encoding.needs_synthesis and not config.synthesis_workdir:
     raise ConfigError(
-      'representation "ours" regresses the learned pose system of a view-synthesis run: pass '
-      "--config.synthesis_workdir=DIR (a `python -m camrep.main` workdir of setting "
-      f"{config.setting!r})"
+      f'representation "{config.representation}" regresses the learned pose system of a '
+      "view-synthesis run: pass --config.synthesis_workdir=DIR (a `python -m camrep.main` "
+      f"workdir of setting {config.setting!r})"
     )
   check_source(config)
-  c = ml_collections.ConfigDict(config.to_dict())
-  s = c.settings[c.setting]
-  with c.ignore_type():
-    if c.total_steps is None:
-      c.total_steps = s.total_steps
-    if c.data.batch_size is None:
-      c.data.batch_size = s.batch_size
-    if c.model.width is None:
-      c.model.width = s.width
   try:
-    hparams = learner.resolve_hparams(c)
+    learner.resolve_hparams(config)
   except ValueError as e:
     raise ConfigError(str(e)) from None
-  if c.optax.lr is None:
-    with c.ignore_type():
-      c.optax.lr = hparams.lr
-  c.data.family = ml_collections.ConfigDict(s.family.to_dict())
-  c.evals.test_split = s.test_split
-  extra = [x.strip() for x in c.evals.extra_splits.split(",") if x.strip()]
-  for split in [c.evals.test_split, *extra]:
+  extra = [x.strip() for x in config.evals.extra_splits.split(",") if x.strip()]
+  for split in [config.evals.test_split, *extra]:
     if split not in SPLITS:
       raise ConfigError(f"unknown test split {split!r}; choose from {SPLITS}")
-  if c.total_steps < 1 or c.data.batch_size < 1 or c.optax.lr <= 0:
+  if config.total_steps < 1 or config.data.batch_size < 1 or config.optax.lr <= 0:
     raise ConfigError("total_steps, data.batch_size and optax.lr must be positive")
-  if not 0 < c.data.validation_fraction < 1:
+  if not 0 < config.data.validation_fraction < 1:
     raise ConfigError("data.validation_fraction must be in (0, 1)")
   try:
-    rule = stopping.rule_from_config(c.get("stop"))
+    rule = stopping.rule_from_config(config.get("stop"))
   except ValueError as e:
     raise ConfigError(str(e)) from None
-  if rule.active and c.eval_every_steps <= 0:
+  if rule.active and config.eval_every_steps <= 0:
     raise ConfigError(
       "stop.min_improvement > 0 checks the periodic validation: set eval_every_steps > 0"
     )
-  weights = c.model.get("resnet_weights", "")
-  if weights:
-    if c.setting != "seven_scenes":
-      raise ConfigError(
-        f"model.resnet_weights initialises the 7-Scenes ResNet-34; setting {c.setting!r} has "
-        "no ResNet"
-      )
-    if not os.path.isfile(weights):
-      raise ConfigError(f"model.resnet_weights {weights} does not exist")
-  return c
+  weights = config.model.get("resnet_weights", "")
+  if weights and not os.path.isfile(weights):
+    raise ConfigError(f"model.resnet_weights {weights} does not exist")
 
 
 def check_source(config) -> None:
@@ -181,10 +164,10 @@ def check_source(config) -> None:
     setting = sources.setting_of(source)
   except ValueError as e:
     raise ConfigError(f"data.source: {e}") from None
-  if setting != config.setting:
+  if setting is not settings_lib.get(config.setting):
     raise ConfigError(
-      f"data.source {source!r} is data of the {setting!r} setting, but setting is "
-      f"{config.setting!r}: pass --config.setting={setting}"
+      f"data.source {source!r} is data of the {setting.name!r} setting, but setting is "
+      f"{config.setting!r}: pass --config=configs/regression.py:{setting.name}"
     )
   if sources.is_procedural(source):
     if d.dir:
@@ -204,15 +187,15 @@ def check_source(config) -> None:
 
 
 def make_regressor(config, spec, num_scenes: int) -> learner.Regressor:
-  """The resolved config's `learner.Regressor`."""
+  """The config's `learner.Regressor`."""
   return learner.make_regressor(
     config.setting,
     config.representation,
     spec=spec,
     width=config.model.width,
     num_scenes=num_scenes,
-    fc_dim=config.model.fc_dim,
-    stage_sizes=tuple(config.model.resnet_stages),
+    fc_dim=config.model.get("fc_dim", 2048),
+    stage_sizes=tuple(config.model.get("resnet_stages", ())),
     refine_steps=config.model.refine_steps,
     equalise_params=config.model.equalise_params,
     image_norm="imagenet" if config.model.get("resnet_weights", "") else "symmetric",
@@ -235,7 +218,7 @@ def count_params(tree) -> int:
 
 @dataclasses.dataclass
 class Setup:
-  """What one regression run is built from: the resolved config, the frozen pose input, the
+  """What one regression run is built from: the config, the frozen pose input, the
   data and the regressor."""
 
   config: ml_collections.ConfigDict
@@ -247,7 +230,7 @@ class Setup:
 
 
 def prepare(config: ml_collections.ConfigDict, *, log=print) -> Setup:
-  """Restores the pose input and renders the data of a resolved config (in that order, so that a
+  """Restores the pose input and renders the data of a config (in that order, so that a
   bad synthesis workdir fails before minutes of rendering)."""
   t0 = time.perf_counter()
   spec, rep_params, rep_info = pose_system.representation_params(config)
@@ -448,7 +431,7 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
   and the change is recorded in config_history.jsonl. One run per workdir at a time (a lock).
 
   Args:
-    config: a configs/regression.py config (resolved here).
+    config: a configs/regression.py config (checked here).
     workdir: output directory.
     log: progress printer.
 
@@ -460,12 +443,16 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
     WorkdirError: the workdir cannot be written, or another run holds it.
     FloatingPointError: the loss became non-finite.
   """
-  config = resolve_config(config)
+  check_config(config)
   existed = os.path.isdir(workdir)
   workdir_lib.check_workdir(workdir)
   stored = workdir_lib.read_stored_config(workdir)
   changes = {}
   if stored is not None:
+    try:
+      regression_config.check_layout(stored)
+    except ValueError as e:
+      raise ConfigError(f"{workdir}: {e}") from None
     changes = runconfig.check_changes(stored, config, resumable=None, workdir=workdir, what="rerun")
   lock = workdir_lib.WorkdirLock(workdir)
   lock.acquire()

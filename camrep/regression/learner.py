@@ -15,7 +15,7 @@ Plain functions, independent of the view-synthesis trainer (`camrep.synthesis.tr
 Batches are dicts of arrays:
   "image": (..., H, W, 3) uint8 (mapped to [-1, 1]) or float (used as given, e.g. a ResNet's
            per-scene normalised input);
-  "pose":  (..., P) float poses in the setting's columns (`camrep.regression.targets.POSE_COLUMNS`);
+  "pose":  (..., P) float poses in the setting's columns (`camrep.settings.Setting.pose_columns`);
   "scene": (...) int scene / area index (Gibson's instance-norm tables; per-scene summaries);
   GQN only, with leading axes (S, Q) of scenes and queries:
   "context_image": (S, V, H, W, 3) and "context_pose": (S, V, P) of each scene's context views;
@@ -38,6 +38,8 @@ import jax.numpy as jnp
 import optax
 
 from camrep import pose as P
+from camrep import pose_encodings
+from camrep import settings as settings_lib
 from camrep.models import fastconv, layers, pose_regressor
 from camrep.models import pose_regressor as R
 from camrep.regression import targets as T
@@ -87,17 +89,17 @@ def resolve_hparams(config) -> HyperParams:
   """The hyper-parameters of a run config (configs/regression.py).
 
   Each field (`HPARAM_FIELDS`) is the config's own when set (not None), else that of
-  `config.hparams[config.setting]`: its `ours` for the learned representations, `ours` updated by
-  its `baselines` for the baselines. An empty `loss.kind` is the representation's own loss
-  (`targets.CODECS[representation].loss`). The config is not changed.
+  `config.hparams` (the setting's): its `ours` for the learned representations, `ours` updated
+  by its `baselines` for the baselines. An empty `loss.kind` is the representation's own loss
+  (`PoseEncoding.loss`). The config is not changed.
 
   Raises:
     ValueError: an unknown representation, loss, weighting or quantisation, or a field unset.
   """
-  codec = T.codec(config.representation)
-  table = config.hparams[config.setting]
+  encoding = pose_encodings.get(config.representation)
+  table = config.hparams
   chosen = table.ours.to_dict()
-  if not codec.learned:
+  if not encoding.learned:
     for section, fields in table.baselines.to_dict().items():
       chosen[section].update(fields)
   for section, keys in HPARAM_FIELDS.items():
@@ -106,10 +108,10 @@ def resolve_hparams(config) -> HyperParams:
       if given is not None:
         chosen[section][k] = given
       elif chosen[section].get(k) is None and k != "extra_fc":
-        raise ValueError(f"{section}.{k} is unset, and so is hparams.{config.setting}'s")
+        raise ValueError(f"{section}.{k} is unset, and so is the setting's (hparams)")
   loss, optax_, model = chosen["loss"], chosen["optax"], chosen["model"]
   h = HyperParams(
-    loss=loss["kind"] or codec.loss,
+    loss=loss["kind"] or encoding.loss,
     weighting=loss["weighting"],
     init_s=tuple(float(x) for x in loss["init_s"]),
     s_factor=float(loss["s_factor"]),
@@ -137,7 +139,7 @@ class Regressor:
   """Everything static about one pose regressor (hashable; lives in the state's treedef).
 
   Attributes:
-    setting: one of `targets.SETTINGS`.
+    setting: the `camrep.settings.Setting`.
     representation: one of `targets.REPRESENTATIONS`.
     module: the Flax network (`camrep.models.pose_regressor`).
     heads: its output heads (`targets.head_specs`).
@@ -152,7 +154,7 @@ class Regressor:
       paper width). The same math, summed in another order.
   """
 
-  setting: str
+  setting: settings_lib.Setting
   representation: str
   module: nn.Module
   heads: tuple[pose_regressor.HeadSpec, ...]
@@ -169,7 +171,7 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 def make_regressor(
-  setting: str,
+  setting: settings_lib.Setting | str,
   representation: str,
   *,
   hparams: HyperParams,
@@ -184,14 +186,15 @@ def make_regressor(
 ) -> Regressor:
   """The regressor of a setting and representation at a given width.
 
-  Networks: gqn `GQNRegressor`, car `CarRegressor`, gibson `GibsonRegressor`, seven_scenes
-  `ResNetRegressor`. The baselines' extra dense layer (`hparams.extra_fc`) is scaled by `width`.
+  The network is the setting's (`Setting.network`: gqn `GQNRegressor`, car `CarRegressor`,
+  gibson `GibsonRegressor`, seven_scenes `ResNetRegressor`). The baselines' extra dense layer
+  (`hparams.extra_fc`) is scaled by `width`.
 
   Args:
-    setting: one of `targets.SETTINGS`.
+    setting: a `camrep.settings.Setting` (or its name).
     representation: one of `targets.REPRESENTATIONS`.
     hparams: loss, weighting and optimiser (`resolve_hparams` of a run config).
-    spec: pose system of a learned representation (default `targets.default_spec(setting)`;
+    spec: pose system of a learned representation (default `setting.pose_spec()`;
       pass `camrep.synthesis.components.pose_spec(config)` for a stage-1 run's system).
     width: channel multiplier (paper 1.0).
     num_scenes: rows of Gibson's per-area instance-norm tables.
@@ -206,8 +209,9 @@ def make_regressor(
   Returns:
     a `Regressor`.
   """
+  setting = settings_lib.get(setting)
   if representation in T.LEARNED:
-    spec = spec or T.default_spec(setting)
+    spec = spec or setting.pose_spec()
   else:
     spec = None
   heads = T.head_specs(representation, setting, spec=spec)
@@ -216,16 +220,17 @@ def make_regressor(
     extra = 1  # a placeholder: the units are solved from `match` (PoseHeads)
   match = None
   if equalise_params and extra:
-    match = sum(h.size for h in T.head_specs("ours", setting, spec=T.default_spec(setting)))
-  kw = dict(width=width, extra_fc=extra, extra_fc_match=match)
-  if setting == "gqn":
-    module = R.GQNRegressor(heads, **kw)
-  elif setting == "car":
-    module = R.CarRegressor(heads, **kw)
-  elif setting == "gibson":
-    module = R.GibsonRegressor(heads, num_scenes=num_scenes, **kw)
-  else:
-    module = R.ResNetRegressor(heads, stage_sizes=tuple(stage_sizes), fc_dim=fc_dim, **kw)
+    match = sum(h.size for h in T.head_specs("ours", setting, spec=setting.pose_spec()))
+  module = R.make_network(
+    setting.network,
+    heads,
+    width=width,
+    extra_fc=extra,
+    extra_fc_match=match,
+    num_scenes=num_scenes,
+    stage_sizes=tuple(stage_sizes),
+    fc_dim=fc_dim,
+  )
   if image_norm not in IMAGE_NORMS:
     raise ValueError(f"image_norm must be one of {IMAGE_NORMS}, got {image_norm!r}")
   return Regressor(setting, representation, module, heads, hparams, spec, refine_steps, image_norm)
@@ -300,7 +305,7 @@ def context_pose_input(reg: Regressor, rep_params: Any, poses: Array) -> Array:
 def network_inputs(reg: Regressor, rep_params: Any, batch: Mapping[str, Array]):
   """(images, keyword arguments) of the network for a batch."""
   kw = {"scene": batch.get("scene")}
-  if reg.setting == "gqn":
+  if reg.setting.context_views:
     kw["context_images"] = prepare_images(batch["context_image"], reg.image_norm)
     kw["context_poses"] = context_pose_input(reg, rep_params, batch["context_pose"])
   return prepare_images(batch["image"], reg.image_norm), kw
@@ -322,7 +327,7 @@ def init(
     key: PRNG key of the network initialisation.
     reg: from `make_regressor`.
     batch: an example batch (only shapes matter).
-    rep_params: the frozen representation ("ours": pose-system params, "mlp": `MlpPoseInput.init`).
+    rep_params: the frozen representation ("ours": pose-system params, "mlp": `MlpEncoding.init`).
   """
   if reg.representation in T.LEARNED and rep_params is None:
     raise ValueError(f"representation {reg.representation!r} needs rep_params")

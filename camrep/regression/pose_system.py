@@ -2,9 +2,9 @@
 tie it to a view-synthesis workdir trained on the same data.
 
   representation_params  (spec, params, info) of `config.representation`: nothing for the
-                         baselines; "ours" the learned grid system of `config.synthesis_workdir`;
-                         "mlp" that workdir's MLP embedding when it was trained with
-                         rep.kind="mlp", else a frozen randomly initialised `MlpPoseInput`
+                         baselines; a learned encoding's from `config.synthesis_workdir` when
+                         that run trained the same encoding ("ours": the learned grid system,
+                         required), else a frozen randomly initialised one ("mlp": `MlpEncoding`)
   load_pose_system       restores a view-synthesis workdir's pose input (the synthesis
                          `load_run`, which reads no data), checked against the setting and,
                          given the regression's config, its data
@@ -24,8 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from camrep import pose_inputs
-from camrep.regression import targets as T
+from camrep import pose_encodings
+from camrep import settings as settings_lib
 from camrep.regression import views as views_lib
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime.runconfig import ConfigError
@@ -132,7 +132,9 @@ def check_same_world(workdir: str, syn_config, config) -> None:
   )
 
 
-def load_pose_system(workdir: str, setting: str, *, config=None) -> dict[str, Any]:
+def load_pose_system(
+  workdir: str, setting: settings_lib.Setting | str, *, config=None
+) -> dict[str, Any]:
   """The frozen pose input of a view-synthesis workdir, checked against the setting (and, with
   the regression's `config`, against its data: `check_same_data`).
 
@@ -152,20 +154,17 @@ def load_pose_system(workdir: str, setting: str, *, config=None) -> dict[str, An
     syn_config = workdir_lib.read_config(workdir)
   except FileNotFoundError as e:
     raise ConfigError(f"synthesis_workdir: {e}") from None
+  setting = settings_lib.get(setting)
   syn_setting = components.setting(syn_config)
-  if syn_setting != setting:
+  if syn_setting is not setting:
     raise ConfigError(
-      f"synthesis_workdir {workdir} is a {syn_setting!r} run (data.source "
-      f"{syn_config.data.source!r}); this regression's setting is {setting!r}"
+      f"synthesis_workdir {workdir} is a {syn_setting.name!r} run (data.source "
+      f"{syn_config.data.source!r}); this regression's setting is {setting.name!r}"
     )
   kind = syn_config.rep.get("kind", "grid")
   if config is not None:
     check_same_data(workdir, syn_config, config)
-    if config.representation == "ours" and kind != "grid":
-      raise ConfigError(
-        f"synthesis_workdir {workdir} was trained with another pose system, rep.kind={kind!r}; "
-        '"ours" needs the learned grid system (rep.kind="grid")'
-      )
+    _check_trained_encoding(workdir, config.representation, kind)
   spec = components.pose_spec(syn_config)
   try:
     with ckpt_lib.Checkpointer(workdir, read_only=True) as ck:
@@ -200,30 +199,41 @@ def params_digest(params) -> str:
   return "sha256:" + h.hexdigest()
 
 
+def _check_trained_encoding(workdir: str, representation: str, kind: str) -> None:
+  """Refuses a view-synthesis run that did not train the encoding a representation must read
+  from one (`PoseEncoding.needs_synthesis`: the learned grid, "ours")."""
+  cls = pose_encodings.get(representation)
+  if cls.needs_synthesis and pose_encodings.get(kind) is not cls:
+    raise ConfigError(
+      f"synthesis_workdir {workdir} was trained with another pose system, rep.kind={kind!r}; "
+      f'"{cls.table_name()}" needs the learned grid system (rep.kind="{cls.name}")'
+    )
+
+
 def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
   """(spec, rep_params, info) of the config's representation (see the module docstring).
 
   Raises:
     ConfigError: "ours" without a learned-grid synthesis run of the same setting.
   """
-  rep = config.representation
-  if rep not in T.LEARNED:
+  cls = pose_encodings.get(config.representation)
+  if not cls.learned:
     return None, None, {"source": "none"}
+  setting = settings_lib.get(config.setting)
   system = None
   if config.synthesis_workdir:
-    system = load_pose_system(config.synthesis_workdir, config.setting, config=config)
-  if rep == "ours":
-    if system["kind"] != "grid":
-      raise ConfigError(
-        f"synthesis_workdir {system['workdir']} was trained with another pose system, "
-        f'rep.kind={system["kind"]!r}; "ours" needs the learned grid system (rep.kind="grid")'
-      )
-    info = {k: system[k] for k in ("workdir", "step", "digest")}
-    return system["spec"], system["rep"], {"source": "synthesis", **info}
-  spec = system["spec"] if system else T.default_spec(config.setting)
-  if system and system["kind"] == "mlp":
-    info = {k: system[k] for k in ("workdir", "step", "digest")}
-    return spec, system["rep"], {"source": "synthesis", **info}
+    system = load_pose_system(config.synthesis_workdir, setting, config=config)
+  if system is None and cls.needs_synthesis:
+    raise ConfigError(
+      f'representation "{cls.table_name()}" regresses the learned pose system of a '
+      "view-synthesis run: pass --config.synthesis_workdir=DIR"
+    )
+  if system is not None:
+    _check_trained_encoding(system["workdir"], config.representation, system["kind"])
+    if pose_encodings.get(system["kind"]) is cls:
+      info = {k: system[k] for k in ("workdir", "step", "digest")}
+      return system["spec"], system["rep"], {"source": "synthesis", **info}
+  spec = system["spec"] if system else setting.pose_spec()
   key = jax.random.fold_in(jax.random.key(config.seed), 1)
-  info = {"source": "random_init", "note": "frozen randomly initialised MLP embedding"}
-  return spec, pose_inputs.MlpPoseInput(spec).init(key), info
+  info = {"source": "random_init", "note": f"frozen randomly initialised {cls.title}"}
+  return spec, cls.create(setting, spec).init(key), info

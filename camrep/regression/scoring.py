@@ -12,19 +12,18 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from camrep import metrics as metrics_lib
-from camrep.regression import targets as T
+from camrep import settings as settings_lib
 from camrep.regression.learner import RegressionState, predict_poses
 
 Array = jax.Array
 
 
-def pose_errors(setting: str, pred: Array, true: Array) -> dict[str, Array]:
-  """Per-example pose errors of a setting (the authors' code), via `camrep.metrics`.
+def pose_errors(setting: settings_lib.Setting | str, pred: Array, true: Array) -> dict[str, Array]:
+  """Per-example pose errors of a setting (`Setting.pose_errors`; a name is looked up).
 
   gqn, gibson: "x_error", "y_error" (|.| in scene units / m), "position_error" (Euclidean),
     "yaw_error_deg" (wrapped to [0, 180]).
-  car: "rotation_error_deg" = 2 arccos|<q_hat, q>| of the `targets.car_rotation`s,
+  car: "rotation_error_deg" = 2 arccos|<q_hat, q>| of the `settings.car_rotation`s,
     "azimuth_error_deg" (wrapped), "polar_error_deg".
   seven_scenes: "position_error" (m), "rotation_error_deg" of the sxyz rotations.
 
@@ -34,24 +33,7 @@ def pose_errors(setting: str, pred: Array, true: Array) -> dict[str, Array]:
   Returns:
     {name: (...)}.
   """
-  pos_hat, ang_hat = T.split_pose(setting, pred)
-  pos, ang = T.split_pose(setting, true)
-  out = {}
-  if setting in ("gqn", "gibson"):
-    err = metrics_lib.abs_error(pos_hat, pos)
-    out["x_error"], out["y_error"] = err[..., 0], err[..., 1]
-    out["position_error"] = metrics_lib.translation_error(pos_hat, pos)
-    out["yaw_error_deg"] = metrics_lib.wrapped_angle_error_deg(ang_hat[..., 0], ang[..., 0])
-    return out
-  q_hat, q = T.orientation_quat(setting, pred), T.orientation_quat(setting, true)
-  if setting == "car":
-    out["rotation_error_deg"] = metrics_lib.rotation_error_deg(q_hat, q)
-    out["azimuth_error_deg"] = metrics_lib.wrapped_angle_error_deg(ang_hat[..., 0], ang[..., 0])
-    out["polar_error_deg"] = jnp.rad2deg(metrics_lib.abs_error(ang_hat[..., 1], ang[..., 1]))
-    return out
-  out["position_error"] = metrics_lib.translation_error(pos_hat, pos)
-  out["rotation_error_deg"] = metrics_lib.rotation_error_deg(q_hat, q)
-  return out
+  return settings_lib.get(setting).pose_errors(pred, true)
 
 
 def evaluate_regression(
@@ -59,7 +41,7 @@ def evaluate_regression(
   batches: Iterable[Mapping[str, Array]],
   *,
   predict_fn: Callable | None = None,
-  setting: str | None = None,
+  setting: settings_lib.Setting | None = None,
 ) -> dict[str, np.ndarray]:
   """Per-example errors over an evaluation set.
 

@@ -1,7 +1,7 @@
 """From regression results (results.json of `camrep.regression` runs) to the paper's Tables 1 and 2.
 
-Pure Python and NumPy (no JAX), shared by `experiments/table1.py`, `experiments/table2.py` and
-`experiments/run_comparison.py`:
+Python and NumPy (the settings' selection scores from `camrep.settings`), shared by
+`experiments/table1.py`, `experiments/table2.py` and `experiments/run_comparison.py`:
 
   load_results(patterns)      results.json files (or run directories) matching glob patterns
   validation_score(s, summ)   the scalar that picks the learning rate (lower is better)
@@ -13,11 +13,11 @@ Pure Python and NumPy (no JAX), shared by `experiments/table1.py`, `experiments/
 
 Learning-rate choice: per (setting, representation), each lr's score is the mean of
 `validation_score` over the seeds that every lr of the grid has (all seeds when they share none);
-the lowest score wins (ties: the smaller lr). The score is the mean over the setting's table
-columns of (validation error / the paper's error of "ours" in that column), so position and
-angle errors count alike: car mean rotation error / 2.85 deg; gqn mean (x / 0.053, y / 0.053,
-yaw / 4.07 deg); gibson mean (x / 0.021, y / 0.020, yaw / 0.87 deg); seven_scenes median
-(position / 0.21 m, rotation / 7.92 deg), all over the whole validation set.
+the lowest score wins (ties: the smaller lr). The score (`Setting.validation_score`) is the
+mean over the setting's table columns of (validation error / the paper's error of "ours" in that
+column), so position and angle errors count alike: car mean rotation error / 2.85 deg; gqn mean
+(x / 0.053, y / 0.053, yaw / 4.07 deg); gibson mean (x / 0.021, y / 0.020, yaw / 0.87 deg);
+seven_scenes median (position / 0.21 m, rotation / 7.92 deg), all over the whole validation set.
 """
 
 from __future__ import annotations
@@ -32,6 +32,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
+
+from camrep import settings
 
 RESULTS_FILE = "results.json"
 
@@ -99,18 +101,6 @@ of the real 7-Scenes data."""
 
 TABLE2_ROWS = ("ours", "quat", "logq", "rot6d", "svd9d")
 
-# Per setting: (error, statistic, the paper's "ours" value) averaged into the validation score.
-SELECTION_METRICS: dict[str, tuple[tuple[str, str, float], ...]] = {
-  "car": (("rotation_error_deg", "mean", 2.85),),
-  "gqn": (("x_error", "mean", 0.053), ("y_error", "mean", 0.053), ("yaw_error_deg", "mean", 4.07)),
-  "gibson": (
-    ("x_error", "mean", 0.021),
-    ("y_error", "mean", 0.020),
-    ("yaw_error_deg", "mean", 0.87),
-  ),
-  "seven_scenes": (("position_error", "median", 0.21), ("rotation_error_deg", "median", 7.92)),
-}
-
 
 def load_results(patterns: Iterable[str]) -> list[dict[str, Any]]:
   """results.json files matching glob patterns (a run directory stands for its results.json).
@@ -134,15 +124,14 @@ def load_results(patterns: Iterable[str]) -> list[dict[str, Any]]:
 
 
 def validation_score_text(setting: str) -> str:
-  """The selection score of `setting` in words, e.g. "mean of (x_error mean / 0.053, ...)"."""
-  terms = [f"{err} {stat} / {ref:g}" for err, stat, ref in SELECTION_METRICS[setting]]
-  return terms[0] if len(terms) == 1 else f"mean of ({', '.join(terms)})"
+  """The selection score of `setting` in words, e.g. "mean of (x_error mean / 0.053, ...)"
+  (`Setting.validation_score_text`)."""
+  return settings.get(setting).validation_score_text()
 
 
 def validation_score(setting: str, summary: Mapping[str, Any]) -> float:
-  """The learning-rate selection score of a validation summary (see the module docstring)."""
-  terms = [summary["all"][err][stat] / ref for err, stat, ref in SELECTION_METRICS[setting]]
-  return float(np.mean(terms))
+  """The learning-rate selection score of a validation summary (`Setting.validation_score`)."""
+  return settings.get(setting).validation_score(summary)
 
 
 @dataclasses.dataclass

@@ -48,6 +48,7 @@ from typing import Any
 import grain
 import numpy as np
 
+from camrep import settings as settings_lib
 from camrep.data import pipeline, sources, storage
 from camrep.runtime.runconfig import ConfigError
 
@@ -180,15 +181,18 @@ def load_split(family, split: str, *, cache_dir: str = "") -> ViewSet:
   return ViewSet(index, images.__getitem__)
 
 
-def split_validation(setting: str, views: ViewSet, fraction: float) -> tuple[ViewSet, ViewSet]:
+def split_validation(
+  setting: settings_lib.Setting, views: ViewSet, fraction: float
+) -> tuple[ViewSet, ViewSet]:
   """(train, validation) parts of the training split (see the module docstring).
 
-  gqn: the last ceil(fraction * n_scenes) scenes by id; the others: per scene the last
+  A setting whose examples are scenes (`Setting.context_views`, gqn): the last
+  ceil(fraction * n_scenes) scenes by id; the others: per scene the last
   ceil(fraction * n_views) views by view id (at least one view stays in training).
   """
   val = np.zeros(len(views), bool)
   ids = views.scene_ids()
-  if setting == "gqn":
+  if setting.context_views:
     k = max(1, math.ceil(fraction * len(ids)))
     if k >= len(ids):
       raise ConfigError(f"validation would take all {len(ids)} training scenes")
@@ -236,7 +240,7 @@ def data_source(config) -> str:
 
 
 def data_record(config) -> dict[str, Any]:
-  """`fingerprint.data_record` of the data this (resolved) regression reads: its prepared
+  """`fingerprint.data_record` of the data this regression reads: its prepared
   dataset (`open_dataset`) or the setting's procedural family. Renders nothing.
 
   Raises:
@@ -255,14 +259,14 @@ def data_record(config) -> dict[str, Any]:
 
 
 def make_data(config) -> Data:
-  """Train, validation and test sets of a resolved config (see the module docstring)."""
+  """Train, validation and test sets of a config (see the module docstring)."""
   if is_real(config):
     return make_real_data(config)
-  setting, cache = config.setting, config.data.cache_dir
-  family = sources.family_of_config(config.data, sources.procedural_of(config.setting))
+  setting, cache = settings_lib.get(config.setting), config.data.cache_dir
+  family = sources.family_of_config(config.data, sources.procedural_of(setting))
   full_train = load_split(family, "train", cache_dir=cache)
   train, val = split_validation(setting, full_train, config.data.validation_fraction)
-  gqn = setting == "gqn"
+  gqn = setting.context_views
   evals = {"validation": EvalSet(val, val if gqn else None)}
   extra = [x.strip() for x in config.evals.extra_splits.split(",") if x.strip()]
   for name in [config.evals.test_split, *extra]:
@@ -291,7 +295,7 @@ def make_data(config) -> Data:
     "test_split": config.evals.test_split,
     "num_examples": {},
   }
-  if family.name == "scene6dof":
+  if hasattr(family, "scene_name"):  # a family of named scenes (scene6dof)
     info["scene_names"] = {str(i): family.scene_name(i) for i in range(len(family.config.scenes))}
   return Data(train, evals, info)
 
@@ -376,7 +380,7 @@ def load_real_split(
   return _streamed(stored, size) if stream else _decoded(stored, size)
 
 
-def real_split_plan(setting: str, splits: Any) -> dict[str, str]:
+def real_split_plan(setting: settings_lib.Setting, splits: Any) -> dict[str, str]:
   """Where each evaluation split of a real dataset comes from (see the module docstring).
 
   Args:
@@ -387,17 +391,13 @@ def real_split_plan(setting: str, splits: Any) -> dict[str, str]:
     {evaluation split: description}; only the splits this dataset can provide.
   """
   out = {}
-  if setting == "gqn":
+  if setting.context_views:
     out["test_scenes"] = "held-out scenes carved from the prepared train split (last scenes by id)"
     if "test" in splits:
       out["test"] = "prepared test split (held-out view 9) of the training scenes"
     return out
   if "test" in splits:
-    out["test"] = {
-      "seven_scenes": "prepared test split (TestSplit sequences)",
-      "car": "prepared test split (cars_train_test: held-out views of the training cars)",
-      "gibson": "prepared test split (held-out views of the training areas)",
-    }[setting]
+    out["test"] = setting.real_test_description
   if "test_scenes" in splits:
     out["test_scenes"] = "prepared test_scenes split (novel scenes, e.g. SRN cars_test)"
   return out
@@ -410,13 +410,14 @@ def make_real_data(config) -> Data:
     ConfigError: missing directory or dataset, a split the dataset lacks, an empty split, or too
       few views or scenes for the layout.
   """
-  d, setting = config.data, config.setting
+  d, setting = config.data, settings_lib.get(config.setting)
   path, meta = open_dataset(config)
   plan = real_split_plan(setting, meta.get("splits", {}))
   extra = [x.strip() for x in config.evals.extra_splits.split(",") if x.strip()]
   wanted = [config.evals.test_split, *extra]
   # Held-out novel scenes are scored whenever the dataset has them (SRN cars_test).
-  wanted += [s for s in plan if s not in wanted and s == "test_scenes" and setting != "gqn"]
+  gqn = setting.context_views
+  wanted += [s for s in plan if s not in wanted and s == "test_scenes" and not gqn]
   for name in wanted:
     if name not in plan:
       raise ConfigError(
@@ -428,7 +429,6 @@ def make_real_data(config) -> Data:
     stream=bool(d.get("stream", False)),
   )
   full_train = load_real_split(path, meta, "train", **load)
-  gqn = setting == "gqn"
   heldout = None
   if gqn:
     ids = full_train.scene_ids()
@@ -474,7 +474,8 @@ def make_real_data(config) -> Data:
       f"last {d.validation_fraction:g} of the remaining training scenes"
       if gqn
       else f"last {d.validation_fraction:g} of each training scene's views (by view id"
-      + ("; the end of the TrainSplit trajectory)" if setting == "seven_scenes" else ")")
+      + setting.validation_note
+      + ")"
     ),
     "test_split": config.evals.test_split,
     "streamed": bool(d.get("stream", False)),
@@ -483,21 +484,21 @@ def make_real_data(config) -> Data:
     "num_test_views": len(evals[config.evals.test_split].queries)
     - (_gqn_context_views(config, evals[config.evals.test_split]) if gqn else 0),
   }
-  if setting == "seven_scenes":
-    names = seven_scenes_names(meta)
-    if names:
-      info["scene_names"] = {str(i): n for i, n in enumerate(names)}
+  names = scene_names(meta)
+  if names:
+    info["scene_names"] = {str(i): n for i, n in enumerate(names)}
   return Data(train, evals, info)
 
 
-def seven_scenes_names(meta: dict[str, Any]) -> list[str]:
-  """Scene names of a prepared 7-Scenes dataset in scene-id order (the reader's `scenes`: the
-  `--config.scenes=...` override, else the preset's, else every scene folder of the input), or []
-  when they cannot be told."""
+def scene_names(meta: dict[str, Any]) -> list[str]:
+  """Scene names of a prepared dataset of named scenes (7-Scenes) in scene-id order (the
+  reader's `scenes`: the `--config.scenes=...` override, else its source's preset's, else every
+  7-Scenes scene folder of the input), or [] when they cannot be told."""
   m = meta.get("metadata", {})
   scenes = m.get("overrides", {}).get("scenes")
-  if scenes is None and m.get("preset"):
-    scenes = sources.get("seven_scenes").presets.get(m["preset"], {}).get("scenes")
+  source = sources.SOURCES.get(meta.get("source"))
+  if scenes is None and m.get("preset") and source is not None:
+    scenes = source.presets.get(m["preset"], {}).get("scenes")
   root = m.get("input")
   if scenes is None and isinstance(root, str) and os.path.isdir(root):  # captures: a list
     scenes = sorted(
@@ -536,7 +537,7 @@ def train_pipeline(config, views: ViewSet) -> pipeline.BatchPipeline:
     ConfigError: fewer training scenes (gqn) or views than a batch.
   """
   bs, d = config.data.batch_size, config.data
-  gqn = config.setting == "gqn"
+  gqn = settings_lib.get(config.setting).context_views
   if gqn:
     views = views.subset(np.lexsort((views.views, views.scenes)))
     index, groups, what = views.index, len(views.scene_ids()), "scenes"
@@ -565,7 +566,7 @@ def learner_batch(config, views: ViewSet, batch: pipeline.Batch) -> dict[str, np
   "pose" (B, P), "scene" (B,).
   """
   image, pose = batch["image"][0], batch["pose"][0]
-  if config.setting == "gqn":
+  if settings_lib.get(config.setting).context_views:
     c = config.data.n_context
     return {
       "context_image": image[:, :c],
@@ -602,7 +603,7 @@ def eval_plan(config, eval_set: EvalSet) -> list[dict[str, np.ndarray]]:
   largest count; `max(1, batch_size // Q)` scenes per batch. Others: `batch_size` views a batch.
   """
   q_views, bs = eval_set.queries, config.evals.batch_size
-  if config.setting != "gqn":
+  if not settings_lib.get(config.setting).context_views:
     plans = []
     for start in range(0, len(q_views), bs):
       rows = np.arange(start, min(start + bs, len(q_views)))
@@ -638,7 +639,7 @@ def eval_batches(config, eval_set: EvalSet) -> grain.IterDataset:
   "pose" (B, P), "scene" (B,), "view" (B,), "mask" (B,).
   """
   q_views, ctx = eval_set.queries, eval_set.context
-  gqn = config.setting == "gqn"
+  gqn = settings_lib.get(config.setting).context_views
 
   def read(plan: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     rows = plan["rows"]

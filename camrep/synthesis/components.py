@@ -13,6 +13,7 @@ from collections.abc import Iterator
 import jax
 
 from camrep import pose as P
+from camrep import settings
 from camrep.data import batches, fingerprint, sources
 from camrep.data import pipeline as pipeline_lib
 from camrep.data.errors import DataError
@@ -23,8 +24,8 @@ from camrep.synthesis import synthesizers
 Array = jax.Array
 
 
-def setting(config) -> str:
-  """The paper's setting of the config's data source: gqn, car, gibson or seven_scenes."""
+def setting(config) -> settings.Setting:
+  """The paper's setting of the config's data source (`camrep.settings`)."""
   return sources.setting_of(config.data.source)
 
 
@@ -61,46 +62,17 @@ def stopping_rule(config) -> stopping.Rule:
 
 
 def pose_spec(config) -> P.PoseSystemSpec:
-  """The pose system of the config's setting (the authors'), with camrep's options (config.rep)."""
+  """The pose system of the config's setting (`Setting.pose_spec`: its DOFs and ranges), with
+  camrep's options (config.rep)."""
   r = config.rep
-  ang = math.radians(r.angle_spacing_deg)
-
-  def angle(name, low=0.0, high=2 * math.pi, periodic=None):
-    return P.AngularDof(
-      name, spacing=ang, low=low, high=high, periodic=r.periodic if periodic is None else periodic
-    )
-
-  def polar(low, high):
-    return P.PolarDof(
-      "xy",
-      low=low,
-      high=high,
-      spacing=r.position_spacing,
-      n_directions=r.n_directions,
-      variant=r.polar_variant,
-      block_norm=r.block_norm,
-      pair_radius=r.pair_radius,
-    )
-
-  s = setting(config)
-  if s == "gqn":
-    dofs = (polar(-1.0, 1.0), angle("yaw"))
-  elif s == "gibson":
-    dofs = (polar(0.0, 2.0), angle("yaw"))
-  elif s == "car":
-    dofs = (angle("azimuth"), angle("polar", high=math.pi, periodic=False))
-  else:
-    sp = r.position_spacing
-    dofs = (
-      P.LinearDof("x", 0.0, 4.0, sp),
-      P.LinearDof("y", 0.0, 1.5, sp),
-      P.LinearDof("z", 0.0, 3.0, sp),
-      angle("theta"),
-      angle("phi", high=math.pi, periodic=False),
-      angle("psi"),
-    )
-  return P.PoseSystemSpec(
-    dofs=dofs,
+  return setting(config).pose_spec(
+    angle_spacing=math.radians(r.angle_spacing_deg),
+    periodic=r.periodic,
+    position_spacing=r.position_spacing,
+    polar_variant=r.polar_variant,
+    n_directions=r.n_directions,
+    block_norm=r.block_norm,
+    pair_radius=r.pair_radius,
     n_blocks=r.n_blocks,
     block_size=r.block_size,
     exp_method=r.exp_method,
@@ -109,9 +81,10 @@ def pose_spec(config) -> P.PoseSystemSpec:
 
 
 def spec_record(spec: P.PoseSystemSpec) -> dict:
-  """A pose-system spec as JSON values: its fields, each DOF's with its class ("kind")."""
+  """A pose-system spec as JSON values: its fields, each DOF's `record` (its class, "kind", and
+  fields)."""
   fields = {f.name: getattr(spec, f.name) for f in dataclasses.fields(spec) if f.name != "dofs"}
-  dofs = [{"kind": type(d).__name__, **dataclasses.asdict(d)} for d in spec.dofs]
+  dofs = [d.record() for d in spec.dofs]
   return fingerprint.plain({**fields, "dofs": dofs})
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
-from camrep import lie, pose, pose_inputs
+from camrep import lie, pose, pose_encodings
 from camrep.data import procedural, sources, storage
 from camrep.data.errors import DataError
 from camrep.runtime import runconfig
@@ -21,20 +21,20 @@ from camrep.runtime import validate as V
 from camrep.runtime.runconfig import ConfigError
 from camrep.synthesis import components, synthesizers
 
-TASKS = ("gqn", "table")
+TASKS = tuple(synthesizers.TASKS)
 DATA_MODES = ("random", "pairs")
 SCHEDULES = ("constant", "cosine", "linear")
-POLAR_VARIANTS = ("binned", "continuous")
+POLAR_VARIANTS = tuple(pose.POLAR_VARIANTS)
 # Image sides the decoders render: the GQN model 64 px; the table decoder 64 (quick) or 128.
 GQN_IMAGE_SIZE = 64
 TABLE_IMAGE_SIZES = (64, 128)
 
 
-def _setting(c) -> str:
+def _setting(c):
   try:
     return components.setting(c)
   except ValueError:
-    return ""
+    return None
 
 
 def _table(c) -> bool:
@@ -50,7 +50,8 @@ def _grid(c) -> bool:
 
 
 def _polar(c) -> bool:
-  return _setting(c) in ("gqn", "gibson")
+  setting = _setting(c)
+  return setting is not None and setting.has_polar_dof
 
 
 def _prepared(c) -> bool:
@@ -109,7 +110,7 @@ SCHEMA: dict[str, V.Field] = {
   "model.draw_steps": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW)),
   "model.z_channels": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW)),
   "model.draw_temperature": _F(V.NONNEG, _U(_convdraw, _NOT_CONVDRAW)),
-  "rep.kind": _F(V.one_of(pose_inputs.REP_KINDS)),
+  "rep.kind": _F(V.one_of(pose_encodings.SYNTHESIS_KINDS)),
   "rep.n_blocks": _F(V.POSITIVE),
   "rep.block_size": _F(V.POSITIVE),
   "rep.exp_method": _F(V.one_of(lie.EXP_METHODS)),

@@ -8,7 +8,6 @@ import os
 from collections.abc import Mapping
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from camrep import pose as P
@@ -16,15 +15,6 @@ from camrep.runtime import plots
 from camrep.synthesis.restore import Run
 
 Array = jax.Array
-_jit_gram = jax.jit(P.gram, static_argnums=(1, 2))
-
-
-def dof_poses(spec: P.PoseSystemSpec, name: str, values: Array) -> Array:
-  """Poses (K, pose_dim) whose DOF `name` takes `values` ((K,) or (K, 2)), other columns 0."""
-  values = jnp.asarray(values, jnp.float32)
-  cols = values if values.ndim == 2 else values[:, None]
-  poses = jnp.zeros((cols.shape[0], spec.pose_dim), jnp.float32)
-  return poses.at[:, spec.columns(name)].set(cols)
 
 
 def gram_values(spec: P.PoseSystemSpec, name: str) -> Array:
@@ -40,19 +30,11 @@ def gram_maps(run: Run) -> dict[str, np.ndarray]:
   """{dof name: (K, K) Gram matrix V V^T} of the run's pose vectors over `gram_values`.
 
   Unit-norm DOFs have ones on the diagonal (up to the norm error of exp_method "taylor2" between
-  grid points); a polar DOF with block_norm has 1 / n_blocks.
+  grid points); a polar DOF with block_norm has 1 / n_blocks. Another pose input than the
+  learned grid gives the same map of its vectors (`PoseEncoding.gram`).
   """
-  rep = run.params["rep"]
-  if not run.model.learns_pose_system:  # the same map of another pose input's vectors
-    out = {}
-    for n in run.spec.names:
-      v = run.model.per_dof(rep, dof_poses(run.spec, n, gram_values(run.spec, n)))[n]
-      out[n] = np.asarray(v @ v.T)
-    return out
-  return {
-    n: np.asarray(_jit_gram(rep, run.spec, n, values=gram_values(run.spec, n)))
-    for n in run.spec.names
-  }
+  rep, encoding = run.params["rep"], run.model.pose_encoding
+  return {n: np.asarray(encoding.gram(rep, n, gram_values(run.spec, n))) for n in run.spec.names}
 
 
 def _gram_caption(spec: P.PoseSystemSpec, name: str, k: int) -> str:

@@ -29,10 +29,10 @@ import numpy as np
 
 from camrep import metrics as metrics_lib
 from camrep import pose as P
+from camrep import pose_encodings
 from camrep.runtime import plots
 from camrep.runtime import progress as progress_lib
 from camrep.synthesis import components, heldout, synthesizers
-from camrep.synthesis import gram as gram_lib
 from camrep.synthesis.restore import Run
 
 Array = jax.Array
@@ -50,7 +50,7 @@ def default_alphas(levels: int = DEFAULT_LEVELS) -> np.ndarray:
 
 def default_quantisation(config: ml_collections.ConfigDict) -> str:
   """The noise test's quantisation (authors): random neighbour for GQN and car, else rounding."""
-  return "random" if components.setting(config) in ("gqn", "car") else "nearest"
+  return components.setting(config).noise_quantisation
 
 
 def grid_betas(
@@ -58,18 +58,14 @@ def grid_betas(
 ) -> dict[str, np.ndarray]:
   """beta per DOF: {name: (d,)} std of each element over the DOF's normalised grid vectors.
 
-  With a `model` whose pose input is not the learned grid ("lowdim", "mlp"), the population is
-  the same grid points (`P.candidates` at the grid spacing) pushed through that pose input, so
-  every kind is noised relative to its own spread over the same poses.
+  With a `model`, its pose encoding's `spread`: for another pose input than the learned grid
+  ("lowdim", "mlp") the population is the same grid points (`P.candidates` at the grid spacing)
+  pushed through that pose input, so every kind is noised relative to its own spread over the
+  same poses.
   """
-  if model is None or model.learns_pose_system:
+  if model is None:
     return {n: np.asarray(P.grid_std(params_rep, spec, n)) for n in spec.names}
-  out = {}
-  for d in spec.dofs:
-    poses = gram_lib.dof_poses(spec, d.name, P.candidates(spec, d.name, d.spacing))
-    v = model.per_dof(params_rep, poses)[d.name]
-    out[d.name] = np.asarray(jnp.std(v, axis=0))
-  return out
+  return {n: np.asarray(v) for n, v in model.pose_encoding.spread(params_rep).items()}
 
 
 def pose_vectors(
@@ -86,7 +82,7 @@ def pose_vectors(
   Args:
     keys: (E,) PRNG keys, used (and required) only for mode="random".
   """
-  return synthesizers.grid_vectors(params_rep, spec, poses, mode=mode, keys=keys)
+  return pose_encodings.GridEncoding(spec).embed_images(params_rep, poses, mode=mode, keys=keys)
 
 
 def add_noise(
@@ -247,7 +243,7 @@ def write_noise(out: str, run: Run, result: Mapping[str, Any]) -> list[str]:
   record = {
     "workdir": os.path.abspath(run.workdir),
     "step": int(result["step"]),
-    "setting": components.setting(run.config),
+    "setting": components.setting(run.config).name,
     "quantisation": result["quantisation"],
     "num_images": int(result["num_images"]),
     "alphas": [round(float(a), 10) for a in result["alphas"]],

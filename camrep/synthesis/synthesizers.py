@@ -1,17 +1,19 @@
 """View-synthesis models behind one interface (paper sections 3.3-3.6), and `from_config`, the one
 place that maps a config to its model.
 
-A `Synthesizer` holds a Flax module, the pose input that feeds it (`config.rep.kind`, see
-`camrep.pose_inputs`) and its losses. Its parameters are two groups, {"model": module params,
-"rep": pose-input params}, each trained by its own optimiser (`step.train_step`):
+A `Synthesizer` holds a Flax module, the pose encoding that feeds it (`config.rep.kind`, see
+`camrep.pose_encodings`) and its losses. Its parameters are two groups, {"model": module params,
+"rep": the encoding's params}, each trained by its own optimiser (`step.train_step`):
 
   model group  minimises the model's loss (`loss`): L_rec of eq. 9 for camrep's decoders, the
                negative ELBO for GQN's generator;
-  rep group    minimises `loss_weight` * that loss + the pose input's own loss (`pose_loss`:
-               lambda_2 sum_l L_rot,l + lambda_4 L_rot,theta, eqs. 6-9; zero without generators).
+  rep group    minimises `loss_weight` * that loss + the encoding's own loss (`pose_loss`, its
+               `regulariser`: lambda_2 sum_l L_rot,l + lambda_4 L_rot,theta, eqs. 6-9, for the
+               learned grid; zero for the others).
 
 Implementations: `GQNDecoder` (encoder over context views, AdaIN decoder), `TableDecoder`
-(per-scene tables) and `ConvDraw` (GQN's generator, Eslami et al. 2018).
+(per-scene tables), one per `config.task` (`TASKS`), and `ConvDraw` (GQN's generator, Eslami et
+al. 2018).
 
 Batches, on one device (see camrep.data.pipeline): training {"image": uint8 (S, V, H, W, 3),
 "pose": (S, V, P), "scene": (S,)}; held-out views (`heldout.eval_batches`) {"context_image"
@@ -29,7 +31,7 @@ import jax
 import jax.numpy as jnp
 
 from camrep import pose as P
-from camrep import pose_inputs
+from camrep import pose_encodings
 from camrep.models import convdraw
 from camrep.models.composite import GQNSynthesis, TableSynthesis
 from camrep.runtime.runconfig import ConfigError
@@ -98,18 +100,6 @@ def sample_keys(scene_ids: Array) -> Array:
   return jax.vmap(lambda i: jax.random.fold_in(base, i))(scene_ids)
 
 
-def grid_vectors(
-  params_rep: Params, spec: P.PoseSystemSpec, poses: Array, *, mode: str, keys: Array | None
-) -> dict[str, Array]:
-  """The learned system's vectors of poses (E, V, P) -> {name: (E, V, d)}; quantisation "random"
-  draws with one key per leading row (keys (E,))."""
-  if mode == "random":
-    if keys is None:
-      raise ValueError("quantisation 'random' needs per-image keys")
-    return jax.vmap(lambda p, k: P.embed(params_rep, spec, p, mode=mode, key=k))(poses, keys)
-  return P.embed(params_rep, spec, poses, mode=mode)
-
-
 class Synthesizer(abc.ABC):
   """A view-synthesis model: a Flax module fed by a pose input, with its losses.
 
@@ -117,10 +107,11 @@ class Synthesizer(abc.ABC):
     config: the run's config.
     spec: the pose system (the DOFs whose columns the poses hold).
     module: the Flax module.
-    pose_input: the pose input (`pose_inputs.from_config`: the learned grid, GQN's low-dim
-      vector or the MLP).
+    pose_encoding: the pose input (`pose_encodings.from_config`: the learned grid, GQN's
+      low-dim vector or the MLP).
     loss_weight: lambda_1, the weight of `loss` in the rep group's objective.
     n_context: context views per scene (GQN layouts), None for per-scene tables.
+    reads_context: the model encodes each scene's context views (GQN layouts).
     temperature: latent temperature of `predict` for a generative model, else None.
     variants: further predictions of the held-out evaluation, {name: temperature}.
   """
@@ -128,21 +119,17 @@ class Synthesizer(abc.ABC):
   n_context: int | None = None
   temperature: float | None = None
   variants: Mapping[str, float] = {}
+  reads_context = False
 
   def __init__(self, config, spec: P.PoseSystemSpec, module: nn.Module):
     self.config, self.spec, self.module = config, spec, module
-    self.pose_input = pose_inputs.from_config(config, spec)
+    self.pose_encoding = pose_encodings.from_config(config, spec)
     self.loss_weight = float(config.loss.rec_weight)
-
-  @property
-  def learns_pose_system(self) -> bool:
-    """Whether the pose input is the learned grid (vectors rotated by generators)."""
-    return self.pose_input.learned_grid
 
   def init(self, key: Array, batch: Mapping[str, Array]) -> Params:
     """Initial parameters {"model", "rep"} shaped from one device's training batch."""
     k_model, k_rep = jax.random.split(key)
-    rep = self.pose_input.init(k_rep)
+    rep = self.pose_encoding.init(k_rep)
     images = to_float_images(jnp.asarray(batch["image"]))
     vecs = self.vectors(rep, jnp.asarray(batch["pose"]))
     variables = self._init_module(k_model, images, vecs, jnp.asarray(batch["scene"]))
@@ -200,48 +187,30 @@ class Synthesizer(abc.ABC):
   def per_dof(
     self, params_rep: Params, poses: Array, *, mode: str = "nearest", keys: Array | None = None
   ) -> dict[str, Array]:
-    """The pose input's vectors of poses (E, V, P): {name: (E, V, k)}; `mode` and `keys` (E,)
-    quantise the learned system and are ignored by the other pose inputs."""
-    if self.learns_pose_system and (keys is not None or mode == "random"):
-      return grid_vectors(params_rep, self.spec, poses, mode=mode, keys=keys)
-    return self.pose_input.embed(params_rep, poses, mode=mode)
+    """The pose encoding's vectors of poses (E, V, P): {name: (E, V, k)}; `mode` and `keys` (E,)
+    quantise the learned system and are ignored by the other encodings
+    (`PoseEncoding.embed_images`)."""
+    return self.pose_encoding.embed_images(params_rep, poses, mode=mode, keys=keys)
 
   def pose_loss(self, params_rep: Params, batch: Mapping[str, Array], key: Array):
-    """lambda_2 sum_l L_rot,l + lambda_4 sum L_rot,theta (eqs. 9, 9.2) and the terms.
+    """The pose encoding's own loss and its terms (`PoseEncoding.regulariser`: for the learned
+    grid lambda_2 sum_l L_rot,l + lambda_4 sum L_rot,theta, eqs. 9, 9.2).
 
     Extra pairs use the same key on every device (the term is replicated); data pairs (the
-    batch's image pairs) use per-scene keys and are averaged over devices by the step's pmean.
+    batch's image pairs, `loss.data_pairs`) use per-scene keys and are averaged over devices by
+    the step's pmean.
     """
-    L, spec = self.config.loss, self.spec
-    if not self.learns_pose_system:  # no generators: nothing ties nearby poses together
-      return jnp.zeros((), jnp.float32), {}
-    key_pairs, k_quant = jax.random.split(key)
-    mode = self.config.rep.quantisation
-    extra = P.rotation_losses(key_pairs, params_rep, spec, n_pairs=L.n_pairs, mode=mode)
-    keys = scene_keys(k_quant, batch["pose"].shape[0]) if L.data_pairs else None
-    terms = {}
-    for i, d in enumerate(spec.dofs):
-      loss = extra[d.name]
-      if L.data_pairs:
-        poses = batch["pose"]  # (S, V, P), views laid out as (anchor, partner) pairs
-        S, V = poses.shape[:2]
-        pairs = poses.reshape(S, V // 2, 2, -1)[..., spec.columns(d.name)]
-        x0, x1 = d.values(pairs[:, :, 0]), d.values(pairs[:, :, 1])
-        kd = jax.vmap(lambda k, i=i: jax.random.fold_in(k, 1000 + i))(keys)
-        per_scene = jax.vmap(
-          lambda a, b, k, n=d.name: P.dof_rotation_loss(
-            params_rep, spec, n, a, b, mode=mode, key=k if mode == "random" else None
-          )
-        )(x0, x1, kd)
-        loss = 0.5 * loss + 0.5 * jnp.mean(per_scene)
-      terms[f"rot_{d.name}"] = loss
-    total = L.rot_weight * sum(terms.values())
-    if L.dir_weight:
-      for d in spec.dofs:
-        if d.has_direction_loss:
-          terms[f"dir_{d.name}"] = P.direction_loss(params_rep, spec, d.name)
-          total = total + L.dir_weight * terms[f"dir_{d.name}"]
-    return total, terms
+    L = self.config.loss
+    weights = pose_encodings.Regularisation(
+      rot_weight=L.rot_weight,
+      dir_weight=L.dir_weight,
+      n_pairs=L.n_pairs,
+      mode=self.config.rep.quantisation,
+    )
+    pairs = batch["pose"] if L.data_pairs else None
+    return self.pose_encoding.regulariser(
+      params_rep, key, weights=weights, pair_poses=pairs, scene_keys=scene_keys
+    )
 
 
 class _Decoder(Synthesizer):
@@ -268,7 +237,10 @@ class GQNDecoder(_Decoder):
   """GQN rooms: an encoder over the first `n_context` views of a scene and an AdaIN decoder of
   the others (`camrep.models.composite.GQNSynthesis`)."""
 
-  def __init__(self, config, spec):
+  reads_context = True
+
+  def __init__(self, config, spec, num_scenes: int | None = None):
+    del num_scenes  # the encoder gives the scene code
     m = config.model
     module = GQNSynthesis(
       width=m.width, gamma_offset=1.0 if m.gamma_init_one else 0.0, dtype=compute_dtype(config)
@@ -296,6 +268,8 @@ class GQNDecoder(_Decoder):
 class TableDecoder(_Decoder):
   """ShapeNet car, Gibson, 7-Scenes: a learned code per training scene and an up-convolution
   decoder (`camrep.models.composite.TableSynthesis`)."""
+
+  reads_context = False
 
   def __init__(self, config, spec, num_scenes: int):
     m = config.model
@@ -331,6 +305,7 @@ class ConvDraw(Synthesizer):
   are the mean image of one prior sample with the scenes' `sample_keys`, clipped to [-1, 1]."""
 
   variants = {"sample": 1.0, "prior_mean": 0.0}
+  reads_context = True
 
   def __init__(self, config, spec):
     m = config.model
@@ -396,15 +371,17 @@ def check_config(config) -> None:
   """Raises ConfigError on model / layout combinations the train step cannot run."""
   d = config.data
   try:
-    kind, mkind, dtype = pose_inputs.rep_kind(config), model_kind(config), compute_dtype(config)
+    kind, mkind, dtype = pose_encodings.rep_kind(config), model_kind(config), compute_dtype(config)
   except ValueError as e:  # unknown rep.kind, model.kind, model.dtype
     raise ConfigError(str(e)) from None
-  if config.task == "gqn" and not 1 <= d.n_context < d.views_per_scene:
+  context = reads_context(config)
+  encoding = pose_encodings.ENCODINGS[kind]
+  if context and not 1 <= d.n_context < d.views_per_scene:
     raise ConfigError(
       f"data.n_context must be in [1, views_per_scene) so that each scene has query views, "
       f"got n_context={d.n_context}, views_per_scene={d.views_per_scene}"
     )
-  if mkind == "convdraw" and (config.task != "gqn" or kind != "lowdim"):
+  if mkind == "convdraw" and (not context or encoding is not pose_encodings.LowDimEncoding):
     raise ConfigError(
       "model.kind='convdraw' (GQN's generator) needs task='gqn' and rep.kind='lowdim' (its 7-D "
       f"pose vector; the ELBO trains the model group only), got task={config.task!r}, "
@@ -423,7 +400,7 @@ def check_config(config) -> None:
       f"model.dtype={config.model.dtype!r} is implemented for model.kind='decoder' only; "
       "GQN's generator (convdraw) computes in float32"
     )
-  if config.loss.data_pairs and kind == "grid" and d.mode != "pairs":
+  if config.loss.data_pairs and encoding.regularised and d.mode != "pairs":
     raise ConfigError(
       "loss.data_pairs reads the batch's views as (anchor, partner) pairs: it needs "
       f"data.mode='pairs', got {d.mode!r} (GQN rooms: leave data_pairs off)"
@@ -436,10 +413,26 @@ def _field(config, path: str):
   return config.get(section, {}).get(name) if section else config.get(name)
 
 
+TASKS: dict[str, type[Synthesizer]] = {"gqn": GQNDecoder, "table": TableDecoder}
+"""config.task -> camrep's decoder of that task."""
+
+
+def task_model(config) -> type[Synthesizer]:
+  """The decoder class of `config.task`.
+
+  Raises:
+    ValueError: an unknown task.
+  """
+  if config.task not in TASKS:
+    raise ValueError(f"unknown task {config.task!r}; choose one of {tuple(TASKS)}")
+  return TASKS[config.task]
+
+
 def reads_context(config) -> bool:
   """Whether the config's model encodes context views of each scene (the GQN task: an encoder
-  and a decoder, or GQN's generator) rather than keeping a table of scene vectors."""
-  return config.task == "gqn"
+  and a decoder, or GQN's generator) rather than keeping a table of scene vectors (False for
+  an unknown task, which the config's validation refuses)."""
+  return config.task in TASKS and TASKS[config.task].reads_context
 
 
 def is_generator(config) -> bool:
@@ -448,7 +441,8 @@ def is_generator(config) -> bool:
 
 
 def from_config(config, spec: P.PoseSystemSpec, num_scenes: int) -> Synthesizer:
-  """The view-synthesis model of a config: `config.model.kind` and `config.task` pick it.
+  """The view-synthesis model of a config: `config.model.kind` and `config.task` (`TASKS`) pick
+  it.
 
   Args:
     config: the run's config (checked by `check_config`).
@@ -457,6 +451,4 @@ def from_config(config, spec: P.PoseSystemSpec, num_scenes: int) -> Synthesizer:
   """
   if model_kind(config) == "convdraw":
     return ConvDraw(config, spec)
-  if config.task == "gqn":
-    return GQNDecoder(config, spec)
-  return TableDecoder(config, spec, num_scenes)
+  return task_model(config)(config, spec, num_scenes)

@@ -31,7 +31,8 @@ from typing import Any
 
 import numpy as np
 
-from camrep.data import seven_scenes, sources, srn
+from camrep import settings
+from camrep.data import seven_scenes
 from camrep.data.captures import colmap, llff, nerf, normalize
 from camrep.data.captures.cameras import (
   Capture,
@@ -48,7 +49,9 @@ READERS: dict[str, Callable[..., Capture]] = {
   "llff": llff.read_capture,
   "colmap": colmap.read_capture,
 }
-SETTINGS = ("car", "seven_scenes")
+SUFFIXES = {settings.CAR: "", settings.SEVEN_SCENES: "_6dof"}
+"""The settings captures are read in, and their sources' name suffix: the object-centric car
+setting (no position: the cameras on a sphere) and the 6-DOF one."""
 SPLIT_ORDER = ("train", "val", "test", "test_scenes")
 DEFAULT_HOLDOUT_EVERY = 8
 DEFAULT_MARGIN = 0.5
@@ -74,7 +77,7 @@ class CaptureSource:
     inputs: str | os.PathLike | Sequence[str | os.PathLike],
     *,
     format: str,  # noqa: A002  (the capture format's name)
-    setting: str = "car",
+    setting: settings.Setting | str = settings.CAR,
     image_size: int = 128,
     background: str | Sequence[int] | int = "white",
     holdout_every: int = DEFAULT_HOLDOUT_EVERY,
@@ -91,7 +94,7 @@ class CaptureSource:
     Args:
       inputs: one capture folder or several (each one instance).
       format: "nerf", "llff" or "colmap".
-      setting: "car" (object-centric) or "seven_scenes" (6-DOF).
+      setting: `settings.CAR` (object-centric) or `settings.SEVEN_SCENES` (6-DOF), or its name.
       image_size: output side in pixels.
       background: colour behind alpha / masks: "white" (SRN cars' and Blender's), "black",
         "grey", a grey level or (r, g, b).
@@ -110,15 +113,20 @@ class CaptureSource:
     """
     if format not in READERS:
       raise DataError(None, f"capture format must be one of {sorted(READERS)}, got {format!r}")
-    if setting not in SETTINGS:
-      raise DataError(None, f"setting must be one of {SETTINGS}, got {setting!r}")
+    try:
+      setting = settings.get(setting)
+    except ValueError as e:
+      raise DataError(None, str(e)) from None
+    if setting not in SUFFIXES:
+      names = [s.name for s in SUFFIXES]
+      raise DataError(None, f"setting must be one of {names}, got {setting.name!r}")
     paths = [inputs] if isinstance(inputs, str | os.PathLike) else list(inputs)
     if not paths:
       raise DataError(None, "no capture folder given")
     self.format = format
     self.setting = setting
-    self.name = format if setting == "car" else f"{format}_6dof"
-    self.pose_names = sources.get("srn_cars" if setting == "car" else "seven_scenes").pose_names
+    self.name = f"{format}{SUFFIXES[setting]}"
+    self.pose_names = setting.pose_columns
     self.image_size = int(image_size)
     self.background = parse_background(background)
     self.holdout_every = int(holdout_every)
@@ -163,9 +171,9 @@ class CaptureSource:
     for i, cap in enumerate(self.captures):
       c2w = cap.c2w()
       where = cap.root
-      if setting == "car":
+      if not setting.position_dim:
         norm, report = normalize.object_centric(c2w, max_residual_deg=max_residual_deg, where=where)
-        poses = srn.c2w_to_angles(norm.apply(c2w))
+        poses = setting.poses_from_c2w(norm.apply(c2w))
       else:
         train = np.asarray([s in ("train", "test_scenes") for s in self._split_of[i]])
         norm = normalize.six_dof(c2w[train], extent=self.extent)
@@ -270,7 +278,7 @@ class CaptureSource:
     return {
       "kind": "captures",
       "format": self.format,
-      "setting": self.setting,
+      "setting": self.setting.name,
       "image_size": self.image_size,
       "background": self.background.astype(int).tolist(),
       "pose_names": list(self.pose_names),
@@ -278,7 +286,7 @@ class CaptureSource:
     }
 
 
-def _factory(fmt: str, setting: str) -> Callable[..., CaptureSource]:
+def _factory(fmt: str, setting: settings.Setting) -> Callable[..., CaptureSource]:
   def make(inputs, **kwargs) -> CaptureSource:
     if "setting" in kwargs:
       raise DataError(None, f"the setting is chosen by the source name ({fmt} or {fmt}_6dof)")
@@ -288,16 +296,16 @@ def _factory(fmt: str, setting: str) -> Callable[..., CaptureSource]:
   sig = inspect.signature(CaptureSource)
   keep = [p for n, p in sig.parameters.items() if n not in ("format", "setting")]
   make.__signature__ = sig.replace(parameters=keep)
-  make.__name__ = fmt if setting == "car" else f"{fmt}_6dof"
-  make.__doc__ = f"`CaptureSource` of {fmt} captures in the {setting} setting."
+  make.__name__ = f"{fmt}{SUFFIXES[setting]}"
+  make.__doc__ = f"`CaptureSource` of {fmt} captures in the {setting.name} setting."
   return make
 
 
-nerf_car = _factory("nerf", "car")
-llff_car = _factory("llff", "car")
-colmap_car = _factory("colmap", "car")
-nerf_6dof = _factory("nerf", "seven_scenes")
-llff_6dof = _factory("llff", "seven_scenes")
-colmap_6dof = _factory("colmap", "seven_scenes")
+nerf_car = _factory("nerf", settings.CAR)
+llff_car = _factory("llff", settings.CAR)
+colmap_car = _factory("colmap", settings.CAR)
+nerf_6dof = _factory("nerf", settings.SEVEN_SCENES)
+llff_6dof = _factory("llff", settings.SEVEN_SCENES)
+colmap_6dof = _factory("colmap", settings.SEVEN_SCENES)
 
 __all__ = ["CaptureError", "CaptureSource"]
