@@ -58,31 +58,31 @@ and, for "ours", with the learned grid system.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
-import math
 import os
-import shutil
 import time
 from collections.abc import Mapping
 from typing import Any
 
+import flax.serialization
 import jax
+import jax.numpy as jnp
 import ml_collections
 import numpy as np
+from typing_extensions import override
 
-from camrep.data import sources
-from camrep.regression import learner, pose_system, scoring
+from camrep.regression import config_schema, learner, pose_system, scoring
 from camrep.regression import tables as tables_lib
-from camrep.regression import targets as T
 from camrep.regression import views as views_lib
-from camrep.runtime import progress as progress_lib
-from camrep.runtime import runconfig, stopping, writers
+from camrep.runtime import frame as frame_lib
+from camrep.runtime import session as session_lib
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime.runconfig import ConfigError
 from camrep.synthesis import components
 
 RESULTS_FILE = "results.json"
-SPLITS = ("test", "test_scenes")
+SPLITS = config_schema.SPLITS
 
 
 # --------------------------------------------------------------------------------------------
@@ -94,26 +94,15 @@ def resolve_config(config: ml_collections.ConfigDict) -> ml_collections.ConfigDi
 
   Adds `data.family` (the setting's family overrides) and `evals.test_split`; sets
   `total_steps`, `data.batch_size`, `model.width` from `settings.<setting>` unless given, and
-  `optax.lr` from `hparams.<setting>` unless given; checks the other hyper-parameters, which
-  `learner.resolve_hparams` reads from `hparams.<setting>` where they are not given.
+  `optax.lr` from `hparams.<setting>` unless given; `learner.resolve_hparams` reads the other
+  hyper-parameters from `hparams.<setting>` where they are not given. The checks are the stage's
+  (`config_schema.check_names` before, `config_schema.check` after).
 
   Raises:
     ConfigError: unknown setting / representation / split, a non-positive size, or "ours"
       without `synthesis_workdir`.
   """
-  if config.setting not in T.SETTINGS:
-    raise ConfigError(f"unknown setting {config.setting!r}; choose one of {T.SETTINGS}")
-  if config.representation not in T.REPRESENTATIONS:
-    raise ConfigError(
-      f"unknown representation {config.representation!r}; choose one of {T.REPRESENTATIONS}"
-    )
-  if config.representation == "ours" and not config.synthesis_workdir:
-    raise ConfigError(
-      'representation "ours" regresses the learned pose system of a view-synthesis run: pass '
-      "--config.synthesis_workdir=DIR (a `python -m camrep.main` workdir of setting "
-      f"{config.setting!r})"
-    )
-  check_source(config)
+  config_schema.check_names(config)
   c = ml_collections.ConfigDict(config.to_dict())
   s = c.settings[c.setting]
   with c.ignore_type():
@@ -132,71 +121,8 @@ def resolve_config(config: ml_collections.ConfigDict) -> ml_collections.ConfigDi
       c.optax.lr = hparams.lr
   c.data.family = ml_collections.ConfigDict(s.family.to_dict())
   c.evals.test_split = s.test_split
-  extra = [x.strip() for x in c.evals.extra_splits.split(",") if x.strip()]
-  for split in [c.evals.test_split, *extra]:
-    if split not in SPLITS:
-      raise ConfigError(f"unknown test split {split!r}; choose from {SPLITS}")
-  if c.total_steps < 1 or c.data.batch_size < 1 or c.optax.lr <= 0:
-    raise ConfigError("total_steps, data.batch_size and optax.lr must be positive")
-  if not 0 < c.data.validation_fraction < 1:
-    raise ConfigError("data.validation_fraction must be in (0, 1)")
-  try:
-    rule = stopping.rule_from_config(c.get("stop"))
-  except ValueError as e:
-    raise ConfigError(str(e)) from None
-  if rule.active and c.eval_every_steps <= 0:
-    raise ConfigError(
-      "stop.min_improvement > 0 checks the periodic validation: set eval_every_steps > 0"
-    )
-  weights = c.model.get("resnet_weights", "")
-  if weights:
-    if c.setting != "seven_scenes":
-      raise ConfigError(
-        f"model.resnet_weights initialises the 7-Scenes ResNet-34; setting {c.setting!r} has "
-        "no ResNet"
-      )
-    if not os.path.isfile(weights):
-      raise ConfigError(f"model.resnet_weights {weights} does not exist")
+  config_schema.check(c)
   return c
-
-
-def check_source(config) -> None:
-  """Refuses a data.source of another setting, a real source without an existing data.dir, and
-  a procedural one with a data.dir.
-
-  Raises:
-    ConfigError: as above.
-  """
-  d = config.data
-  source = d.get("source", "")
-  if not source:
-    if d.get("dir", ""):
-      raise ConfigError(
-        "data.dir is set but data.source is empty: name the prepared dataset's source "
-        f"(--config.data.source={views_lib.data_source(config)} is "
-        "procedural; real ones: gqn, srn_cars, gibson, seven_scenes)"
-      )
-    return
-  try:
-    setting = sources.setting_of(source)
-  except ValueError as e:
-    raise ConfigError(f"data.source: {e}") from None
-  if setting != config.setting:
-    raise ConfigError(
-      f"data.source {source!r} is data of the {setting!r} setting, but setting is "
-      f"{config.setting!r}: pass --config.setting={setting}"
-    )
-  if sources.is_procedural(source):
-    if d.dir:
-      raise ConfigError(f"data.source {source!r} is procedural and takes no data.dir")
-    return
-  if not d.dir:
-    raise ConfigError(
-      f"data.source {source!r} is a real dataset: prepare it with `python -m camrep.data.prepare "
-      f"--source {source} --input RAW --data_dir DIR` and pass --config.data.dir=DIR"
-    )
-  if not os.path.isdir(d.dir):
-    raise ConfigError(f"data.dir {d.dir} does not exist (data.source {source!r})")
 
 
 # --------------------------------------------------------------------------------------------
@@ -248,9 +174,16 @@ class Setup:
 
 def prepare(config: ml_collections.ConfigDict, *, log=print) -> Setup:
   """Restores the pose input and renders the data of a resolved config (in that order, so that a
-  bad synthesis workdir fails before minutes of rendering)."""
+  bad synthesis workdir fails before minutes of rendering).
+
+  Raises:
+    ConfigError: as `pose_system.representation_params`, or the synthesis workdir's run is not
+      complete (`synthesis_state`) and `allow_incomplete_synthesis` is not set.
+  """
   t0 = time.perf_counter()
   spec, rep_params, rep_info = pose_system.representation_params(config)
+  if rep_info.get("source") == "synthesis":
+    rep_info = check_synthesis(config, rep_info, log=log)
   data = views_lib.make_data(config)
   t_data = time.perf_counter() - t0
   scene_max = [data.train.scenes.max(), *(e.queries.scenes.max() for e in data.evals.values())]
@@ -262,6 +195,59 @@ def prepare(config: ml_collections.ConfigDict, *, log=print) -> Setup:
     + f" (data {t_data:.1f}s)"
   )
   return Setup(config, spec, rep_params, rep_info, data, reg)
+
+
+def synthesis_state(workdir: str, step: int | None = None) -> str | None:
+  """None when the view-synthesis run in `workdir` is complete (at checkpoint `step`, when
+  given), else what it is: still training (a live process holds its lock), stopped on non-finite
+  values, or not complete (no final record, or one that says so: stopped by a signal, killed,
+  or being extended)."""
+  holder = workdir_lib.WorkdirLock(workdir).live_holder()
+  if holder is not None:
+    return (
+      f"still training (PID {holder.get('pid')} on {holder.get('host')} holds its lock, "
+      f"started {holder.get('started', '?')})"
+    )
+  final = session_lib.read_final(workdir)
+  if final is None:
+    return (
+      f"not complete: it has no {session_lib.FINAL_FILE} (stopped by a signal, killed, or "
+      "never finished)"
+    )
+  if final.get("stopped") == "non-finite":
+    return f"stopped on non-finite values ({final.get('reason', 'see its log')})"
+  if final.get("complete") is not True:
+    return (
+      f'not complete: its {session_lib.FINAL_FILE} says "complete": false (stopped by a signal, '
+      "killed, or being extended)"
+    )
+  if step is not None and final.get("step") != step:
+    return f"not complete at its latest checkpoint, step {step} (complete at {final.get('step')})"
+  return None
+
+
+def check_synthesis(config, rep_info: Mapping[str, Any], *, log=print) -> dict[str, Any]:
+  """Refuses a representation read from a view-synthesis run that is not complete
+  (`synthesis_state`) unless `config.allow_incomplete_synthesis`; then it is used and the
+  returned info records it ("synthesis_incomplete": what the run was).
+
+  Raises:
+    ConfigError: the run is not complete and it is not allowed.
+  """
+  info = dict(rep_info)
+  why = synthesis_state(info["workdir"], info.get("step"))
+  if why is None:
+    return info
+  if not config.get("allow_incomplete_synthesis", False):
+    raise ConfigError(
+      f"synthesis_workdir {info['workdir']} is {why}: its pose system (checkpoint step "
+      f"{info.get('step')}) may not be the one it ends with. Wait for it to finish (or run its "
+      "command again to resume it), or pass --config.allow_incomplete_synthesis=True to regress "
+      "its latest checkpoint anyway (recorded in results.json)"
+    )
+  log(f"warning: synthesis_workdir {info['workdir']} is {why}; used as allowed")
+  info["synthesis_incomplete"] = why
+  return info
 
 
 def load_resnet_weights(config, state: learner.RegressionState) -> learner.RegressionState:
@@ -295,67 +281,113 @@ def load_resnet_weights(config, state: learner.RegressionState) -> learner.Regre
   )
 
 
-def train(setup: Setup, writer, eval_sets, *, predict_fn, log=print):
-  """Trains the regressor for config.total_steps; validation errors every eval_every_steps (every
-  split's with `evals.periodic_all_splits`), where the stopping rule (`config.stop`,
-  `stopping.check`) may end training early.
+class RegressionStage(frame_lib.Stage):
+  """The regression's part of the fit loop (`runtime.frame.Stage`): its state, step over K
+  batches, training batches (a pure function of (seed, step): `views.train_pipeline`), periodic
+  validation (every split's with `evals.periodic_all_splits`) and its plateau score
+  (eval/validation/score, `tables.validation_score`). The final evaluation of every split is the
+  run's own (`evaluate_splits`), so the periodic one does not run at total_steps."""
 
-  Returns:
-    (state, the last logged train/* scalars, training seconds, stopping record: {"rule",
-    "stopped_early", "steps" trained, "reason", "curve": [[step, validation score], ...]}).
-  """
-  config = setup.config
-  train_views = setup.data.train
-  pipe = views_lib.train_pipeline(config, train_views)
-  batches = (views_lib.learner_batch(config, train_views, b) for b in pipe.iterator())
-  init_key = jax.random.fold_in(jax.random.key(config.seed), 0)
-  first = views_lib.learner_batch(config, train_views, pipe.batch(0))
-  state = learner.init(init_key, setup.reg, first, rep_params=setup.rep_params)
-  state = load_resnet_weights(config, state)
-  step_fn = jax.jit(learner.train_step, donate_argnums=0)
-  total = config.total_steps
-  progress = progress_lib.Progress(total, every_seconds=20.0)
-  t_train = time.perf_counter()
-  last: dict[str, float] = {}
-  rule = stopping.rule_from_config(config.get("stop"))
-  curve: list[tuple[int, float]] = []
-  stop, reason = False, "reached total_steps"
-  for step in range(1, total + 1):
-    state, m = step_fn(state, next(batches))
-    if progress_lib.itstime(step, config.log_every_steps, total):
-      host = {f"train/{k}": float(v) for k, v in m.items()}
-      writer.write_scalars(step, host)
-      bad = [k for k, v in host.items() if not math.isfinite(v)]
-      if bad:
-        raise FloatingPointError(f"non-finite {', '.join(bad)} at step {step}")
-      last = host
-    status = progress.update(step)
-    if status:
-      log(f"{status} loss={float(m['loss']):.4f}")
-    if step < total and progress_lib.itstime(step, config.eval_every_steps, total):
-      periodic = eval_sets if config.evals.get("periodic_all_splits") else ["validation"]
-      for name in periodic:
-        errs = scoring.evaluate_regression(state, eval_sets[name], predict_fn=predict_fn)
-        summary = scoring.summarise_errors(errs)
-        writer.write_scalars(step, _scalars(f"eval/{name}", summary))
-        if name == "validation":
-          score = tables_lib.validation_score(config.setting, summary)
-          writer.write_scalars(step, {"eval/validation/score": score})
-          curve.append((step, score))
-      stop, why = stopping.check(rule, curve)
-      if stop:
-        reason = why
-        log(f"stopping early: {why}")
-        break
-  jax.block_until_ready(state.params)
-  record = {
-    "rule": dataclasses.asdict(rule),
-    "stopped_early": stop,
-    "steps": step,
-    "reason": reason,
-    "curve": [[int(s), float(v)] for s, v in curve],
-  }
-  return state, last, time.perf_counter() - t_train, record
+  eval_at_end = False
+  log_rate = False
+  unlogged = ("train/finite",)
+
+  def __init__(self, setup: Setup, eval_sets, *, predict_fn):
+    self.setup, self.config = setup, setup.config
+    self.eval_sets, self.predict_fn = eval_sets, predict_fn
+    self.pipe = views_lib.train_pipeline(self.config, setup.data.train)
+    self.writer = None
+    self._template: learner.RegressionState | None = None
+    self._seconds_before, self._t0 = 0.0, time.perf_counter()
+
+  def start(self, writer, *, train_seconds: float = 0.0) -> None:
+    """Training begins: the frame's writer, and the seconds trained by earlier starts."""
+    self.writer = writer
+    self._seconds_before, self._t0 = float(train_seconds), time.perf_counter()
+
+  def init(self) -> learner.RegressionState:
+    """The fresh state (`learner.init` on the first batch's shapes, the ResNet weights)."""
+    config = self.config
+    init_key = jax.random.fold_in(jax.random.key(config.seed), 0)
+    first = views_lib.learner_batch(config, self.setup.data.train, self.pipe.batch(0))
+    state = learner.init(init_key, self.setup.reg, first, rep_params=self.setup.rep_params)
+    self._template = state = load_resnet_weights(config, state)
+    return state
+
+  @override
+  def saved(self, state):
+    d = flax.serialization.to_state_dict(state)
+    d.pop("rep_params")  # frozen, read from the synthesis workdir (its digest in record.json)
+    return jax.tree.map(np.asarray, d)
+
+  def restored(self, saved) -> learner.RegressionState:
+    """A checkpoint's state dict back into the state `init` shaped."""
+    full = {**flax.serialization.to_state_dict(self._template), **saved}
+    state = flax.serialization.from_state_dict(self._template, full)
+    return jax.tree.map(jnp.asarray, state)
+
+  @override
+  def dispatch(self, n):
+    if n == 1:
+      step = jax.jit(learner.train_step, donate_argnums=0)
+
+      def one(state, batch):
+        state, metrics = step(state, batch)
+        return state, metrics, metrics["finite"]
+
+      return one
+    return jax.jit(learner.train_steps, donate_argnums=0)
+
+  @override
+  def chunks(self, spans):
+    spans = iter(spans)
+    first = next(spans, None)
+    if first is None:
+      return
+    views = self.setup.data.train
+    host = self.pipe.iterator(start_step=first[0] - 1)  # step k trains on batch k - 1
+    try:
+      for _, n in itertools.chain([first], spans):
+        bs = [views_lib.learner_batch(self.config, views, next(host)) for _ in range(n)]
+        yield bs[0] if n == 1 else {k: np.stack([b[k] for b in bs]) for k in bs[0]}
+    finally:
+      if hasattr(host, "close"):
+        host.close()
+
+  @override
+  def rows(self, metrics, n):
+    host = jax.device_get(metrics)
+    if n == 1:
+      return [{f"train/{k}": float(v) for k, v in host.items()}]
+    return [{f"train/{k}": float(v[i]) for k, v in host.items()} for i in range(n)]
+
+  @override
+  def evaluate(self, state, step):
+    config, out = self.config, {}
+    periodic = self.eval_sets if config.evals.get("periodic_all_splits") else ["validation"]
+    for name in periodic:
+      errs = scoring.evaluate_regression(state, self.eval_sets[name], predict_fn=self.predict_fn)
+      summary = scoring.summarise_errors(errs)
+      scalars = _scalars(f"eval/{name}", summary)
+      self.writer.write_scalars(step, scalars)
+      out.update(scalars)
+      if name == "validation":
+        score = {"eval/validation/score": tables_lib.validation_score(config.setting, summary)}
+        self.writer.write_scalars(step, score)
+        out.update(score)
+    return out
+
+  @override
+  def score(self, row):
+    return row.get("eval/validation/score")
+
+  @override
+  def extra(self, step):
+    return {"train_seconds": self.train_seconds()}
+
+  def train_seconds(self) -> float:
+    """Seconds trained, over every start of the run."""
+    return self._seconds_before + time.perf_counter() - self._t0
 
 
 def evaluate_splits(
@@ -432,20 +464,25 @@ def results_record(
 
 
 def clear_outputs(workdir: str) -> None:
-  """Removes what an earlier run in `workdir` wrote (results.json, errors_*.npz): a rerun starts
-  over, and a stale file would mark an unfinished run as done."""
+  """Removes what an earlier run in `workdir` wrote (results.json, errors_*.npz), before a run
+  starts at step 0 in it: a stale file would mark an unfinished run as done."""
   for name in os.listdir(workdir):
     if name == RESULTS_FILE or (name.startswith("errors_") and name.endswith(".npz")):
       os.remove(os.path.join(workdir, name))
 
 
-def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[str, Any]:
-  """Trains and evaluates one regressor; writes config.json, metrics.jsonl, results.json and
-  errors_<split>.npz into `workdir`.
+def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[str, Any] | None:
+  """Trains and evaluates one regressor in the run frame (`runtime.frame`); writes config.json,
+  metrics.jsonl, checkpoints/, results.json, errors_<split>.npz and final_metrics.json into
+  `workdir`.
 
-  A rerun in a workdir starts over (its results.json and errors files are removed first); when
-  the workdir holds another config, only the fields named in `config.allow_changes` may differ,
-  and the change is recorded in config_history.jsonl. One run per workdir at a time (a lock).
+  A rerun of the same config resumes from the workdir's latest checkpoint (a complete run:
+  nothing to do, its results.json returned). When the workdir holds another config, only the
+  fields named in `config.allow_changes` may differ: a change of a field that may change on
+  resume (`config_schema.SCHEMA`: durations, cadences, evaluations, the stopping rule) resumes,
+  any other starts the run over (its checkpoints, results.json and errors files removed first);
+  either is recorded in config_history.jsonl. One run per workdir at a time (a lock). SIGTERM or
+  Ctrl-C saves a checkpoint and stops (returns None); the same command resumes.
 
   Args:
     config: a configs/regression.py config (resolved here).
@@ -453,60 +490,56 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
     log: progress printer.
 
   Returns:
-    The results.json content.
+    The results.json content, or None when a signal stopped the run.
 
   Raises:
     ConfigError: bad config or synthesis workdir, or a config that differs from the workdir's.
     WorkdirError: the workdir cannot be written, or another run holds it.
-    FloatingPointError: the loss became non-finite.
+    FloatingPointError: the loss became non-finite (the last checkpoint is kept).
   """
   config = resolve_config(config)
-  existed = os.path.isdir(workdir)
-  workdir_lib.check_workdir(workdir)
-  stored = workdir_lib.read_stored_config(workdir)
-  changes = {}
-  if stored is not None:
-    changes = runconfig.check_changes(stored, config, resumable=None, workdir=workdir, what="rerun")
-  lock = workdir_lib.WorkdirLock(workdir)
-  lock.acquire()
-  try:
-    try:
-      record = {"version": 1, "data": views_lib.data_record(config)}
-      setup = prepare(config, log=log)
-    except BaseException:
-      if not existed:
-        shutil.rmtree(workdir, ignore_errors=True)  # holds nothing but the lock
-      raise
+  rule = frame_lib.stopping_rule(config)
+  results_path = os.path.join(workdir, RESULTS_FILE)
+  with frame_lib.Frame(
+    workdir, config, schema=config_schema.SCHEMA, log=log, restart=True, outputs=clear_outputs
+  ) as frame:
+    if frame.already_complete(rule) is not None and os.path.exists(results_path):
+      with open(results_path, encoding="utf-8") as f:
+        return json.load(f)
+    record = {"version": 1, "data": views_lib.data_record(config)}
+    setup = prepare(config, log=log)
     if setup.spec is not None:
       record["pose_spec"] = components.spec_record(setup.spec)
-    old_record = workdir_lib.read_record(workdir) if stored is not None else None
-    if old_record is not None:  # a rerun starts over: a changed record is recorded, not refused
-      refused, accepted = workdir_lib.record_differences(old_record, record)
-      changes.update({f"record.{k}": v for k, v in {**refused, **accepted}.items()})
-    clear_outputs(workdir)
-    writer = writers.MetricWriter(workdir)
-    writer.truncate_after(0)
-    writer.write_config(config)
-    workdir_lib.write_record(workdir, record)
-    workdir_lib.append_history(workdir, 0, changes, what="rerun" if stored else "start")
+    if "digest" in setup.rep_info:  # which pose system: a resume must read the same one
+      record["representation"] = {"digest": setup.rep_info["digest"]}
+    frame.check_record(record)
     predict_fn = jax.jit(learner.predict_poses)
     eval_sets = {k: views_lib.eval_batches(config, e) for k, e in setup.data.evals.items()}
-    try:
-      state, last, train_seconds, stop = train(
-        setup, writer, eval_sets, predict_fn=predict_fn, log=log
-      )
-      t_eval = time.perf_counter()
-      summaries, extra = evaluate_splits(
-        setup, state, writer, eval_sets, predict_fn=predict_fn, workdir=workdir, step=stop["steps"]
-      )
-    finally:
-      writer.close()
-  finally:
-    lock.release()
-  results = results_record(
-    setup, state, last, train_seconds, time.perf_counter() - t_eval, summaries, extra, stop
-  )
-  write_results(os.path.join(workdir, RESULTS_FILE), results)
+    stage = RegressionStage(setup, eval_sets, predict_fn=predict_fn)
+    state, start = frame.restore_or_init(stage.init, saved=stage.saved, restored=stage.restored)
+    frame.begin(start)
+    stage.start(frame.writer, train_seconds=frame.extra.get("train_seconds", 0.0))
+    fit = frame_lib.fit(frame, stage, state, start, rule=rule, progress_every=20.0)
+    if not fit.complete:
+      return None
+    state = fit.state
+    jax.block_until_ready(state.params)
+    train_seconds = stage.train_seconds()
+    last = {k: v for k, v in fit.last.items() if k.startswith("train/")}
+    if not last:  # nothing logged since the restored step: the run's last train scalars
+      last = {k: v for k, v in session_lib.last_logged(workdir).items() if k.startswith("train/")}
+    record = fit.stopping_record(rule, config.total_steps)
+    stop = {k: record[k] for k in ("rule", "stopped_early", "steps", "reason", "curve")}
+    t_eval = time.perf_counter()
+    summaries, extra = evaluate_splits(
+      setup, state, frame.writer, eval_sets, predict_fn=predict_fn, workdir=workdir,
+      step=fit.step,
+    )  # fmt: skip
+    results = results_record(
+      setup, state, last, train_seconds, time.perf_counter() - t_eval, summaries, extra, stop
+    )
+    write_results(results_path, results)
+    frame.finish(fit.step, {**last, "results": RESULTS_FILE})
   overall = results["test"]["all"]
   log(
     f"test ({config.evals.test_split}): "

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,3 +99,38 @@ def psnr_score(psnr: float) -> float:
   10^(-psnr / 10), the geometric mean over the evaluated images of their MSE; lower is better,
   and a relative improvement x of it is a gain of -10 log10(1 - x) dB (2% ~ 0.088 dB)."""
   return float(10.0 ** (-float(psnr) / 10.0))
+
+
+def stopped_early_by(final: Mapping | None, rule: Rule | None) -> bool:
+  """Whether a final record (final_metrics.json) says its run stopped early under this active
+  `rule`."""
+  s = (final or {}).get("stopping")
+  if rule is None or not rule.active or not isinstance(s, Mapping):
+    return False
+  return s.get("stopped_early") is True and s.get("rule") == dataclasses.asdict(rule)
+
+
+def stopping_record(
+  rule: Rule,
+  curve: Sequence[tuple[int, float]],
+  step: int,
+  total: int,
+  stopped_early: bool,
+  reason: str,
+  *,
+  score: str | None = None,
+) -> dict:
+  """The record of where and why a run ended: {"rule", "score" (what the curve's values are,
+  when given), "stopped_early", "steps", "total_steps", "reason", "curve": [[step, score],
+  ...]}."""
+  out = {"rule": dataclasses.asdict(rule)}
+  if score is not None:
+    out["score"] = score
+  out.update(
+    stopped_early=bool(stopped_early),
+    steps=int(step),
+    total_steps=int(total),
+    reason=reason,
+    curve=[[int(t), float(v)] for t, v in curve],
+  )
+  return out

@@ -137,6 +137,17 @@ class WorkdirLock:
     except (OSError, json.JSONDecodeError):
       return {}
 
+  def live_holder(self) -> dict[str, Any] | None:
+    """The lock's content when a live process holds it (or one on another host, which cannot be
+    checked), else None (no lock, or a stale one)."""
+    h = self.holder()
+    if not h:
+      return None
+    host, pid = h.get("host"), h.get("pid")
+    if host == socket.gethostname() and isinstance(pid, int) and not _pid_running(pid):
+      return None
+    return h
+
   def _create(self) -> bool:
     """Creates the lock with this process's record; False when a lock exists.
 
