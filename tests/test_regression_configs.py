@@ -31,6 +31,12 @@ from camrep.runtime.runconfig import ConfigError
 pytestmark = pytest.mark.slow
 
 REFERENCE = pathlib.Path(__file__).parent / "data" / "regression_configs.json"
+FRAME_FIELDS = (
+  "ckpt_every_steps",
+  "max_to_keep",
+  "steps_per_dispatch",
+  "allow_incomplete_synthesis",
+)
 VARIANTS = ("smoke", "quick", "medium", "paper")
 # Fields the old configs did not have: command-line overrides of the hyper-parameters, unset
 # (None) unless given, so that config.json compares across reruns as before.
@@ -98,9 +104,19 @@ def test_configs_resolve_to_the_recorded_runs(reference, variant, setting):
     assert flat.pop("synthesis_workdir") == ("/synthesis" if rep == "ours" else "")
     for key in NEW_FIELDS:
       assert flat.pop(key) is None, (rep, key)
-    # The stopping rule (issue 29), off by default: every run trains to total_steps as before.
+    # The stopping rule, off by default: every run trains to total_steps as before.
     stop = {k: flat.pop(k) for k in [k for k in flat if k.startswith("stop.")]}
     assert stop == {"stop.min_improvement": 0.0, "stop.window": 0.25, "stop.min_steps": 0}
+    # The run frame's checkpoints and dispatches (regression resumes), and the permission to
+    # regress an incomplete synthesis run: added since, with these defaults.
+    frame = {k: flat.pop(k) for k in FRAME_FIELDS}
+    k = 10 if variant == "paper" else 1
+    assert frame == {
+      "ckpt_every_steps": 1000,
+      "max_to_keep": 2,
+      "steps_per_dispatch": k,
+      "allow_incomplete_synthesis": False,
+    }
     assert flat == cfg_ref, rep
 
 
