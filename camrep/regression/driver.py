@@ -485,7 +485,8 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
   Ctrl-C saves a checkpoint and stops (returns None); the same command resumes.
 
   Args:
-    config: a configs/regression.py config (resolved here).
+    config: a configs/regression.py config (checked and resolved here:
+      `config_schema.validate`).
     workdir: output directory.
     log: progress printer.
 
@@ -497,7 +498,7 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
     WorkdirError: the workdir cannot be written, or another run holds it.
     FloatingPointError: the loss became non-finite (the last checkpoint is kept).
   """
-  config = resolve_config(config)
+  config = config_schema.validate(config)  # the stage's checks; the config resolved per setting
   rule = frame_lib.stopping_rule(config)
   results_path = os.path.join(workdir, RESULTS_FILE)
   with frame_lib.Frame(
