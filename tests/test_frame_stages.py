@@ -45,15 +45,24 @@ def test_synthesis_k_steps_per_dispatch_train_as_one(tmp_path):
   for k in (1, 3):
     c = gqn.get_config("smoke")
     c.total_steps, c.steps_per_dispatch, c.log_every_steps = 6, k, 1
+    c.ckpt_every_steps = c.eval_every_steps = 6  # K = 3: dispatches (1-3), (4-6)
     lines = []
     train.train_and_evaluate(c, str(tmp_path / f"k{k}"), log=lines.append)
     assert f"compiling the train step ({k} step{'s' if k > 1 else ''} per dispatch) ..." in lines
     runs[k] = tmp_path / f"k{k}"
-  # Dispatches (1-2), (3-4), (5-6) for K = 3 cut at the checkpoints (every 2).
   _assert_rows_close(_rows(runs[3]), _rows(runs[1]), rtol=1e-4)
-  a, b = (restore.load_run(str(runs[k])).params for k in (1, 3))
-  for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
-    np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=1e-6)
+  # Parameters up to round-off: entries whose true gradient is zero (biases before instance
+  # norm) get round-off gradients that Adam normalises to +-lr (tests/test_train.py's two
+  # devices against one), so they may differ by up to 2 lr per step.
+  a, b = (jax.tree.leaves(restore.load_run(str(runs[k])).params) for k in (1, 3))
+  close = np.concatenate(
+    [np.isclose(x, y, rtol=1e-4, atol=1e-6).ravel() for x, y in zip(a, b, strict=True)]
+  )
+  assert close.mean() > 0.99
+  c = gqn.get_config("smoke")
+  bound = 2 * 6 * max(c.optax.lr_model, c.optax.lr_rep)
+  for x, y in zip(a, b, strict=True):
+    assert np.abs(np.asarray(x) - np.asarray(y)).max() <= bound
 
 
 def _regression(**kw):

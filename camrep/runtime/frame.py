@@ -412,9 +412,12 @@ class Frame:
     Raises:
       CheckpointError: checkpoints exist but none is readable or matches the template.
     """
-    if self.restart or not self._resuming:
+    if self.restart:  # the old checkpoints go in `begin`
       return init(), 0
-    state_d, extra, step = self.checkpointer.restore_or_init(lambda: saved(init()))
+    checkpointer = self.checkpointer  # opened now: an unwritable directory fails before training
+    if not self._resuming:
+      return init(), 0
+    state_d, extra, step = checkpointer.restore_or_init(lambda: saved(init()))
     if step is None:
       return restored(state_d), 0
     self.extra = dict(extra)
@@ -434,8 +437,10 @@ class Frame:
     Raises:
       WorkdirError: metrics.jsonl holds a line that cannot be read back (`writers`).
     """
-    if self.restart and self.lead:
-      self._start_over()
+    if self.restart:
+      if self.lead:
+        self._start_over()
+      self.checkpointer  # noqa: B018 - opened again: an unwritable directory fails now
     elif start == 0 and self.lead and self._outputs is not None:
       self._outputs(self.workdir)  # a stale output would mark this unfinished run as done
     if not self.lead:
@@ -731,12 +736,11 @@ def fit(
           frame.save(step, stage.saved(state), stage.extra(step))
         if ended:
           break
-        if stopped:
-          if lead:
-            log(
-              f"stopping at step {step} on {_signal_name(signals)}; checkpoint saved in "
-              f"{workdir}: run the same command to resume"
-            )
+        if stopped:  # every process says it (each was stopped, by its signal or another's)
+          log(
+            f"stopping at step {step} on {_signal_name(signals)}; checkpoint saved in "
+            f"{workdir}: run the same command to resume"
+          )
           break
     finally:
       if hasattr(batches, "close"):
