@@ -9,7 +9,10 @@ writes into DIR:
   record.json        what identifies its data and pose system beyond the config
                      (`views.data_record`: the family's resolved parameters or the prepared
                      dataset's identity, their fingerprints; the pose spec of a learned
-                     representation)
+                     representation and the digest of the parameters it read)
+  checkpoints/       the regressor's state every ckpt_every_steps (the run frame,
+                     `camrep.runtime.frame`: the same command resumes from the latest; SIGTERM
+                     or Ctrl-C saves one and stops), config_history.jsonl, final_metrics.json
   metrics.jsonl      train/* every log_every_steps, eval/validation/* (with the lr-selection
                      score eval/validation/score: the validation curve) every eval_every_steps,
                      every split's at the end
@@ -50,7 +53,9 @@ restores the frozen pose system of a view-synthesis workdir (`pose_system.load_p
 rep.kind="mlp", else a frozen randomly initialised MLP embedding (`MlpPoseInput`; the
 supplement's MLP is trained by view synthesis). The synthesis workdir must have been trained on
 the same data (`pose_system.check_same_data`: same source, same prepared directory and dataset)
-and, for "ours", with the learned grid system.
+and, for "ours", with the learned grid system, and its run must be complete (`check_synthesis`:
+not still training, not stopped on non-finite values or by a signal) unless
+`allow_incomplete_synthesis` (then recorded in results.json).
 `model.resnet_weights` (seven_scenes) loads a torchvision ResNet-34 state dict into the trunk
 (`load_resnet_weights`).
 """
