@@ -1,10 +1,10 @@
 """When a training run stops: a plateau rule on its periodic validation score.
 
-Both stages use it, each on its own validation-like score, one number per evaluation, lower is
-better: pose regression (`camrep.regression.driver`) on `tables.validation_score` of its
-validation split; view synthesis (`camrep.synthesis.plateau`) on the held-out-view MSE
-10^(-eval/psnr / 10) (`psnr_score`). Evaluated at each periodic evaluation (every
-`eval_every_steps`): with the scores s(t_1), ..., s(t_k) so far, at step t = t_k
+The run frame's fit loop (`camrep.runtime.frame.fit`) applies it for both stages, each on its
+own validation-like score (the stage's `score`), one number per evaluation, lower is better: pose
+regression on `tables.validation_score` of its validation split; view synthesis on the
+held-out-view MSE 10^(-eval/psnr / 10) (`psnr_score`). Evaluated at each periodic evaluation
+(every `eval_every_steps`): with the scores s(t_1), ..., s(t_k) so far, at step t = t_k
 
   best_now    = min over t_i <= t of s(t_i)
   best_before = min over t_i <= (1 - window) * t of s(t_i)
@@ -14,6 +14,14 @@ and the run stops when improvement < `min_improvement` and t >= `min_steps`: the
 error improved by less than that share over the last `window` of the steps. `total_steps` is the
 cap. Nothing is decided before an evaluation lies at or before (1 - window) * t (no baseline yet).
 `min_improvement` = 0 turns the rule off (the run trains to `total_steps`, as before).
+
+Where the rule stops a run, the run saves its checkpoint at that step and completes there; its
+record ("stopping": `stopping_record`) says the rule, where and why it ended and the curve
+[[step, score], ...] (view synthesis: in final_metrics.json, whenever the rule is on;
+regression: in results.json). A rerun of an early-stopped run with the same rule changes
+nothing (`runtime.frame.Frame.already_complete`, `stopped_early_by`); with another rule (`stop`
+named in `allow_changes`) or the rule off it resumes from that step, its curve read back from
+metrics.jsonl, and the rule is checked at once on the recorded curve.
 """
 
 from __future__ import annotations
