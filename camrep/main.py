@@ -19,6 +19,7 @@ from __future__ import annotations
 import os
 import sys
 import threading
+import time
 
 import jax
 from absl import flags, logging
@@ -107,7 +108,8 @@ def init_distributed() -> None:
 
   jax aborts the whole process (a C++ stack dump, exit 134) when the coordinator cannot be
   reached within its `initialization_timeout`; a watchdog exits 2 with an `error:` line first,
-  after `--coordinator_timeout` seconds (jax's own timeout is set 30 s later).
+  after `--coordinator_timeout` seconds (jax's own timeout is set 30 s later). While it waits,
+  a line says for how long (`wait_progress`).
   """
   if not (_COORDINATOR.value or _DISTRIBUTED.value):
     return
@@ -126,9 +128,19 @@ def init_distributed() -> None:
     )
     os._exit(cli.EXIT_USER)
 
+  who = f"process {_PROCESS_ID.value} of {_NUM_PROCESSES.value}"
+  print(
+    f"joining the jax.distributed job at {where} as {who} (--coordinator_timeout={timeout} s)",
+    flush=True,
+  )
   watchdog = threading.Timer(timeout, give_up)
   watchdog.daemon = True
+  done = threading.Event()
+  progress = threading.Thread(
+    target=wait_progress, args=(done, where, who, timeout), name="coordinator_wait", daemon=True
+  )
   watchdog.start()
+  progress.start()
   try:
     jax.distributed.initialize(
       coordinator_address=_COORDINATOR.value,
@@ -137,7 +149,22 @@ def init_distributed() -> None:
       initialization_timeout=timeout + 30,
     )
   finally:
+    done.set()
     watchdog.cancel()
+
+
+def wait_progress(done: threading.Event, where: str, who: str, timeout: float) -> None:
+  """Prints how long this process has waited for the other processes to join, every quarter
+  of the timeout (1 to 15 s apart), until `done` is set."""
+  every = min(15.0, max(1.0, timeout / 4))
+  t0 = time.monotonic()
+  while not done.wait(every):
+    waited = time.monotonic() - t0
+    print(
+      f"waiting for the jax.distributed job at {where} ({who}): {waited:.0f} s of "
+      f"--coordinator_timeout={timeout:g} s",
+      flush=True,
+    )
 
 
 def main(argv):

@@ -249,7 +249,7 @@ class RegressionTimer(StepTimer):
     import jax.numpy as jnp
     import numpy as np
 
-    from camrep.regression import driver, learner
+    from camrep.regression import config_schema, driver, learner
     from camrep.regression import views as views_lib
 
     sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
@@ -260,7 +260,7 @@ class RegressionTimer(StepTimer):
     config.data.cache_dir = cache_dir
     if width is not None:
       config.model.width = width
-    driver.check_config(config)
+    config_schema.check(config)
     setup = driver.prepare(config, log=log)
     pipe = views_lib.train_pipeline(config, setup.data.train)
     b0 = views_lib.learner_batch(config, setup.data.train, pipe.batch(0))

@@ -21,7 +21,7 @@ import numpy as np
 
 from camrep.configs import regression as regression_config
 from camrep.models import layers
-from camrep.regression import driver, learner, scoring, views
+from camrep.regression import config_schema, driver, learner, scoring, views
 
 
 def _adain_variant(name):
@@ -82,7 +82,7 @@ def main():
   if a.lr:
     c.optax.lr = a.lr
   layers.adain = _adain_variant(a.norm)  # read by the regressor at trace time
-  driver.check_config(c)
+  config_schema.check(c)
   setup = driver.prepare(c)
   train = setup.data.train
   sub = train.subset(np.isin(train.scenes, train.scene_ids()[:40]))

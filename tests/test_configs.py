@@ -81,15 +81,17 @@ def test_configs_resolve_as_before():
   tests/data/configs_resolved.json was generated at commit 830ed49, before that edit, by: for each
   name in `camrep.configs.NAMES` and each variant in ("", "quick", "medium", "smoke") whose
   `get_config` does not raise ValueError, `json.loads(json.dumps(get_config(v).to_dict(),
-  sort_keys=True))`, stored as {name: {variant or "paper": dict}}; the view-synthesis configs'
-  `stop` section (issue 29, defaults: off) was added to their entries since, and the ConvDRAW
-  fields (`runconfig.RETIRED`) were deleted from every config but gqn_convdraw, when they moved
-  from `common.base()` to `gqn_convdraw.py` (nothing else changed). A workdir's config.json is
-  compared with the requested config on resume (`runconfig.check_changes`), so a field that
-  changed or disappeared here would refuse to resume existing runs (a RETIRED field excepted:
-  tests/test_workdir.py resumes a workdir that still has them). The regression config is one per
-  setting since (each with its setting's fields only; a regression rerun starts over): its
-  settings are compared with the runs recorded before in tests/test_regression_configs.py.
+  sort_keys=True))`, stored as {name: {variant or "paper": dict}}; since then the view-synthesis
+  configs' `stop` section (defaults: off) was added to their entries, the ConvDRAW fields
+  (`synthesis.config_schema.RETIRED`) were deleted from every config but gqn_convdraw when they
+  moved from `common.base()` to `gqn_convdraw.py`, and the run frame's `steps_per_dispatch` (10
+  at paper size, 1 in every variant) was added to every entry (nothing else changed). A
+  workdir's config.json is compared with the requested config on resume
+  (`runconfig.check_changes`), so a field that changed or disappeared here would refuse to resume
+  existing runs (a gained field is recorded; a retired one excepted: tests/test_workdir.py
+  resumes a workdir that still has them). The regression config is one per setting since (each
+  with its setting's fields only; a regression rerun starts over): its settings are compared
+  with the runs recorded before in tests/test_regression_configs.py.
   """
   reference = json.loads(REFERENCE.read_text())
   assert sorted(reference) == sorted(configs.NAMES)

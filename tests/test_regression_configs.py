@@ -29,13 +29,19 @@ import pytest
 
 from camrep import pose_encodings, settings
 from camrep.configs import regression as regression_config
-from camrep.regression import driver, learner
+from camrep.regression import config_schema, driver, learner
 from camrep.regression import targets as T
 from camrep.runtime.runconfig import ConfigError
 
 pytestmark = pytest.mark.slow
 
 REFERENCE = pathlib.Path(__file__).parent / "data" / "regression_configs.json"
+FRAME_FIELDS = (
+  "ckpt_every_steps",
+  "max_to_keep",
+  "steps_per_dispatch",
+  "allow_incomplete_synthesis",
+)
 VARIANTS = ("smoke", "quick", "medium", "paper")
 # Fields the old configs did not have: command-line overrides of the hyper-parameters, unset
 # (None) unless given, so that config.json compares across reruns as before.
@@ -81,7 +87,7 @@ def _config(variant, setting, rep):
 def effective(variant, setting, rep):
   """(config without its hyper-parameter table, flattened; the regressor's hyper-parameters)."""
   config = _config(variant, setting, rep)
-  driver.check_config(config)
+  config_schema.check(config)
   flat = {k: v for k, v in _flat(config.to_dict()).items() if not k.startswith("hparams.")}
   spec = settings.get(setting).pose_spec() if rep in T.LEARNED else None
   hp = dataclasses.asdict(driver.make_regressor(config, spec, 1).hparams)
@@ -110,9 +116,19 @@ def test_configs_resolve_to_the_recorded_runs(reference, variant, setting):
     assert flat.pop("synthesis_workdir") == ("/synthesis" if rep == "ours" else "")
     for key in NEW_FIELDS:
       assert flat.pop(key) is None, (rep, key)
-    # The stopping rule (issue 29), off by default: every run trains to total_steps as before.
+    # The stopping rule, off by default: every run trains to total_steps as before.
     stop = {k: flat.pop(k) for k in [k for k in flat if k.startswith("stop.")]}
     assert stop == {"stop.min_improvement": 0.0, "stop.window": 0.25, "stop.min_steps": 0}
+    # The run frame's checkpoints and dispatches (regression resumes), and the permission to
+    # regress an incomplete synthesis run: added since, with these defaults.
+    frame = {k: flat.pop(k) for k in FRAME_FIELDS}
+    k = 10 if variant == "paper" else 1
+    assert frame == {
+      "ckpt_every_steps": 1000,
+      "max_to_keep": 2,
+      "steps_per_dispatch": k,
+      "allow_incomplete_synthesis": False,
+    }
     assert flat == cfg_ref, rep
 
 
@@ -135,7 +151,7 @@ def test_the_paper_values_are_where_a_reader_looks():
 def test_command_line_values_win_and_bad_ones_are_named():
   c = _config("smoke", "seven_scenes", "quat")
   c.optax.lr, c.loss.kind, c.model.extra_fc = 3e-3, "mse", 7
-  driver.check_config(c)
+  config_schema.check(c)
   hp = learner.resolve_hparams(c)
   assert (hp.lr, hp.loss, hp.extra_fc, hp.weight_decay) == (3e-3, "mse", 7, 5e-4)
   for field, value, match in (
@@ -145,7 +161,7 @@ def test_command_line_values_win_and_bad_ones_are_named():
     c = _config("smoke", "car", "quat")
     c.loss[field] = value
     with pytest.raises(ConfigError, match=match):
-      driver.check_config(c)
+      config_schema.check(c)
 
 
 def test_pose_system_digest_names_the_parameters():

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from camrep.configs import regression as regression_config
-from camrep.regression import driver, learner, scoring
+from camrep.regression import config_schema, driver, learner, scoring
 from camrep.regression import views as views_lib
 
 pytestmark = pytest.mark.slow
@@ -36,7 +36,7 @@ def _small_quick_config(**family):
   c.total_steps, c.data.batch_size = 300, 4
   c.optax.lr = 1e-3
   c.evals.extra_splits = "test"
-  driver.check_config(c)
+  config_schema.check(c)
   return c
 
 

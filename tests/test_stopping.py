@@ -16,6 +16,7 @@ import shutil
 import pytest
 
 from camrep.configs import gqn
+from camrep.regression import config_schema
 from camrep.regression import driver as R
 from camrep.runtime import session, stopping, writers
 from camrep.runtime.checkpoint import CHECKPOINT_SUBDIR
@@ -93,10 +94,10 @@ def test_an_active_rule_needs_periodic_validation(tmp_path):
   c = regression_config.get_config("smoke")
   c.stop.min_improvement = 0.02
   with pytest.raises(ConfigError, match="eval_every_steps"):
-    R.check_config(c)
+    config_schema.check(c)
   c.eval_every_steps, c.stop.window = 10, 0.0
   with pytest.raises(ConfigError, match="window"):
-    R.check_config(c)
+    config_schema.check(c)
 
 
 # --------------------------------------------------------------------------------------------

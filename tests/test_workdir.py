@@ -1,4 +1,4 @@
-"""A workdir tells the truth about the run in it (issue 19): resume compares the config with the
+"""A workdir tells the truth about the run in it: resume compares the config with the
 stored one, a refused start writes nothing, allowed changes are recorded with their step, and one
 writer holds a workdir at a time (stale locks are taken over). Concurrent starts of real
 processes: tests/test_resume.py::test_second_start_on_a_live_workdir_is_refused."""
@@ -17,9 +17,11 @@ import jax
 import pytest
 
 from camrep.configs import gqn, regression, shapenet_car
+from camrep.regression import config_schema as regression_schema
 from camrep.runtime import runconfig, writers
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime.checkpoint import CheckpointError
+from camrep.synthesis import config_schema as synthesis_schema
 from camrep.synthesis import evaluate as ev
 from camrep.synthesis import train
 from tests.utils import snapshot
@@ -39,7 +41,7 @@ def test_check_changes_names_refused_and_unflagged_fields():
   new.model.width = 0.0625
   new.optax.lr_model = 0.5
   with pytest.raises(runconfig.ConfigError) as e:
-    runconfig.check_changes(old, new, resumable=runconfig.SYNTHESIS_RESUMABLE, workdir="W")
+    runconfig.check_changes(old, new, schema=synthesis_schema.SCHEMA, workdir="W")
   msg = str(e.value)
   assert "model.width: 0.03125 -> 0.0625" in msg and "never allowed" in msg
   assert "optax.lr_model: 0.0001 -> 0.5" in msg and "new --workdir" in msg
@@ -51,9 +53,9 @@ def test_check_changes_allows_named_resumable_fields():
   new.optax.lr_model, new.total_steps, new.evals.num_scenes = 0.5, 8, 3
   new.data.num_threads = 3  # free: speed only
   with pytest.raises(runconfig.ConfigError, match="allow_changes=evals.num_scenes,optax.lr_model"):
-    runconfig.check_changes(old, new, resumable=runconfig.SYNTHESIS_RESUMABLE, workdir="W")
+    runconfig.check_changes(old, new, schema=synthesis_schema.SCHEMA, workdir="W")
   new.allow_changes = "optax.lr_model, total_steps,evals"  # a section allows its fields
-  got = runconfig.check_changes(old, new, resumable=runconfig.SYNTHESIS_RESUMABLE, workdir="W")
+  got = runconfig.check_changes(old, new, schema=synthesis_schema.SCHEMA, workdir="W")
   assert got == {
     "data.num_threads": (0, 3),
     "evals.num_scenes": (4, 3),
@@ -63,17 +65,27 @@ def test_check_changes_allows_named_resumable_fields():
   # Naming a shape-affecting field does not make it resumable.
   new.model.width, new.allow_changes = 0.0625, "model.width"
   with pytest.raises(runconfig.ConfigError, match="model.width"):
-    runconfig.check_changes(old, new, resumable=runconfig.SYNTHESIS_RESUMABLE, workdir="W")
+    runconfig.check_changes(old, new, schema=synthesis_schema.SCHEMA, workdir="W")
   # A field the stored config lacks (camrep gained it later) is recorded, not refused.
   older = gqn.get_config("smoke")
   del older.model["gamma_init_one"]
-  got = runconfig.check_changes(older, gqn.get_config("smoke"), resumable=(), workdir="W")
+  got = runconfig.check_changes(older, gqn.get_config("smoke"), schema={}, workdir="W")
   assert got == {"model.gamma_init_one": (None, False)}
-  # A stage that starts over (regression) may change anything it names.
+  # A stage that starts over (regression) may change anything it names: a FIXED field then
+  # starts the run over (`fixed_changes`), a MAY_CHANGE one resumes.
   r_old, r_new = regression.get_config("smoke"), regression.get_config("smoke")
   r_new.representation, r_new.allow_changes = "euler", "representation"
-  got = runconfig.check_changes(r_old, r_new, resumable=None, workdir="W", what="rerun")
+  schema = regression_schema.SCHEMA
+  got = runconfig.check_changes(r_old, r_new, schema=schema, workdir="W", restart=True)
   assert got == {"representation": ("quat", "euler")}
+  assert runconfig.fixed_changes(r_old, r_new, schema=schema) == ["representation"]
+  r_new.allow_changes = ""
+  with pytest.raises(runconfig.ConfigError, match="the run then starts over from step 0"):
+    runconfig.check_changes(r_old, r_new, schema=schema, workdir="W", restart=True)
+  r_new = regression.get_config("smoke")
+  r_new.total_steps, r_new.allow_changes = 9, "total_steps"
+  runconfig.check_changes(r_old, r_new, schema=schema, workdir="W", restart=True)
+  assert runconfig.fixed_changes(r_old, r_new, schema=schema) == []
 
 
 # ---------------------------------------------------------------------------------------------
@@ -196,7 +208,7 @@ def test_a_workdir_written_with_the_retired_fields_resumes(trained, tmp_path):
   shutil.copytree(trained, wd)
   stored = json.loads((wd / "config.json").read_text())
   assert "draw_steps" not in stored["model"]
-  for field, value in runconfig.RETIRED.items():
+  for field, value in synthesis_schema.RETIRED.items():
     section, name = field.split(".")
     stored[section][name] = value
   (wd / "config.json").write_text(json.dumps(stored, indent=2))
@@ -207,7 +219,7 @@ def test_a_workdir_written_with_the_retired_fields_resumes(trained, tmp_path):
   assert resume["step"] == 4 and resume["event"] == "resume"
   assert resume["changes"] == {
     "total_steps": [4, 6],
-    **{f: [v, None] for f, v in runconfig.RETIRED.items()},
+    **{f: [v, None] for f, v in synthesis_schema.RETIRED.items()},
   }
   assert json.loads((wd / "final_metrics.json").read_text())["step"] == 6
   assert "draw_steps" not in json.loads((wd / "config.json").read_text())["model"]

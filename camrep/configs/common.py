@@ -1,7 +1,10 @@
 """The base config every experiment derives from, and the `:quick` / `:medium` / `:smoke` parser.
 
 Sections: data, model, rep (the pose system), loss, optax, evals; durations in steps, converted in
-one place (`camrep.runtime.writers.itstime`).
+one place (`camrep.runtime.progress.itstime`). What each field may hold, when a run uses it and
+whether it may change when a run resumes is declared once, beside the code that reads it:
+`camrep.synthesis.config_schema.SCHEMA` (the training loop's own fields:
+`camrep.runtime.frame.FIELDS`).
 """
 
 from __future__ import annotations
@@ -123,9 +126,16 @@ def base() -> ml_collections.ConfigDict:
   c.eval_every_steps = 5000
   c.ckpt_every_steps = 50_000
   c.max_to_keep = 3
+  # Train steps per dispatch (K): the step scanned over K batches on the device, logging from its
+  # stacked metrics, evaluations, checkpoints and stop signals at the ends of dispatches (which
+  # also end at every evaluation and checkpoint step). The same results as K = 1 up to float
+  # round-off; at the paper size a step takes ~14 ms on one GPU and K = 10 leaves one dispatch
+  # per 0.14 s (the `:quick`, `:medium` and `:smoke` variants keep 1: one step per dispatch).
+  c.steps_per_dispatch = 10
   # Resuming in a workdir whose config.json differs: the fields allowed to change, comma-separated
-  # ("total_steps,optax.lr_model"; a section name such as "evals" allows its fields). Only fields in
-  # camrep.runtime.runconfig.SYNTHESIS_RESUMABLE may change; the changes go to config_history.jsonl.
+  # ("total_steps,optax.lr_model"; a section name such as "evals" allows its fields). Only fields
+  # declared resumable (camrep.synthesis.config_schema.SCHEMA) may change; the changes go to
+  # config_history.jsonl.
   c.allow_changes = ""
   # Plateau stopping rule (camrep/runtime/stopping.py), checked at each held-out evaluation (needs
   # eval_every_steps > 0) on the held-out-view MSE 10^(-eval/psnr / 10): stop when its best value
@@ -156,6 +166,7 @@ def quick(c: ml_collections.ConfigDict, *, total_steps: int = 600, every: int = 
   c.log_every_steps = 20
   c.eval_every_steps = every
   c.ckpt_every_steps = every
+  c.steps_per_dispatch = 1
   return c
 
 
@@ -187,6 +198,7 @@ def smoke(c: ml_collections.ConfigDict, *, n_pairs: int = 16, eval_scenes: int =
   c.log_every_steps = 2
   c.eval_every_steps = 4
   c.ckpt_every_steps = 2
+  c.steps_per_dispatch = 1
   c.evals.num_scenes = eval_scenes
   c.evals.batch_scenes = 2
   c.evals.grid_scenes = 2

@@ -180,6 +180,9 @@ def base(setting: settings_lib.Setting, variant: str) -> ml_collections.ConfigDi
   # "mlp" its MLP embedding if it was trained with rep.kind=mlp, else (and without a workdir) a
   # frozen randomly initialised MLP embedding.
   c.synthesis_workdir = ""
+  # Use a synthesis workdir whose run is not complete (still training, stopped on non-finite
+  # values or by a signal): refused unless True, and recorded in results.json.
+  c.allow_incomplete_synthesis = False
   c.variant = variant or "paper"
   # Rerunning in a workdir that holds another config: the fields allowed to differ
   # (comma-separated; the rerun starts over and the change goes to config_history.jsonl).
@@ -189,6 +192,11 @@ def base(setting: settings_lib.Setting, variant: str) -> ml_collections.ConfigDi
   c.log_every_steps = 100
   # Validation errors during training (metrics.jsonl only); 0: at the end only.
   c.eval_every_steps = 0
+  # Checkpoints (a killed or signalled run resumes from the latest), of which the last
+  # `max_to_keep` are kept; train steps per dispatch (`configs/common.py`: 1 outside paper size).
+  c.ckpt_every_steps = 1000
+  c.max_to_keep = 2
+  c.steps_per_dispatch = 1 if variant else 10
   # Stopping rule (camrep/runtime/stopping.py), checked at each periodic validation (needs
   # eval_every_steps): stop when the best validation score (`Setting.validation_score`) improved
   # by less than `min_improvement` (relative) over the last `window` of the steps, not before

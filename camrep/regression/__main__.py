@@ -3,9 +3,10 @@
 (`camrep.regression.driver.run`).
 
 The config is checked first (`camrep.regression.config_schema`: every field, and the fields the
-chosen setting, representation and data use). Exit status (`camrep.runtime.cli`): 0 done, 2 a
-user's mistake (bad flag, config or workdir; one `error:` line), 3 non-finite training values,
-1 a bug.
+chosen setting, representation and data use). The same command resumes a run from its latest
+checkpoint (a complete run: nothing to do). Exit status (`camrep.runtime.cli`): 0 done (or
+stopped by SIGTERM / Ctrl-C after saving a checkpoint: the same command resumes), 2 a user's
+mistake (bad flag, config or workdir; one `error:` line), 3 non-finite training values, 1 a bug.
 """
 
 from __future__ import annotations

@@ -1,38 +1,58 @@
-"""The pose-regression config's validation pass (`camrep.runtime.validate`): a rule per field of
-`configs/regression.py`, and which fields the chosen setting, representation and data use.
+"""The pose-regression config's fields, each declared once (`camrep.runtime.validate.Field`): its
+rule, which representation and data use it, and whether it may change when a run resumes
+(`SCHEMA`: the run frame's fields, `camrep.runtime.frame.FIELDS`, and those of
+`configs/regression.py`). A run whose config changes a FIXED field named in `allow_changes`
+starts over from step 0 (`runtime.frame`); MAY_CHANGE fields resume.
 
-`validate(config, overridden=...)` is what `python -m camrep.regression` runs first, before
-`driver.check_config`'s cross-field checks; it raises `ConfigError`. A config holds one
-setting's fields (`configs/regression.py:SETTING`): an override of another setting's field is
-refused when the flag is parsed.
+The stage's one validation is here: `validate(config, overridden=...)` checks every field's rule
+and the fields the run ignores (what `python -m camrep.regression` runs first), then the
+cross-field checks (`check`: setting and data source, "ours" without a workdir, splits, sizes,
+the stopping rule, the ResNet weights). A config holds one setting's fields
+(`configs/regression.py:SETTING`): an override of another setting's field is refused when the
+flag is parsed.
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable
 
+from camrep import pose_encodings
 from camrep import settings as settings_lib
 from camrep.data import sources
-from camrep.regression import driver, learner
+from camrep.regression import learner
 from camrep.regression import targets as T
+from camrep.regression import views as views_lib
+from camrep.runtime import frame as frame_lib
 from camrep.runtime import validate as V
+from camrep.runtime.runconfig import ConfigError
 
 VARIANTS = ("paper", "quick", "medium", "smoke")
+# Test splits a run may score (`evals.test_split` of its setting, `evals.extra_splits`).
+SPLITS = ("test", "test_scenes")
 
 _F, _U = V.Field, V.unless
+# Resume policies (`validate`): FIXED unless marked (a change named in allow_changes starts the
+# run over); MAY_CHANGE fields resume; FREE fields change only speed or where output goes.
+_M, _FREE = V.MAY_CHANGE, V.FREE
 
 
 def _real(c) -> bool:
   return bool(c.data.get("dir", ""))
 
 
+def _reads_synthesis(c) -> bool:
+  return pose_encodings.get(c.representation).needs_synthesis
+
+
 _NOT_REAL = "used with real data (data.source and data.dir) only"
 
 
 SCHEMA: dict[str, V.Field] = {
-  # Checked by `driver.check_config`; chosen by the config argument, never overridden.
+  **frame_lib.FIELDS,
+  # Chosen by the config argument, never overridden.
   "setting": _F(
-    V.one_of(settings_lib.names()),
+    V.one_of(settings_lib.names),
     lambda c: (
       "the config argument chooses the setting, with its sizes: pass "
       f"--config=configs/regression.py:{c.setting}[,quick|,medium|,smoke]"
@@ -47,33 +67,36 @@ SCHEMA: dict[str, V.Field] = {
       "only representations 'ours' and 'mlp' read a view-synthesis workdir",
     ),
   ),
+  "allow_incomplete_synthesis": _F(
+    V.ANY,
+    _U(
+      lambda c: c.representation in ("ours", "mlp") and bool(c.synthesis_workdir),
+      "only a run that reads a view-synthesis workdir (synthesis_workdir) checks its state",
+    ),
+    resume=_FREE,
+  ),
   "variant": _F(V.one_of(VARIANTS)),
-  "allow_changes": _F(V.ANY),
-  "total_steps": _F(V.POSITIVE),
-  "log_every_steps": _F(V.NONNEG),
-  "eval_every_steps": _F(V.NONNEG),  # 0: at the end only
-  # The stopping rule (camrep/runtime/stopping.py; the ranges `rule_from_config` accepts).
-  "stop.min_improvement": _F(V.NONNEG),  # 0: off
-  "stop.window": _F(V.Rule("fraction")),
-  "stop.min_steps": _F(V.NONNEG),
   "data.preset": _F(V.ANY),
   "data.batch_size": _F(V.POSITIVE),
   "data.n_context": _F(V.POSITIVE),
   "data.n_query": _F(V.POSITIVE),
   "data.validation_fraction": _F(V.Rule("fraction")),
-  "data.cache_dir": _F(V.ANY),
-  "data.source": _F(V.optional(V.one_of(sources.SOURCES))),
-  "data.dir": _F(V.optional(V.Rule("dir"))),
+  "data.cache_dir": _F(V.ANY, resume=_FREE),
+  "data.source": _F(V.optional(V.one_of(lambda: sources.SOURCES))),
+  # A moved copy of the prepared dataset (record.json compares its fingerprint).
+  "data.dir": _F(V.optional(V.Rule("dir")), resume=_M),
   "data.dataset_config": _F(V.ANY, _U(_real, _NOT_REAL)),
   "data.image_size": _F(V.optional(V.POSITIVE), _U(_real, _NOT_REAL)),
   "data.test_scenes_fraction": _F(V.Rule("fraction"), _U(_real, "used with real GQN data only")),
-  "data.max_memory_gb": _F(V.POSITIVE, _U(_real, _NOT_REAL)),
-  "data.stream": _F(V.ANY, _U(_real, _NOT_REAL)),
-  "data.num_threads": _F(V.NONNEG),
-  "data.prefetch": _F(V.NONNEG),
+  "data.max_memory_gb": _F(V.POSITIVE, _U(_real, _NOT_REAL), resume=_FREE),
+  "data.stream": _F(V.ANY, _U(_real, _NOT_REAL), resume=_FREE),
+  "data.num_threads": _F(V.NONNEG, resume=_FREE),
+  "data.prefetch": _F(V.NONNEG, resume=_FREE),
   "model.width": _F(V.POSITIVE),
   "model.refine_steps": _F(
-    V.NONNEG, _U(lambda c: c.representation == "ours", "used by representation='ours' only")
+    V.NONNEG,
+    _U(lambda c: c.representation == "ours", "used by representation='ours' only"),
+    resume=_M,
   ),
   "model.resnet_stages": _F(V.Rule("positive_tuple")),
   "model.fc_dim": _F(V.POSITIVE),
@@ -91,30 +114,118 @@ SCHEMA: dict[str, V.Field] = {
   "loss.s_factor": _F(V.optional(V.POSITIVE)),
   "loss.learn_s": _F(V.optional(V.ANY)),
   "loss.weights": _F(V.optional(V.NUMBERS)),
-  "evals.batch_size": _F(V.POSITIVE),
-  "evals.extra_splits": _F(V.ANY),
-  "evals.periodic_all_splits": _F(V.ANY),
-  "evals.test_split": _F(V.one_of(driver.SPLITS)),
+  "evals.batch_size": _F(V.POSITIVE, resume=_M),
+  "evals.extra_splits": _F(V.ANY, resume=_M),
+  "evals.periodic_all_splits": _F(V.ANY, resume=_M),
+  "evals.test_split": _F(V.one_of(SPLITS)),
   "data.family.": _F(V.SECTION),
 }
 
 
+# The learned representations' hyper-parameters and what every baseline changes from them
+# (`hparams.ours.*`, `hparams.baselines.*`): each with the rule of its top-level override.
 for _group in ("ours", "baselines"):
-  for _key in list(SCHEMA):
-    if _key.split(".")[0] in ("loss", "optax", "model") and _key in (
-      "optax.weight_decay", "model.extra_fc", "model.quantisation",
-      "loss.kind", "loss.weighting", "loss.init_s", "loss.s_factor", "loss.learn_s",
-      "loss.weights",
-    ):  # fmt: skip
-      SCHEMA[f"hparams.{_group}.{_key}"] = SCHEMA[_key]
+  for _key in (
+    "optax.weight_decay", "model.extra_fc", "model.quantisation",
+    "loss.kind", "loss.weighting", "loss.init_s", "loss.s_factor", "loss.learn_s",
+    "loss.weights",
+  ):  # fmt: skip
+    SCHEMA[f"hparams.{_group}.{_key}"] = SCHEMA[_key]
 
 
-def validate(config, *, overridden: Iterable[str] = ()) -> None:
-  """Every field's rule and the overridden fields the run ignores, then the driver's cross-field
-  checks (`driver.check_config`: setting and data source, "ours" without a workdir, splits).
+def check(config) -> None:
+  """Checks the fields of a config together (a config of `configs/regression.py`, which holds
+  its setting's sizes and hyper-parameters): the setting and representation, "ours" with its
+  `synthesis_workdir`, the data source (`check_source`), the hyper-parameters
+  (`learner.resolve_hparams`), the test splits, the sizes, the stopping rule and the ResNet
+  weights.
+
+  Raises:
+    ConfigError: naming the field and what is allowed.
+  """
+  try:
+    settings_lib.get(config.setting)
+  except ValueError as e:
+    raise ConfigError(str(e)) from None
+  if config.representation not in T.REPRESENTATIONS:
+    raise ConfigError(
+      f"unknown representation {config.representation!r}; choose one of {T.REPRESENTATIONS}"
+    )
+  if _reads_synthesis(config) and not config.synthesis_workdir:
+    raise ConfigError(
+      f'representation "{config.representation}" regresses the learned pose system of a '
+      "view-synthesis run: pass --config.synthesis_workdir=DIR (a `python -m camrep.main` "
+      f"workdir of setting {config.setting!r})"
+    )
+  check_source(config)
+  try:
+    learner.resolve_hparams(config)
+  except ValueError as e:
+    raise ConfigError(str(e)) from None
+  extra = [x.strip() for x in config.evals.extra_splits.split(",") if x.strip()]
+  for split in [config.evals.test_split, *extra]:
+    if split not in SPLITS:
+      raise ConfigError(f"unknown test split {split!r}; choose from {SPLITS}")
+  if config.total_steps < 1 or config.data.batch_size < 1 or config.optax.lr <= 0:
+    raise ConfigError("total_steps, data.batch_size and optax.lr must be positive")
+  if not 0 < config.data.validation_fraction < 1:
+    raise ConfigError("data.validation_fraction must be in (0, 1)")
+  frame_lib.check_config(config)
+  weights = config.model.get("resnet_weights", "")
+  if weights and not os.path.isfile(weights):
+    raise ConfigError(f"model.resnet_weights {weights} does not exist")
+
+
+def check_source(config) -> None:
+  """Refuses a data.source of another setting, a real source without an existing data.dir, and
+  a procedural one with a data.dir.
+
+  Raises:
+    ConfigError: as above.
+  """
+  d = config.data
+  source = d.get("source", "")
+  if not source:
+    if d.get("dir", ""):
+      raise ConfigError(
+        "data.dir is set but data.source is empty: name the prepared dataset's source "
+        f"(--config.data.source={views_lib.data_source(config)} is "
+        "procedural; real ones: gqn, srn_cars, gibson, seven_scenes)"
+      )
+    return
+  try:
+    setting = sources.setting_of(source)
+  except ValueError as e:
+    raise ConfigError(f"data.source: {e}") from None
+  if setting is not settings_lib.get(config.setting):
+    raise ConfigError(
+      f"data.source {source!r} is data of the {setting.name!r} setting, but setting is "
+      f"{config.setting!r}: pass --config=configs/regression.py:{setting.name}"
+    )
+  if sources.is_procedural(source):
+    if d.dir:
+      raise ConfigError(f"data.source {source!r} is procedural and takes no data.dir")
+    return
+  if not d.dir:
+    raise ConfigError(
+      f"data.source {source!r} is a real dataset: prepare it with `python -m camrep.data.prepare "
+      f"--source {source} --input RAW --data_dir DIR` and pass --config.data.dir=DIR"
+    )
+  if not os.path.isdir(d.dir):
+    raise ConfigError(f"data.dir {d.dir} does not exist (data.source {source!r})")
+
+
+def validate(config, *, overridden: Iterable[str] = ()):
+  """The stage's validation: every field's rule, the overridden fields the run ignores and
+  `allow_changes` naming fields, then the cross-field checks (`check`).
+
+  Returns:
+    The config, unchanged (each setting's config holds its own values).
 
   Raises:
     ConfigError: the first problem, naming the field, its value and what is allowed.
   """
   V.check(config, SCHEMA, overridden=overridden)
-  driver.check_config(config)
+  V.check_allow_changes(config, SCHEMA)
+  check(config)
+  return config

@@ -1,7 +1,7 @@
 """Pose-regression runs for the paper's Tables 1 and 2 (section 4.4) on procedural or real data.
 
-`python -m camrep.regression --config=configs/regression.py[:quick|:smoke] --workdir=DIR
-[--config.setting=gqn --config.representation=ours --config.synthesis_workdir=W ...]` trains one
+`python -m camrep.regression --config=configs/regression.py:SETTING[,quick|,smoke] --workdir=DIR
+[--config.representation=ours --config.synthesis_workdir=W ...]` trains one
 pose regressor (`learner`) for one (setting, representation, learning rate, seed) and
 writes into DIR:
 
@@ -9,7 +9,10 @@ writes into DIR:
   record.json        what identifies its data and pose system beyond the config
                      (`views.data_record`: the family's resolved parameters or the prepared
                      dataset's identity, their fingerprints; the pose spec of a learned
-                     representation)
+                     representation and the digest of the parameters it read)
+  checkpoints/       the regressor's state every ckpt_every_steps (the run frame,
+                     `camrep.runtime.frame`: the same command resumes from the latest; SIGTERM
+                     or Ctrl-C saves one and stops), config_history.jsonl, final_metrics.json
   metrics.jsonl      train/* every log_every_steps, eval/validation/* (with the lr-selection
                      score eval/validation/score: the validation curve) every eval_every_steps,
                      every split's at the end
@@ -50,7 +53,9 @@ restores the frozen pose system of a view-synthesis workdir (`pose_system.load_p
 rep.kind="mlp", else a frozen randomly initialised MLP embedding (`MlpEncoding`; the
 supplement's MLP is trained by view synthesis). The synthesis workdir must have been trained on
 the same data (`pose_system.check_same_data`: same source, same prepared directory and dataset)
-and, for "ours", with the learned grid system.
+and, for "ours", with the learned grid system, and its run must be complete (`check_synthesis`:
+not still training, not stopped on non-finite values or by a signal) unless
+`allow_incomplete_synthesis` (then recorded in results.json).
 `model.resnet_weights` (seven_scenes) loads a torchvision ResNet-34 state dict into the trunk
 (`load_resnet_weights`).
 """
@@ -58,128 +63,32 @@ and, for "ours", with the learned grid system.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
-import math
 import os
-import shutil
 import time
 from collections.abc import Mapping
 from typing import Any
 
+import flax.serialization
 import jax
+import jax.numpy as jnp
 import ml_collections
 import numpy as np
+from typing_extensions import override
 
-from camrep import pose_encodings
-from camrep import settings as settings_lib
 from camrep.configs import regression as regression_config
-from camrep.data import sources
-from camrep.regression import learner, pose_system, scoring
+from camrep.regression import config_schema, learner, pose_system, scoring
 from camrep.regression import tables as tables_lib
-from camrep.regression import targets as T
 from camrep.regression import views as views_lib
-from camrep.runtime import progress as progress_lib
-from camrep.runtime import runconfig, stopping, writers
+from camrep.runtime import frame as frame_lib
+from camrep.runtime import session as session_lib
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime.runconfig import ConfigError
 from camrep.synthesis import components
 
 RESULTS_FILE = "results.json"
-SPLITS = ("test", "test_scenes")
-
-
-# --------------------------------------------------------------------------------------------
-# Config.
-
-
-def check_config(config: ml_collections.ConfigDict) -> None:
-  """Checks the fields of a config together (a config of `configs/regression.py`, which holds
-  its setting's sizes and hyper-parameters): the setting and representation, "ours" with its
-  `synthesis_workdir`, the data source (`check_source`), the hyper-parameters
-  (`learner.resolve_hparams`), the test splits, the sizes and the stopping rule.
-
-  Raises:
-    ConfigError: unknown setting / representation / split, a non-positive size, or "ours"
-      without `synthesis_workdir`.
-  """
-  try:
-    settings_lib.get(config.setting)
-  except ValueError as e:
-    raise ConfigError(str(e)) from None
-  if config.representation not in T.REPRESENTATIONS:
-    raise ConfigError(
-      f"unknown representation {config.representation!r}; choose one of {T.REPRESENTATIONS}"
-    )
-  encoding = pose_encodings.get(config.representation)
-  if encoding.needs_synthesis and not config.synthesis_workdir:
-    raise ConfigError(
-      f'representation "{config.representation}" regresses the learned pose system of a '
-      "view-synthesis run: pass --config.synthesis_workdir=DIR (a `python -m camrep.main` "
-      f"workdir of setting {config.setting!r})"
-    )
-  check_source(config)
-  try:
-    learner.resolve_hparams(config)
-  except ValueError as e:
-    raise ConfigError(str(e)) from None
-  extra = [x.strip() for x in config.evals.extra_splits.split(",") if x.strip()]
-  for split in [config.evals.test_split, *extra]:
-    if split not in SPLITS:
-      raise ConfigError(f"unknown test split {split!r}; choose from {SPLITS}")
-  if config.total_steps < 1 or config.data.batch_size < 1 or config.optax.lr <= 0:
-    raise ConfigError("total_steps, data.batch_size and optax.lr must be positive")
-  if not 0 < config.data.validation_fraction < 1:
-    raise ConfigError("data.validation_fraction must be in (0, 1)")
-  try:
-    rule = stopping.rule_from_config(config.get("stop"))
-  except ValueError as e:
-    raise ConfigError(str(e)) from None
-  if rule.active and config.eval_every_steps <= 0:
-    raise ConfigError(
-      "stop.min_improvement > 0 checks the periodic validation: set eval_every_steps > 0"
-    )
-  weights = config.model.get("resnet_weights", "")
-  if weights and not os.path.isfile(weights):
-    raise ConfigError(f"model.resnet_weights {weights} does not exist")
-
-
-def check_source(config) -> None:
-  """Refuses a data.source of another setting, a real source without an existing data.dir, and
-  a procedural one with a data.dir.
-
-  Raises:
-    ConfigError: as above.
-  """
-  d = config.data
-  source = d.get("source", "")
-  if not source:
-    if d.get("dir", ""):
-      raise ConfigError(
-        "data.dir is set but data.source is empty: name the prepared dataset's source "
-        f"(--config.data.source={views_lib.data_source(config)} is "
-        "procedural; real ones: gqn, srn_cars, gibson, seven_scenes)"
-      )
-    return
-  try:
-    setting = sources.setting_of(source)
-  except ValueError as e:
-    raise ConfigError(f"data.source: {e}") from None
-  if setting is not settings_lib.get(config.setting):
-    raise ConfigError(
-      f"data.source {source!r} is data of the {setting.name!r} setting, but setting is "
-      f"{config.setting!r}: pass --config=configs/regression.py:{setting.name}"
-    )
-  if sources.is_procedural(source):
-    if d.dir:
-      raise ConfigError(f"data.source {source!r} is procedural and takes no data.dir")
-    return
-  if not d.dir:
-    raise ConfigError(
-      f"data.source {source!r} is a real dataset: prepare it with `python -m camrep.data.prepare "
-      f"--source {source} --input RAW --data_dir DIR` and pass --config.data.dir=DIR"
-    )
-  if not os.path.isdir(d.dir):
-    raise ConfigError(f"data.dir {d.dir} does not exist (data.source {source!r})")
+SPLITS = config_schema.SPLITS
 
 
 # --------------------------------------------------------------------------------------------
@@ -230,10 +139,17 @@ class Setup:
 
 
 def prepare(config: ml_collections.ConfigDict, *, log=print) -> Setup:
-  """Restores the pose input and renders the data of a config (in that order, so that a
-  bad synthesis workdir fails before minutes of rendering)."""
+  """Restores the pose input and renders the data of a resolved config (in that order, so that a
+  bad synthesis workdir fails before minutes of rendering).
+
+  Raises:
+    ConfigError: as `pose_system.representation_params`, or the synthesis workdir's run is not
+      complete (`synthesis_state`) and `allow_incomplete_synthesis` is not set.
+  """
   t0 = time.perf_counter()
   spec, rep_params, rep_info = pose_system.representation_params(config)
+  if rep_info.get("source") == "synthesis":
+    rep_info = check_synthesis(config, rep_info, log=log)
   data = views_lib.make_data(config)
   t_data = time.perf_counter() - t0
   scene_max = [data.train.scenes.max(), *(e.queries.scenes.max() for e in data.evals.values())]
@@ -245,6 +161,59 @@ def prepare(config: ml_collections.ConfigDict, *, log=print) -> Setup:
     + f" (data {t_data:.1f}s)"
   )
   return Setup(config, spec, rep_params, rep_info, data, reg)
+
+
+def synthesis_state(workdir: str, step: int | None = None) -> str | None:
+  """None when the view-synthesis run in `workdir` is complete (at checkpoint `step`, when
+  given), else what it is: still training (a live process holds its lock), stopped on non-finite
+  values, or not complete (no final record, or one that says so: stopped by a signal, killed,
+  or being extended)."""
+  holder = workdir_lib.WorkdirLock(workdir).live_holder()
+  if holder is not None:
+    return (
+      f"still training (PID {holder.get('pid')} on {holder.get('host')} holds its lock, "
+      f"started {holder.get('started', '?')})"
+    )
+  final = session_lib.read_final(workdir)
+  if final is None:
+    return (
+      f"not complete: it has no {session_lib.FINAL_FILE} (stopped by a signal, killed, or "
+      "never finished)"
+    )
+  if final.get("stopped") == "non-finite":
+    return f"stopped on non-finite values ({final.get('reason', 'see its log')})"
+  if final.get("complete") is not True:
+    return (
+      f'not complete: its {session_lib.FINAL_FILE} says "complete": false (stopped by a signal, '
+      "killed, or being extended)"
+    )
+  if step is not None and final.get("step") != step:
+    return f"not complete at its latest checkpoint, step {step} (complete at {final.get('step')})"
+  return None
+
+
+def check_synthesis(config, rep_info: Mapping[str, Any], *, log=print) -> dict[str, Any]:
+  """Refuses a representation read from a view-synthesis run that is not complete
+  (`synthesis_state`) unless `config.allow_incomplete_synthesis`; then it is used and the
+  returned info records it ("synthesis_incomplete": what the run was).
+
+  Raises:
+    ConfigError: the run is not complete and it is not allowed.
+  """
+  info = dict(rep_info)
+  why = synthesis_state(info["workdir"], info.get("step"))
+  if why is None:
+    return info
+  if not config.get("allow_incomplete_synthesis", False):
+    raise ConfigError(
+      f"synthesis_workdir {info['workdir']} is {why}: its pose system (checkpoint step "
+      f"{info.get('step')}) may not be the one it ends with. Wait for it to finish (or run its "
+      "command again to resume it), or pass --config.allow_incomplete_synthesis=True to regress "
+      "its latest checkpoint anyway (recorded in results.json)"
+    )
+  log(f"warning: synthesis_workdir {info['workdir']} is {why}; used as allowed")
+  info["synthesis_incomplete"] = why
+  return info
 
 
 def load_resnet_weights(config, state: learner.RegressionState) -> learner.RegressionState:
@@ -278,67 +247,113 @@ def load_resnet_weights(config, state: learner.RegressionState) -> learner.Regre
   )
 
 
-def train(setup: Setup, writer, eval_sets, *, predict_fn, log=print):
-  """Trains the regressor for config.total_steps; validation errors every eval_every_steps (every
-  split's with `evals.periodic_all_splits`), where the stopping rule (`config.stop`,
-  `stopping.check`) may end training early.
+class RegressionStage(frame_lib.Stage):
+  """The regression's part of the fit loop (`runtime.frame.Stage`): its state, step over K
+  batches, training batches (a pure function of (seed, step): `views.train_pipeline`), periodic
+  validation (every split's with `evals.periodic_all_splits`) and its plateau score
+  (eval/validation/score, `tables.validation_score`). The final evaluation of every split is the
+  run's own (`evaluate_splits`), so the periodic one does not run at total_steps."""
 
-  Returns:
-    (state, the last logged train/* scalars, training seconds, stopping record: {"rule",
-    "stopped_early", "steps" trained, "reason", "curve": [[step, validation score], ...]}).
-  """
-  config = setup.config
-  train_views = setup.data.train
-  pipe = views_lib.train_pipeline(config, train_views)
-  batches = (views_lib.learner_batch(config, train_views, b) for b in pipe.iterator())
-  init_key = jax.random.fold_in(jax.random.key(config.seed), 0)
-  first = views_lib.learner_batch(config, train_views, pipe.batch(0))
-  state = learner.init(init_key, setup.reg, first, rep_params=setup.rep_params)
-  state = load_resnet_weights(config, state)
-  step_fn = jax.jit(learner.train_step, donate_argnums=0)
-  total = config.total_steps
-  progress = progress_lib.Progress(total, every_seconds=20.0)
-  t_train = time.perf_counter()
-  last: dict[str, float] = {}
-  rule = stopping.rule_from_config(config.get("stop"))
-  curve: list[tuple[int, float]] = []
-  stop, reason = False, "reached total_steps"
-  for step in range(1, total + 1):
-    state, m = step_fn(state, next(batches))
-    if progress_lib.itstime(step, config.log_every_steps, total):
-      host = {f"train/{k}": float(v) for k, v in m.items()}
-      writer.write_scalars(step, host)
-      bad = [k for k, v in host.items() if not math.isfinite(v)]
-      if bad:
-        raise FloatingPointError(f"non-finite {', '.join(bad)} at step {step}")
-      last = host
-    status = progress.update(step)
-    if status:
-      log(f"{status} loss={float(m['loss']):.4f}")
-    if step < total and progress_lib.itstime(step, config.eval_every_steps, total):
-      periodic = eval_sets if config.evals.get("periodic_all_splits") else ["validation"]
-      for name in periodic:
-        errs = scoring.evaluate_regression(state, eval_sets[name], predict_fn=predict_fn)
-        summary = scoring.summarise_errors(errs)
-        writer.write_scalars(step, _scalars(f"eval/{name}", summary))
-        if name == "validation":
-          score = tables_lib.validation_score(config.setting, summary)
-          writer.write_scalars(step, {"eval/validation/score": score})
-          curve.append((step, score))
-      stop, why = stopping.check(rule, curve)
-      if stop:
-        reason = why
-        log(f"stopping early: {why}")
-        break
-  jax.block_until_ready(state.params)
-  record = {
-    "rule": dataclasses.asdict(rule),
-    "stopped_early": stop,
-    "steps": step,
-    "reason": reason,
-    "curve": [[int(s), float(v)] for s, v in curve],
-  }
-  return state, last, time.perf_counter() - t_train, record
+  eval_at_end = False
+  log_rate = False
+  unlogged = ("train/finite",)
+
+  def __init__(self, setup: Setup, eval_sets, *, predict_fn):
+    self.setup, self.config = setup, setup.config
+    self.eval_sets, self.predict_fn = eval_sets, predict_fn
+    self.pipe = views_lib.train_pipeline(self.config, setup.data.train)
+    self.writer = None
+    self._template: learner.RegressionState | None = None
+    self._seconds_before, self._t0 = 0.0, time.perf_counter()
+
+  def start(self, writer, *, train_seconds: float = 0.0) -> None:
+    """Training begins: the frame's writer, and the seconds trained by earlier starts."""
+    self.writer = writer
+    self._seconds_before, self._t0 = float(train_seconds), time.perf_counter()
+
+  def init(self) -> learner.RegressionState:
+    """The fresh state (`learner.init` on the first batch's shapes, the ResNet weights)."""
+    config = self.config
+    init_key = jax.random.fold_in(jax.random.key(config.seed), 0)
+    first = views_lib.learner_batch(config, self.setup.data.train, self.pipe.batch(0))
+    state = learner.init(init_key, self.setup.reg, first, rep_params=self.setup.rep_params)
+    self._template = state = load_resnet_weights(config, state)
+    return state
+
+  @override
+  def saved(self, state):
+    d = flax.serialization.to_state_dict(state)
+    d.pop("rep_params")  # frozen, read from the synthesis workdir (its digest in record.json)
+    return jax.tree.map(np.asarray, d)
+
+  def restored(self, saved) -> learner.RegressionState:
+    """A checkpoint's state dict back into the state `init` shaped."""
+    full = {**flax.serialization.to_state_dict(self._template), **saved}
+    state = flax.serialization.from_state_dict(self._template, full)
+    return jax.tree.map(jnp.asarray, state)
+
+  @override
+  def dispatch(self, n):
+    if n == 1:
+      step = jax.jit(learner.train_step, donate_argnums=0)
+
+      def one(state, batch):
+        state, metrics = step(state, batch)
+        return state, metrics, metrics["finite"]
+
+      return one
+    return jax.jit(learner.train_steps, donate_argnums=0)
+
+  @override
+  def chunks(self, spans):
+    spans = iter(spans)
+    first = next(spans, None)
+    if first is None:
+      return
+    views = self.setup.data.train
+    host = self.pipe.iterator(start_step=first[0] - 1)  # step k trains on batch k - 1
+    try:
+      for _, n in itertools.chain([first], spans):
+        bs = [views_lib.learner_batch(self.config, views, next(host)) for _ in range(n)]
+        yield bs[0] if n == 1 else {k: np.stack([b[k] for b in bs]) for k in bs[0]}
+    finally:
+      if hasattr(host, "close"):
+        host.close()
+
+  @override
+  def rows(self, metrics, n):
+    host = jax.device_get(metrics)
+    if n == 1:
+      return [{f"train/{k}": float(v) for k, v in host.items()}]
+    return [{f"train/{k}": float(v[i]) for k, v in host.items()} for i in range(n)]
+
+  @override
+  def evaluate(self, state, step):
+    config, out = self.config, {}
+    periodic = self.eval_sets if config.evals.get("periodic_all_splits") else ["validation"]
+    for name in periodic:
+      errs = scoring.evaluate_regression(state, self.eval_sets[name], predict_fn=self.predict_fn)
+      summary = scoring.summarise_errors(errs)
+      scalars = _scalars(f"eval/{name}", summary)
+      self.writer.write_scalars(step, scalars)
+      out.update(scalars)
+      if name == "validation":
+        score = {"eval/validation/score": tables_lib.validation_score(config.setting, summary)}
+        self.writer.write_scalars(step, score)
+        out.update(score)
+    return out
+
+  @override
+  def score(self, row):
+    return row.get("eval/validation/score")
+
+  @override
+  def extra(self, step):
+    return {"train_seconds": self.train_seconds()}
+
+  def train_seconds(self) -> float:
+    """Seconds trained, over every start of the run."""
+    return self._seconds_before + time.perf_counter() - self._t0
 
 
 def evaluate_splits(
@@ -415,85 +430,88 @@ def results_record(
 
 
 def clear_outputs(workdir: str) -> None:
-  """Removes what an earlier run in `workdir` wrote (results.json, errors_*.npz): a rerun starts
-  over, and a stale file would mark an unfinished run as done."""
+  """Removes what an earlier run in `workdir` wrote (results.json, errors_*.npz), before a run
+  starts at step 0 in it: a stale file would mark an unfinished run as done."""
   for name in os.listdir(workdir):
     if name == RESULTS_FILE or (name.startswith("errors_") and name.endswith(".npz")):
       os.remove(os.path.join(workdir, name))
 
 
-def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[str, Any]:
-  """Trains and evaluates one regressor; writes config.json, metrics.jsonl, results.json and
-  errors_<split>.npz into `workdir`.
+def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[str, Any] | None:
+  """Trains and evaluates one regressor in the run frame (`runtime.frame`); writes config.json,
+  metrics.jsonl, checkpoints/, results.json, errors_<split>.npz and final_metrics.json into
+  `workdir`.
 
-  A rerun in a workdir starts over (its results.json and errors files are removed first); when
-  the workdir holds another config, only the fields named in `config.allow_changes` may differ,
-  and the change is recorded in config_history.jsonl. One run per workdir at a time (a lock).
+  A rerun of the same config resumes from the workdir's latest checkpoint (a complete run:
+  nothing to do, its results.json returned). When the workdir holds another config, only the
+  fields named in `config.allow_changes` may differ: a change of a field that may change on
+  resume (`config_schema.SCHEMA`: durations, cadences, evaluations, the stopping rule) resumes,
+  any other starts the run over (its checkpoints, results.json and errors files removed first);
+  either is recorded in config_history.jsonl. One run per workdir at a time (a lock). SIGTERM or
+  Ctrl-C saves a checkpoint and stops (returns None); the same command resumes.
 
   Args:
-    config: a configs/regression.py config (checked here).
+    config: a configs/regression.py config (checked here: `config_schema.validate`).
     workdir: output directory.
     log: progress printer.
 
   Returns:
-    The results.json content.
+    The results.json content, or None when a signal stopped the run.
 
   Raises:
     ConfigError: bad config or synthesis workdir, or a config that differs from the workdir's.
     WorkdirError: the workdir cannot be written, or another run holds it.
-    FloatingPointError: the loss became non-finite.
+    FloatingPointError: the loss became non-finite (the last checkpoint is kept).
   """
-  check_config(config)
-  existed = os.path.isdir(workdir)
-  workdir_lib.check_workdir(workdir)
-  stored = workdir_lib.read_stored_config(workdir)
-  changes = {}
+  config = config_schema.validate(config)  # the stage's checks
+  stored = workdir_lib.read_stored_config(workdir) if os.path.isdir(workdir) else None
   if stored is not None:
     try:
       regression_config.check_layout(stored)
     except ValueError as e:
       raise ConfigError(f"{workdir}: {e}") from None
-    changes = runconfig.check_changes(stored, config, resumable=None, workdir=workdir, what="rerun")
-  lock = workdir_lib.WorkdirLock(workdir)
-  lock.acquire()
-  try:
-    try:
-      record = {"version": 1, "data": views_lib.data_record(config)}
-      setup = prepare(config, log=log)
-    except BaseException:
-      if not existed:
-        shutil.rmtree(workdir, ignore_errors=True)  # holds nothing but the lock
-      raise
+  rule = frame_lib.stopping_rule(config)
+  results_path = os.path.join(workdir, RESULTS_FILE)
+  with frame_lib.Frame(
+    workdir, config, schema=config_schema.SCHEMA, log=log, restart=True, outputs=clear_outputs
+  ) as frame:
+    if frame.already_complete(rule) is not None and os.path.exists(results_path):
+      with open(results_path, encoding="utf-8") as f:
+        return json.load(f)
+    record = {"version": 1, "data": views_lib.data_record(config)}
+    setup = prepare(config, log=log)
     if setup.spec is not None:
       record["pose_spec"] = components.spec_record(setup.spec)
-    old_record = workdir_lib.read_record(workdir) if stored is not None else None
-    if old_record is not None:  # a rerun starts over: a changed record is recorded, not refused
-      refused, accepted = workdir_lib.record_differences(old_record, record)
-      changes.update({f"record.{k}": v for k, v in {**refused, **accepted}.items()})
-    clear_outputs(workdir)
-    writer = writers.MetricWriter(workdir)
-    writer.truncate_after(0)
-    writer.write_config(config)
-    workdir_lib.write_record(workdir, record)
-    workdir_lib.append_history(workdir, 0, changes, what="rerun" if stored else "start")
+    if "digest" in setup.rep_info:  # which pose system: a resume must read the same one
+      record["representation"] = {"digest": setup.rep_info["digest"]}
+    frame.check_record(record)
     predict_fn = jax.jit(learner.predict_poses)
     eval_sets = {k: views_lib.eval_batches(config, e) for k, e in setup.data.evals.items()}
-    try:
-      state, last, train_seconds, stop = train(
-        setup, writer, eval_sets, predict_fn=predict_fn, log=log
-      )
-      t_eval = time.perf_counter()
-      summaries, extra = evaluate_splits(
-        setup, state, writer, eval_sets, predict_fn=predict_fn, workdir=workdir, step=stop["steps"]
-      )
-    finally:
-      writer.close()
-  finally:
-    lock.release()
-  results = results_record(
-    setup, state, last, train_seconds, time.perf_counter() - t_eval, summaries, extra, stop
-  )
-  write_results(os.path.join(workdir, RESULTS_FILE), results)
+    stage = RegressionStage(setup, eval_sets, predict_fn=predict_fn)
+    state, start = frame.restore_or_init(stage.init, saved=stage.saved, restored=stage.restored)
+    frame.begin(start)
+    stage.start(frame.writer, train_seconds=frame.extra.get("train_seconds", 0.0))
+    fit = frame_lib.fit(frame, stage, state, start, rule=rule, progress_every=20.0)
+    if not fit.complete:
+      return None
+    state = fit.state
+    jax.block_until_ready(state.params)
+    train_seconds = stage.train_seconds()
+    last = {k: v for k, v in fit.last.items() if k.startswith("train/")}
+    if not last:  # nothing logged since the restored step: the run's last train scalars
+      last = {k: v for k, v in session_lib.last_logged(workdir).items() if k.startswith("train/")}
+    record = fit.stopping_record(rule, config.total_steps)
+    stop = {k: record[k] for k in ("rule", "stopped_early", "steps", "reason", "curve")}
+    t_eval = time.perf_counter()
+    summaries, extra = evaluate_splits(
+      setup, state, frame.writer, eval_sets, predict_fn=predict_fn, workdir=workdir,
+      step=fit.step,
+    )  # fmt: skip
+    results = results_record(
+      setup, state, last, train_seconds, time.perf_counter() - t_eval, summaries, extra, stop
+    )
+    write_results(results_path, results)
+    frame.finish(fit.step, {**last, "results": RESULTS_FILE})
   overall = results["test"]["all"]
   log(
     f"test ({config.evals.test_split}): "

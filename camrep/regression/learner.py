@@ -7,6 +7,7 @@ Plain functions, independent of the view-synthesis trainer (`camrep.synthesis.tr
   init(key, regressor, batch, rep_params)       a `RegressionState`
   train_step(state, batch)                      one Adam step; pure, jit it at the call site:
                                                 `step = jax.jit(regress.train_step)`
+  train_steps(state, batches)                   K steps over stacked batches (`lax.scan`)
   predict_poses(state, batch)                   network -> heads -> decode -> poses
   pose_errors(setting, pred, true)              per-example errors (camrep.metrics)
   evaluate_regression(state, batches)           per-example errors over an eval set
@@ -379,7 +380,8 @@ def train_step(
 
   Returns:
     (new state, metrics {"loss", "loss_position", "loss_orientation", "s_position",
-    "s_orientation" (when learned), "grad_norm"}).
+    "s_orientation" (when learned), "grad_norm", "finite" (1.0, or 0.0 when a value was not
+    finite: the update is skipped)}).
   """
   with fastconv.weight_grad(state.regressor.weight_grad):  # read while the step is traced
     return _train_step(state, batch)
@@ -403,13 +405,37 @@ def _train_step(state, batch):
   out = {"loss": total, "grad_norm": optax.tree.norm(grads)}
   out.update({f"loss_{g}": v for g, v in groups.items()})
   out.update({f"s_{g}": v for g, v in state.params["log_var"].items()})
+  # The finite guard: a step with a non-finite loss, s or gradient keeps the old state and says
+  # so ("finite" 0); the training loop stops at its next log or checkpoint step.
+  finite = jnp.array(True)
+  for v in out.values():
+    finite &= jnp.all(jnp.isfinite(v))
+  out["finite"] = finite.astype(jnp.float32)
+  keep = lambda new, old: jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)
+  new_stats = dict(batch_stats) if batch_stats else state.batch_stats
   new = state.replace(
     step=state.step + 1,
-    params=params,
-    batch_stats=dict(batch_stats) if batch_stats else state.batch_stats,
-    opt_state=opt_state,
+    params=keep(params, state.params),
+    batch_stats=keep(new_stats, state.batch_stats),
+    opt_state=keep(opt_state, state.opt_state),
   )
   return new, out
+
+
+def train_steps(
+  state: RegressionState, batches: Mapping[str, Array]
+) -> tuple[RegressionState, dict[str, Array], Array]:
+  """`train_step` over K stacked batches (`lax.scan`); pure (jit at the call site).
+
+  Args:
+    state: the state.
+    batches: K batches stacked on a leading axis (K, ...).
+
+  Returns:
+    (state after the K steps, metrics stacked (K,) per key, 1.0 when every step was finite).
+  """
+  state, metrics = jax.lax.scan(train_step, state, batches)
+  return state, metrics, jnp.min(metrics["finite"])
 
 
 def predict_heads(state: RegressionState, batch: Mapping[str, Array]) -> dict[str, Array]:
@@ -450,4 +476,5 @@ __all__ = [
   "prepare_images",
   "resolve_hparams",
   "train_step",
+  "train_steps",
 ]

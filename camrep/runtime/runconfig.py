@@ -2,10 +2,14 @@
 synthesis or regression), and what may change when a run resumes in the same workdir.
 
 A workdir's config.json must describe every step in it. Resuming with another config is refused
-unless every differing field is one a run may change midway (`RESUMABLE` of the stage: durations,
-cadences, learning rates, loss weights; never the model, the pose system or the data) and is named
-in `config.allow_changes` ("total_steps,optax.lr_model", or a section: "evals"); allowed changes
-are recorded in the workdir's config_history.jsonl with the step they took effect at.
+unless every differing field is one a run may change midway (declared `MAY_CHANGE` in the stage's
+schema, `camrep.runtime.validate`: durations, cadences, learning rates, loss weights; never the
+model, the pose system or the data) and is named in `config.allow_changes` ("total_steps,
+optax.lr_model", or a section: "evals"); allowed changes are recorded in the workdir's
+config_history.jsonl with the step they took effect at. A stage that starts over instead of
+resuming a changed run (regression) may also change its FIXED fields when they are named: the
+run then starts again from step 0 (`fixed_changes`). Nothing here names a field: the rules come
+from the stage's declarations.
 """
 
 from __future__ import annotations
@@ -13,61 +17,6 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable, Mapping
 from typing import Any
-
-# Fields that change how a run goes on, never what its parameters mean or their shapes.
-# A name ending in "." covers its whole section.
-SYNTHESIS_RESUMABLE = (
-  "total_steps",
-  "log_every_steps",
-  "eval_every_steps",
-  "ckpt_every_steps",
-  "max_to_keep",
-  "seed",
-  "evals.",
-  "optax.lr_model",
-  "optax.lr_rep",
-  "loss.rec_weight",
-  "loss.rot_weight",
-  "loss.dir_weight",
-  "loss.n_pairs",
-  "loss.sigma_initial",
-  "loss.sigma_final",
-  "loss.sigma_anneal_steps",
-  "loss.kl_weight_initial",
-  "loss.kl_anneal_steps",
-  "model.draw_temperature",
-  "optax.final_scale",
-  "optax.anneal_steps",
-  "data.dir",
-  "model.dtype",
-  "stop.",
-)
-# Retired fields: {field: the value every config had} for fields that `configs/common.py:base`
-# gave every run and that now live only in the config whose code reads them. A workdir written
-# before the move stores them in config.json; a requested config without them resumes it, the
-# difference recorded (old -> None in config_history.jsonl), whatever the stored value: the
-# runs whose configs lack a retired field never read it (the fields below are read by
-# model.kind "convdraw" only, configs/gqn_convdraw.py, and a convdraw workdir resumed with
-# another model.kind is refused on model.kind itself). A requested config that has the field
-# compares it as any other. The values are base()'s, kept as the record of what those runs held.
-RETIRED = {
-  "model.draw_steps": 12,
-  "model.z_channels": 3,
-  "model.draw_temperature": 1.0,
-  "loss.sigma_initial": 2.0,
-  "loss.sigma_final": 0.7,
-  "loss.sigma_anneal_steps": 200_000,
-  "loss.kl_weight_initial": 1.0,
-  "loss.kl_anneal_steps": 0,
-}
-# Fields that change only speed or where output goes: they differ silently (still recorded).
-FREE = (
-  "allow_changes",
-  "data.num_threads",
-  "data.prefetch",
-  "data.num_workers",
-  "data.device_prefetch",
-)
 
 
 class ConfigError(ValueError):
@@ -108,49 +57,77 @@ def parse_allow_changes(value: str) -> tuple[str, ...]:
   return tuple(n.strip() for n in (value or "").split(",") if n.strip())
 
 
+def _judged(old, new, schema) -> tuple[dict, list[tuple[str, str]]]:
+  """(every difference, [(field, policy)] of those the resume rules judge: not free, not gained
+  since the workdir was written, not retired)."""
+  from camrep.runtime import validate as V
+
+  diffs = differences(old, new)
+  old_fields = flatten(as_plain(old))
+  new_fields = flatten(as_plain(new))
+  diffs.pop("allow_changes", None)  # the permission itself is not a change of the run
+  retired = V.retired(schema)
+  judged = []
+  for field in diffs:
+    policy = V.resume_policy(schema, field)
+    if policy == V.FREE:
+      continue
+    if field not in old_fields:
+      # A field camrep gained after the workdir was written: its default keeps the old
+      # behaviour, so it is recorded, not refused (setting it on resume is still recorded).
+      continue
+    if field in retired and field not in new_fields:
+      continue  # moved out of the base config; this run never reads it: recorded
+    judged.append((field, policy))
+  return diffs, judged
+
+
+def fixed_changes(old: Mapping[str, Any], new: Any, *, schema: Mapping) -> list[str]:
+  """The FIXED fields (model, pose system, data) that differ between the stored and requested
+  configs: a stage that starts over on such a change (`check_changes(restart=True)`) does."""
+  from camrep.runtime import validate as V
+
+  return [f for f, policy in _judged(old, new, schema)[1] if policy == V.FIXED]
+
+
 def check_changes(
   old: Mapping[str, Any],
   new: Any,
   *,
-  resumable: Iterable[str] | None,
+  schema: Mapping,
   workdir: str,
   what: str = "resume",
+  restart: bool = False,
 ) -> dict[str, tuple[Any, Any]]:
   """The differences between a workdir's stored config and the requested one, if allowed.
 
   Args:
     old: the stored config (config.json).
     new: the requested config; its `allow_changes` ("" when absent) names what may differ.
-    resumable: the stage's fields that may differ at all; None: any field, when named in
-      `allow_changes` (a stage that starts over instead of resuming, like regression).
+    schema: the stage's declarations ({path: `validate.Field`}): each field's resume policy
+      and the retired fields.
     workdir: for the message.
     what: the verb of the message ("resume", "rerun").
+    restart: the stage starts over on a FIXED change named in `allow_changes` (regression);
+      without it such a change is refused.
 
   Returns:
     {field: (old, new)} of every difference (allowed and free ones, fields the stored config
-    lacks, and `RETIRED` fields the requested config lacks: (stored value, None)).
+    lacks, and retired fields the requested config lacks: (stored value, None)).
 
   Raises:
     ConfigError: some field differs that is not free and not allowed; the message names each
       (old -> new) and the ways out.
   """
-  diffs = differences(old, new)
-  old_fields = flatten(as_plain(old))
-  new_fields = flatten(as_plain(new))
-  diffs.pop("allow_changes", None)  # the permission itself is not a change of the run
+  from camrep.runtime import validate as V
+
+  diffs, judged = _judged(old, new, schema)
   allowed = parse_allow_changes(as_plain(new).get("allow_changes", ""))
   sections = tuple(a + "." for a in allowed)  # a section name allows its fields
   refused, need_flag = [], []
-  for field, (a, b) in diffs.items():
-    if _covered(field, FREE):
-      continue
-    if field not in old_fields:
-      # A field camrep gained after the workdir was written: its default keeps the old
-      # behaviour, so it is recorded, not refused (setting it on resume is still recorded).
-      continue
-    if field in RETIRED and field not in new_fields:
-      continue  # moved out of the base config; this run never reads it (RETIRED): recorded
-    if resumable is not None and not _covered(field, resumable):
+  for field, policy in judged:
+    a, b = diffs[field]
+    if policy == V.FIXED and not restart:
       refused.append(f"  {field}: {a!r} -> {b!r}")
     elif not (_covered(field, allowed) or _covered(field, sections)):
       need_flag.append(field)
@@ -167,8 +144,10 @@ def check_changes(
     lines += ["fields that may change but were not named in allow_changes:"]
     lines += [f"  {f}: {diffs[f][0]!r} -> {diffs[f][1]!r}" for f in need_flag]
     if not refused:
+      starts_over = restart and any(V.resume_policy(schema, f) == V.FIXED for f in need_flag)
       lines.append(
         f"use a new --workdir, or add --config.allow_changes={','.join(need_flag)} to record "
         "the change in config_history.jsonl"
+        + (" (the run then starts over from step 0)" if starts_over else "")
       )
   raise ConfigError("\n".join(lines))

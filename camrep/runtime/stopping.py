@@ -1,10 +1,10 @@
 """When a training run stops: a plateau rule on its periodic validation score.
 
-Both stages use it, each on its own validation-like score, one number per evaluation, lower is
-better: pose regression (`camrep.regression.driver`) on `tables.validation_score` of its
-validation split; view synthesis (`camrep.synthesis.plateau`) on the held-out-view MSE
-10^(-eval/psnr / 10) (`psnr_score`). Evaluated at each periodic evaluation (every
-`eval_every_steps`): with the scores s(t_1), ..., s(t_k) so far, at step t = t_k
+The run frame's fit loop (`camrep.runtime.frame.fit`) applies it for both stages, each on its
+own validation-like score (the stage's `score`), one number per evaluation, lower is better: pose
+regression on `tables.validation_score` of its validation split; view synthesis on the
+held-out-view MSE 10^(-eval/psnr / 10) (`psnr_score`). Evaluated at each periodic evaluation
+(every `eval_every_steps`): with the scores s(t_1), ..., s(t_k) so far, at step t = t_k
 
   best_now    = min over t_i <= t of s(t_i)
   best_before = min over t_i <= (1 - window) * t of s(t_i)
@@ -14,13 +14,21 @@ and the run stops when improvement < `min_improvement` and t >= `min_steps`: the
 error improved by less than that share over the last `window` of the steps. `total_steps` is the
 cap. Nothing is decided before an evaluation lies at or before (1 - window) * t (no baseline yet).
 `min_improvement` = 0 turns the rule off (the run trains to `total_steps`, as before).
+
+Where the rule stops a run, the run saves its checkpoint at that step and completes there; its
+record ("stopping": `stopping_record`) says the rule, where and why it ended and the curve
+[[step, score], ...] (view synthesis: in final_metrics.json, whenever the rule is on;
+regression: in results.json). A rerun of an early-stopped run with the same rule changes
+nothing (`runtime.frame.Frame.already_complete`, `stopped_early_by`); with another rule (`stop`
+named in `allow_changes`) or the rule off it resumes from that step, its curve read back from
+metrics.jsonl, and the rule is checked at once on the recorded curve.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,3 +107,38 @@ def psnr_score(psnr: float) -> float:
   10^(-psnr / 10), the geometric mean over the evaluated images of their MSE; lower is better,
   and a relative improvement x of it is a gain of -10 log10(1 - x) dB (2% ~ 0.088 dB)."""
   return float(10.0 ** (-float(psnr) / 10.0))
+
+
+def stopped_early_by(final: Mapping | None, rule: Rule | None) -> bool:
+  """Whether a final record (final_metrics.json) says its run stopped early under this active
+  `rule`."""
+  s = (final or {}).get("stopping")
+  if rule is None or not rule.active or not isinstance(s, Mapping):
+    return False
+  return s.get("stopped_early") is True and s.get("rule") == dataclasses.asdict(rule)
+
+
+def stopping_record(
+  rule: Rule,
+  curve: Sequence[tuple[int, float]],
+  step: int,
+  total: int,
+  stopped_early: bool,
+  reason: str,
+  *,
+  score: str | None = None,
+) -> dict:
+  """The record of where and why a run ended: {"rule", "score" (what the curve's values are,
+  when given), "stopped_early", "steps", "total_steps", "reason", "curve": [[step, score],
+  ...]}."""
+  out = {"rule": dataclasses.asdict(rule)}
+  if score is not None:
+    out["score"] = score
+  out.update(
+    stopped_early=bool(stopped_early),
+    steps=int(step),
+    total_steps=int(total),
+    reason=reason,
+    curve=[[int(t), float(v)] for t, v in curve],
+  )
+  return out

@@ -1,8 +1,16 @@
-"""One validation pass over a config before anything runs: every field against a rule.
+"""Config fields declared once, and one validation pass over a config before anything runs.
 
-A stage (view synthesis, regression) describes its config as a schema, {field path: `Field`},
-and `check(config, schema, overridden=...)` raises one `ConfigError` naming the field, the value
-and what is allowed, for the first field that breaks its rule:
+A stage (view synthesis, regression) declares its config as a schema, {field path: `Field`}: each
+field once, with its rule (what values it takes), when the run uses it (`ignored`), and whether it
+may change when a run resumes in the same workdir (`resume`: FIXED, MAY_CHANGE or FREE). The
+fields every training loop reads (durations, cadences, the stopping rule) are declared once by the
+run frame (`camrep.runtime.frame.FIELDS`) and merged into each stage's schema. Everything else is
+derived from the declarations: this module's checks, the resume rules of
+`runconfig.check_changes`, the retired fields a stored config may still hold (`retired`), and the
+names `allow_changes` accepts (`check_allow_changes`).
+
+`check(config, schema, overridden=...)` raises one `ConfigError` naming the field, the value and
+what is allowed, for the first field that breaks its rule:
 
   * a value outside its rule (a non-positive size, an unknown enum name, a fraction outside
     (0, 1), a path that does not exist);
@@ -31,18 +39,30 @@ from camrep.runtime.runconfig import ConfigError, as_plain, flatten
 # A predicate on the whole config: None when the field is used, else why it is not.
 Ignored = Callable[[Any], "str | None"]
 
+# Whether a field may differ between a workdir's stored config and the config that resumes it:
+# FIXED never (it changes the model, the pose system or the data: what the checkpoints mean; a
+# stage that starts over instead, like regression, may start over when the change is named in
+# `allow_changes`); MAY_CHANGE when named in `allow_changes` (durations, cadences, learning
+# rates, loss weights), recorded in config_history.jsonl with its step; FREE always, recorded
+# (speed or where output goes only).
+FIXED, MAY_CHANGE, FREE = "fixed", "may_change", "free"
+RESUME_POLICIES = (FIXED, MAY_CHANGE, FREE)
+# The largest step count a run may take: the train state counts steps in int32.
+MAX_STEPS = 2**31 - 1
+
 
 @dataclasses.dataclass(frozen=True)
 class Rule:
   """What values a field takes.
 
   Attributes:
-    kind: "positive" (> 0), "nonneg" (>= 0), "at_least" (>= low), "fraction" (strictly between
+    kind: "positive" (> 0), "nonneg" (>= 0), "at_least" (>= low), "count" (an integer from low
+      to `MAX_STEPS`: a number of steps), "fraction" (strictly between
       0 and 1), "number_tuple" (a non-empty tuple of finite numbers), "enum" (one of
       `choices`), "dir" / "file" (an existing path, "" allowed when
       `optional`), "positive_tuple" (a non-empty tuple of positive ints), "any" (no constraint
       beyond the type), "section" (a mapping checked elsewhere, e.g. a family's overrides).
-    low: for "at_least".
+    low: for "at_least" and "count".
     choices: for "enum".
     optional: None (a placeholder left unset) or "" (paths) is allowed.
   """
@@ -82,6 +102,9 @@ class Rule:
         )
       )
       return None if ok else "a non-empty tuple of finite numbers"
+    if self.kind == "count":
+      ok = isinstance(value, int) and not isinstance(value, bool) and self.low <= value <= MAX_STEPS
+      return None if ok else f"an integer from {self.low:g} to {MAX_STEPS} (2**31 - 1)"
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
       return "a finite number"
     if self.kind == "positive":
@@ -106,6 +129,7 @@ class Rule:
       "file": ["/nonexistent/camrep-validate.npz"],
       "positive_tuple": [(0,)],
       "number_tuple": [("abc",)],
+      "count": [int(self.low) - 1, MAX_STEPS + 1],
     }.get(self.kind, [])
 
 
@@ -120,7 +144,29 @@ def at_least(low: float) -> Rule:
   return Rule("at_least", low=low)
 
 
-def one_of(choices: Iterable[Any]) -> Rule:
+def count(low: int = 0) -> Rule:
+  """A number of steps: an integer from `low` to `MAX_STEPS`."""
+  return Rule("count", low=low)
+
+
+class _Registered:
+  """The names of a registry as they are when a config is checked (a source or setting may be
+  registered after the schema was built)."""
+
+  def __init__(self, names: Callable[[], Iterable[Any]]):
+    self._names = names
+
+  def __contains__(self, value: Any) -> bool:
+    return value in tuple(self._names())
+
+  def __iter__(self):
+    return iter(tuple(self._names()))
+
+
+def one_of(choices: Iterable[Any] | Callable[[], Iterable[Any]]) -> Rule:
+  """An "enum" rule: `choices`, or a function returning the registered names at check time."""
+  if callable(choices):
+    return Rule("enum", choices=_Registered(choices))
   return Rule("enum", choices=tuple(choices))
 
 
@@ -128,12 +174,35 @@ def optional(rule: Rule) -> Rule:
   return dataclasses.replace(rule, optional=True)
 
 
+class _NotRetired:
+  def __repr__(self) -> str:
+    return "NOT_RETIRED"
+
+
+NOT_RETIRED = _NotRetired()
+
+
 @dataclasses.dataclass(frozen=True)
 class Field:
-  """A field's rule, and when the run does not use it (`ignored(config)` -> why, or None)."""
+  """One config field's declaration.
+
+  Attributes:
+    rule: the values it takes.
+    ignored: when the run does not use it (`ignored(config)` -> why, or None when it is used).
+    resume: whether it may change when a run resumes (FIXED, MAY_CHANGE or FREE; see above).
+    retired: for a field that the base config no longer holds (only the configs whose code reads
+      it set it), the value every config held before it moved: a stored config.json that still
+      has it resumes with a config that lacks it, the difference recorded (`runconfig`).
+  """
 
   rule: Rule
   ignored: Ignored | None = None
+  resume: str = FIXED
+  retired: Any = NOT_RETIRED
+
+  def __post_init__(self):
+    if self.resume not in RESUME_POLICIES:
+      raise ValueError(f"resume must be one of {RESUME_POLICIES}, got {self.resume!r}")
 
 
 Schema = Mapping[str, Field]
@@ -209,6 +278,52 @@ def _get(config: Any, path: str) -> Any:
 def unless(condition: Callable[[Any], bool], why: str) -> Ignored:
   """An `ignored` predicate: the field is unused (for reason `why`) unless `condition(config)`."""
   return lambda c: None if condition(c) else why
+
+
+def resume_policy(schema: Schema, path: str) -> str:
+  """FIXED, MAY_CHANGE or FREE for a field (FIXED for a field the schema does not declare)."""
+  f = field_of(schema, path)
+  return FIXED if f is None else f.resume
+
+
+def with_resume(schema: Schema, resume: str, paths: Iterable[str]) -> dict[str, Field]:
+  """`schema` with the fields `paths` given another resume policy."""
+  out = dict(schema)
+  for p in paths:
+    out[p] = dataclasses.replace(out[p], resume=resume)
+  return out
+
+
+def retired(schema: Schema) -> dict[str, Any]:
+  """{field: the value every config held} of the schema's retired fields."""
+  return {p: f.retired for p, f in schema.items() if f.retired is not NOT_RETIRED}
+
+
+def may_change(schema: Schema) -> list[str]:
+  """The fields that may change on resume when named in `allow_changes` (for messages, tests)."""
+  return [p for p, f in schema.items() if f.resume == MAY_CHANGE]
+
+
+def check_allow_changes(config: Any, schema: Schema, *, extra: Iterable[str] = ()) -> None:
+  """Refuses an `allow_changes` that names no field of the config (nor a section of it, nor one
+  of `extra`, e.g. "global_batch").
+
+  Raises:
+    ConfigError: naming the unknown name.
+  """
+  from camrep.runtime.runconfig import parse_allow_changes
+
+  fields = set(leaves(config))
+  for name in parse_allow_changes(_get(config, "allow_changes") or ""):
+    if name in extra:
+      continue
+    if name not in fields and not any(f.startswith(name + ".") for f in fields):
+      allowed = ", ".join(n.rstrip(".") for n in may_change(schema))
+      raise ConfigError(
+        f"--config.allow_changes={_get(config, 'allow_changes')!r}: {name!r} is not a config "
+        f"field (fields that may change on resume: {allowed}; or a section name"
+        + (f", or {', '.join(extra)})" if extra else ")")
+      )
 
 
 def fields_with(schema: Schema, kinds: Sequence[str]) -> list[str]:

@@ -137,6 +137,17 @@ class WorkdirLock:
     except (OSError, json.JSONDecodeError):
       return {}
 
+  def live_holder(self) -> dict[str, Any] | None:
+    """The lock's content when a live process holds it (or one on another host, which cannot be
+    checked), else None (no lock, or a stale one)."""
+    h = self.holder()
+    if not h:
+      return None
+    host, pid = h.get("host"), h.get("pid")
+    if host == socket.gethostname() and isinstance(pid, int) and not _pid_running(pid):
+      return None
+    return h
+
   def _create(self) -> bool:
     """Creates the lock with this process's record; False when a lock exists.
 
@@ -174,12 +185,37 @@ class WorkdirLock:
     except OSError:
       return False
 
-  def acquire(self) -> None:
+  def acquire(self, *, wait: float = 0.0, log=None, poll: float = 0.5) -> None:
     """Takes the lock, taking over a stale one (with a `StaleLockWarning`).
 
+    Args:
+      wait: seconds to wait for a live holder to let go (0: refuse at once; math.inf: until it
+        does), saying once through `log` whom it waits for.
+      log: progress printer for the wait (default: stderr).
+      poll: seconds between looks while waiting.
+
     Raises:
-      WorkdirError: a live process (or one on another host) holds the lock; the message names it.
+      WorkdirError: a live process (or one on another host) holds the lock (after `wait`); the
+        message names it.
     """
+    deadline, said = time.monotonic() + wait, False
+    while True:
+      try:
+        return self._acquire()
+      except WorkdirError:
+        h = self.live_holder()
+        if h is None or time.monotonic() + poll > deadline:
+          raise
+        if not said:
+          line = (
+            f"waiting for PID {h.get('pid')} on {h.get('host')} (started "
+            f"{h.get('started', '?')}) to release {self.workdir} (Ctrl-C to give up)"
+          )
+          (log or (lambda m: print(m, file=sys.stderr, flush=True)))(line)
+          said = True
+        time.sleep(poll)
+
+  def _acquire(self) -> None:
     for _ in range(2):
       if self._create():
         self.held = True

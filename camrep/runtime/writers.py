@@ -88,8 +88,25 @@ def _decode_json_value(x: Any) -> Any:
   return x
 
 
+class MetricsFileError(ValueError):
+  """A metrics.jsonl line that is not a record this module wrote (not JSON, or without an
+  integer "step")."""
+
+
+def _bad_line(path: str, number: int, line: str, what: str) -> MetricsFileError:
+  return MetricsFileError(
+    f"{path}:{number}: {what}: {line[:80]!r}; a camrep metrics line is a JSON object with an "
+    'integer "step". Remove that line (or put the file back) and start again; nothing was '
+    "changed"
+  )
+
+
 def _parse_lines(text: str, path: str) -> list[dict[str, Any]]:
-  """Parses metrics.jsonl text; a torn last line (crash mid-write) is dropped."""
+  """Parses metrics.jsonl text; a torn last line (crash mid-write) is dropped.
+
+  Raises:
+    MetricsFileError: another line is not JSON or has no integer "step".
+  """
   lines = text.split("\n")
   records = []
   for i, line in enumerate(lines):
@@ -100,9 +117,19 @@ def _parse_lines(text: str, path: str) -> list[dict[str, Any]]:
     except json.JSONDecodeError:
       if i == len(lines) - 1:  # No newline after it: an interrupted write.
         break
-      raise ValueError(f"{path}:{i + 1}: not a JSON line: {line[:80]!r}") from None
+      raise _bad_line(path, i + 1, line, "not a JSON line") from None
+    if not _has_step(record):
+      raise _bad_line(path, i + 1, line, 'a line without an integer "step"')
     records.append({k: _decode_json_value(v) for k, v in record.items()})
   return records
+
+
+def _has_step(record: Any) -> bool:
+  return (
+    isinstance(record, dict)
+    and isinstance(record.get("step"), int)
+    and not isinstance(record["step"], bool)
+  )
 
 
 def read_metrics(workdir: str) -> list[dict[str, Any]]:
@@ -257,17 +284,22 @@ class MetricWriter:
 
     Args:
       step: Step of the restored checkpoint; lines with step <= it are kept.
+
+    Raises:
+      MetricsFileError: a complete line holds no integer "step" (nothing is changed).
     """
     step = int(step)
     self.flush()
     with open(self._path, encoding="utf-8") as f:
       text = f.read()
     kept = []
-    for line in text.split("\n"):
+    for number, line in enumerate(text.split("\n"), 1):
       try:
         row = json.loads(line) if line.strip() else None
       except json.JSONDecodeError:  # a line cut short by a killed process
         row = None
+      if row is not None and not _has_step(row):
+        raise _bad_line(self._path, number, line, 'a line without an integer "step"')
       if row is not None and row["step"] <= step:
         kept.append(line)
     self._file.close()

@@ -1,12 +1,17 @@
-"""The view-synthesis config's validation pass (`camrep.runtime.validate`): a rule per field of
-`configs/common.py:base` and of GQN's generator (`configs/gqn_convdraw.py` adds them; on another
-config `--config.model.draw_steps=...` is an unknown field, refused when the flag is parsed),
-which fields each task, model and data source uses, and the data-model checks (image size) made
-against the family's or the prepared dataset's own record before any data is read or anything
-compiled.
+"""The view-synthesis config's fields, each declared once (`camrep.runtime.validate.Field`): its
+rule, which task, model and data source use it, and whether it may change when a run resumes
+(`SCHEMA`: the run frame's fields, `camrep.runtime.frame.FIELDS`, and those of
+`configs/common.py:base` and of GQN's generator; `configs/gqn_convdraw.py` adds the generator's,
+and on another config `--config.model.draw_steps=...` is an unknown field, refused when the flag
+is parsed). The retired fields a stored config may still hold (`RETIRED`) and the resume rules
+are derived from it.
 
-`validate(config, overridden=...)` is what `python -m camrep.main` runs first; it raises
-`ConfigError` (or `DataError` for a prepared directory that cannot be found).
+`validate(config, overridden=...)` is the stage's one validation: every field's rule, the
+cross-field checks, and the data-model checks (image size) made against the family's or the
+prepared dataset's own record before any data is read or anything compiled. `python -m
+camrep.main` runs it first (with the command line's overrides) and `train.train_and_evaluate`
+runs it again; it raises `ConfigError` (or `DataError` for a prepared directory that cannot be
+found).
 """
 
 from __future__ import annotations
@@ -16,8 +21,9 @@ from collections.abc import Iterable
 from camrep import lie, pose, pose_encodings
 from camrep.data import procedural, sources, storage
 from camrep.data.errors import DataError
-from camrep.runtime import runconfig
+from camrep.runtime import frame as frame_lib
 from camrep.runtime import validate as V
+from camrep.runtime import workdir as workdir_lib
 from camrep.runtime.runconfig import ConfigError
 from camrep.synthesis import components, synthesizers
 
@@ -64,24 +70,17 @@ _NOT_GRID = "rep.kind is not 'grid': no learned generators, no rotation losses"
 _NOT_POLAR = "the setting has no polar (x, y) DOF; used by gqn and gibson data only"
 
 _F, _U = V.Field, V.unless
+# Resume policies (`validate`): FIXED unless marked. MAY_CHANGE fields change how a run goes on,
+# never what its parameters mean or their shapes; FREE fields only speed or where output goes.
+_M, _FREE = V.MAY_CHANGE, V.FREE
 
 SCHEMA: dict[str, V.Field] = {
-  "seed": _F(V.NONNEG),
+  **frame_lib.FIELDS,
+  "seed": _F(V.NONNEG, resume=_M),
   "task": _F(V.one_of(TASKS)),
-  "allow_changes": _F(V.ANY),
-  "total_steps": _F(V.POSITIVE),
-  "log_every_steps": _F(V.NONNEG),  # 0: never
-  "eval_every_steps": _F(V.NONNEG),  # 0: never
-  # Retention that keeps no checkpoint would lose the run: refused.
-  "ckpt_every_steps": _F(V.POSITIVE),
-  "max_to_keep": _F(V.POSITIVE),
-  # The plateau stopping rule (camrep/runtime/stopping.py; the ranges `rule_from_config` accepts).
-  "stop.min_improvement": _F(V.NONNEG),  # 0: off
-  "stop.window": _F(V.Rule("fraction")),
-  "stop.min_steps": _F(V.NONNEG),
-  "data.source": _F(V.one_of(sources.SOURCES)),
+  "data.source": _F(V.one_of(lambda: sources.SOURCES)),
   "data.preset": _F(V.ANY),  # procedural: checked by `check_data`; prepared: a builder config
-  "data.dir": _F(V.optional(V.Rule("dir"))),
+  "data.dir": _F(V.optional(V.Rule("dir")), resume=_M),
   "data.in_memory": _F(V.ANY, _U(lambda c: not _prepared(c), "data.dir is set (prepared data)")),
   "data.family.": _F(
     V.SECTION, _U(lambda c: not _prepared(c), "data.dir is set: the prepared data is used")
@@ -90,12 +89,14 @@ SCHEMA: dict[str, V.Field] = {
   "data.views_per_scene": _F(V.at_least(2)),
   "data.n_context": _F(V.POSITIVE, _U(synthesizers.reads_context, "used by task='gqn' only")),
   "data.mode": _F(V.one_of(DATA_MODES)),
-  "data.num_threads": _F(V.NONNEG),
-  "data.prefetch": _F(V.NONNEG),
+  "data.num_threads": _F(V.NONNEG, resume=_FREE),
+  "data.prefetch": _F(V.NONNEG, resume=_FREE),
   "data.num_workers": _F(
-    V.at_least(-1), _U(_prepared, "worker processes decode prepared data (data.dir) only")
+    V.at_least(-1),
+    _U(_prepared, "worker processes decode prepared data (data.dir) only"),
+    resume=_FREE,
   ),
-  "data.device_prefetch": _F(V.NONNEG),
+  "data.device_prefetch": _F(V.NONNEG, resume=_FREE),
   "model.width": _F(V.POSITIVE),
   "model.image_size": _F(
     V.one_of(TABLE_IMAGE_SIZES),
@@ -106,10 +107,12 @@ SCHEMA: dict[str, V.Field] = {
   "model.norm_eps": _F(V.NONNEG, _U(_table, _NOT_TABLE)),
   "model.gamma_init_one": _F(V.ANY),
   "model.kind": _F(V.one_of(synthesizers.MODEL_KINDS)),
-  "model.dtype": _F(V.one_of(synthesizers.COMPUTE_DTYPES)),
-  "model.draw_steps": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW)),
-  "model.z_channels": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW)),
-  "model.draw_temperature": _F(V.NONNEG, _U(_convdraw, _NOT_CONVDRAW)),
+  "model.dtype": _F(V.one_of(synthesizers.COMPUTE_DTYPES), resume=_M),
+  # GQN's generator (configs/gqn_convdraw.py; `retired`: the values configs/common.py:base gave
+  # every run before they moved there, which a workdir written then still stores).
+  "model.draw_steps": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW), retired=12),
+  "model.z_channels": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW), retired=3),
+  "model.draw_temperature": _F(V.NONNEG, _U(_convdraw, _NOT_CONVDRAW), resume=_M, retired=1.0),
   "rep.kind": _F(V.one_of(pose_encodings.SYNTHESIS_KINDS)),
   "rep.n_blocks": _F(V.POSITIVE),
   "rep.block_size": _F(V.POSITIVE),
@@ -123,43 +126,54 @@ SCHEMA: dict[str, V.Field] = {
   "rep.block_norm": _F(V.ANY, _U(_polar, _NOT_POLAR)),
   "rep.pair_radius": _F(V.POSITIVE, _U(_polar, _NOT_POLAR)),
   "rep.quantisation": _F(V.one_of(pose.QUANTISATION_MODES)),
-  "loss.rec_weight": _F(V.NONNEG),
-  "loss.rot_weight": _F(V.NONNEG, _U(_grid, _NOT_GRID)),
+  "loss.rec_weight": _F(V.NONNEG, resume=_M),
+  "loss.rot_weight": _F(V.NONNEG, _U(_grid, _NOT_GRID), resume=_M),
   "loss.dir_weight": _F(
     V.NONNEG,
     _U(
       lambda c: _grid(c) and _polar(c) and c.rep.polar_variant == "binned",
       "used by binned polar systems (rep.polar_variant='binned', gqn / gibson data) only",
     ),
+    resume=_M,
   ),
-  "loss.n_pairs": _F(V.NONNEG, _U(_grid, _NOT_GRID)),
+  "loss.n_pairs": _F(V.NONNEG, _U(_grid, _NOT_GRID), resume=_M),
   "loss.data_pairs": _F(V.ANY),
-  "loss.sigma_initial": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW)),
-  "loss.sigma_final": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW)),
-  "loss.sigma_anneal_steps": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW)),
-  "loss.kl_weight_initial": _F(V.NONNEG, _U(_convdraw, _NOT_CONVDRAW)),
-  "loss.kl_anneal_steps": _F(V.NONNEG, _U(_convdraw, _NOT_CONVDRAW)),
-  "optax.lr_model": _F(V.POSITIVE),
-  "optax.lr_rep": _F(V.NONNEG),
+  "loss.sigma_initial": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW), resume=_M, retired=2.0),
+  "loss.sigma_final": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW), resume=_M, retired=0.7),
+  "loss.sigma_anneal_steps": _F(
+    V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW), resume=_M, retired=200_000
+  ),
+  "loss.kl_weight_initial": _F(V.NONNEG, _U(_convdraw, _NOT_CONVDRAW), resume=_M, retired=1.0),
+  "loss.kl_anneal_steps": _F(V.NONNEG, _U(_convdraw, _NOT_CONVDRAW), resume=_M, retired=0),
+  "optax.lr_model": _F(V.POSITIVE, resume=_M),
+  "optax.lr_rep": _F(V.NONNEG, resume=_M),
   "optax.schedule": _F(V.one_of(SCHEDULES)),
   "optax.final_scale": _F(
-    V.NONNEG, _U(lambda c: c.optax.schedule == "linear", "used by optax.schedule='linear' only")
+    V.NONNEG,
+    _U(lambda c: c.optax.schedule == "linear", "used by optax.schedule='linear' only"),
+    resume=_M,
   ),
   "optax.anneal_steps": _F(
-    V.POSITIVE, _U(lambda c: c.optax.schedule == "linear", "used by optax.schedule='linear' only")
+    V.POSITIVE,
+    _U(lambda c: c.optax.schedule == "linear", "used by optax.schedule='linear' only"),
+    resume=_M,
   ),
   "optax.pose_steps": _F(V.NONNEG),
-  "evals.num_scenes": _F(V.POSITIVE),
-  "evals.batch_scenes": _F(V.POSITIVE),
-  "evals.grid_scenes": _F(V.POSITIVE),
+  "evals.num_scenes": _F(V.POSITIVE, resume=_M),
+  "evals.batch_scenes": _F(V.POSITIVE, resume=_M),
+  "evals.grid_scenes": _F(V.POSITIVE, resume=_M),
   "evals.baseline_views": _F(
     V.POSITIVE,
     _U(
       lambda c: not synthesizers.reads_context(c),
       "the GQN task's baseline is the mean of the context views",
     ),
+    resume=_M,
   ),
 }
+# The fields configs/common.py:base no longer holds, with the value every config held (GQN's
+# generator's: a workdir written before they moved resumes with a config that lacks them).
+RETIRED = V.retired(SCHEMA)
 
 
 def model_image_size(config) -> int:
@@ -193,7 +207,10 @@ def data_image_shape(config) -> tuple[tuple[int, int], str]:
     return (int(shape[0]), int(shape[1])), f"the prepared dataset {path}"
   family = dict(d.family.to_dict()) if d.family else {}
   try:
-    fam = procedural.make_config(d.source, d.preset, **family)
+    if d.source in procedural.FAMILIES:
+      fam = procedural.make_config(d.source, d.preset, **family)
+    else:  # a procedural source registered elsewhere: its family, built (nothing is rendered)
+      fam = sources.family_of_config(d).config
   except TypeError as e:
     raise ConfigError(f"config.data.family {family}: {e}") from None
   except ValueError as e:
@@ -224,23 +241,16 @@ def check_data(config) -> None:
 
 
 def validate(config, *, overridden: Iterable[str] = ()) -> None:
-  """The whole pass: every field's rule, overridden fields the run ignores, the cross-field
-  checks of `components.check_config`, the data-model checks, and `allow_changes` naming fields
-  that exist.
+  """The whole pass: every field's rule, overridden fields the run ignores, `allow_changes`
+  naming fields that exist, the run frame's checks (`frame.check_config`: the stopping rule),
+  the cross-field checks of `components.check_config`, and the data-model checks.
 
   Raises:
     ConfigError: the first problem, naming the field, its value and what is allowed.
     DataError: a prepared dataset that cannot be found.
   """
   V.check(config, SCHEMA, overridden=overridden)
-  fields = set(V.leaves(config))
-  for name in runconfig.parse_allow_changes(config.get("allow_changes", "")):
-    if name == "global_batch":
-      continue
-    if name not in fields and not any(f.startswith(name + ".") for f in fields):
-      raise ConfigError(
-        f"--config.allow_changes={config.allow_changes!r}: {name!r} is not a config field "
-        "(allowed: fields of runconfig.SYNTHESIS_RESUMABLE, a section name, or global_batch)"
-      )
+  V.check_allow_changes(config, SCHEMA, extra=(workdir_lib.GLOBAL_BATCH,))
+  frame_lib.check_config(config)
   components.check_config(config)
   check_data(config)

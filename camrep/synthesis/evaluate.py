@@ -5,14 +5,16 @@ Reads a training workdir (config.json and checkpoints/ written by `camrep.synthe
 with `restore.load_run`, then runs `noise.noise_robustness` and `gram.gram_maps`, and writes
 DIR/eval/noise.json, noise.png (PSNR and SSIM vs alpha), gram_<dof>.png (each with a PDF
 twin) and gram.npz. The output
-directory is checked for writing before anything is restored, and the files are written into a
-staging directory there and moved in only once all are written: a full disk or a read-only
+directory is checked for writing before anything is restored and locked while it is written (a
+second evaluation of it waits for the first), and the files are written into a staging directory
+there and moved in only once all are written: a full disk or a read-only
 workdir ends with one `error:` line (exit 2) and leaves no half-written file. Exit status as
 every camrep tool (`camrep.runtime.cli`).
 """
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import sys
@@ -125,8 +127,15 @@ def run_cli(fv: flags.FlagValues) -> int:
   # after minutes of restoring and evaluating.
   existed = os.path.isdir(out)
   workdir_lib.check_workdir(out)
+  # One evaluation writes an output directory at a time: a second waits for the first
+  # (a training run of the workdir holds the workdir's own lock, not this one).
+  lock = workdir_lib.WorkdirLock(out)
   try:
-    return _evaluate(fv, out, alphas, what, log)
+    lock.acquire(wait=math.inf, log=log)
+    try:
+      return _evaluate(fv, out, alphas, what, log)
+    finally:
+      lock.release()
   except BaseException:
     if not existed:  # leave the workdir as it was (the staged files are gone already)
       try:

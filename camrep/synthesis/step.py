@@ -9,13 +9,13 @@ step of both groups from the same forward pass; otherwise `pose_steps` pose-inpu
 batch, then one model step.
 
 A step whose loss or gradients are non-finite skips its updates and says so in its metrics
-("train/finite" 0); the loop reads that flag at its log and save steps (`raise_if_not_finite`).
+("train/finite" 0); the run frame's loop reads that flag at its log and save steps
+(`camrep.runtime.frame.fit`). `make_p_train_chunk` scans the step over K batches per dispatch.
 """
 
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
 
@@ -28,6 +28,7 @@ import numpy as np
 import optax
 
 from camrep.data import batches
+from camrep.runtime import frame as frame_lib
 from camrep.synthesis import synthesizers
 
 Array = jax.Array
@@ -208,6 +209,19 @@ def make_p_train_step(model: synthesizers.Synthesizer, tx: Optimizers, *, pose_s
   return jax.pmap(fn, axis_name=AXIS, in_axes=(0, 0, None), donate_argnums=(0,))
 
 
+def make_p_train_chunk(model: synthesizers.Synthesizer, tx: Optimizers, *, pose_steps: int):
+  """`train_step` scanned over K steps (`lax.scan`), pmapped: p_chunk(replicated state, (D, K,
+  ...) batches, key) -> (state, metrics stacked (D, K), ok (D,)), `ok` 1.0 when every step of
+  the K was finite (the finite check reduced on the device). The state is donated."""
+  fn = functools.partial(train_step, model=model, tx=tx, pose_steps=pose_steps)
+
+  def chunk(state, batches_, key):
+    state, metrics = jax.lax.scan(lambda s, b: fn(s, b, key), state, batches_)
+    return state, metrics, jnp.min(metrics["train/finite"])
+
+  return jax.pmap(chunk, axis_name=AXIS, in_axes=(0, 0, None), donate_argnums=(0,))
+
+
 def state_dict(state: TrainState) -> dict:
   """The state as nested dicts of arrays (what the checkpointer saves)."""
   return flax.serialization.to_state_dict(state)
@@ -260,32 +274,5 @@ def to_host(metrics: Mapping[str, Array]) -> dict[str, float]:
 
 
 def restored_from(restored: Mapping | None) -> str:
-  """How a run began, for the non-finite stop's message: `Checkpointer.restored` or None."""
-  if restored is None:
-    return "this run started from step 0 (no checkpoint restored)"
-  how = (
-    "checksum verified"
-    if restored.get("verified")
-    else "not verified (written before checkpoints had checksums)"
-  )
-  return f"this run restored from step {restored['step']}, {how}"
-
-
-def raise_if_not_finite(
-  writer, pending: list[tuple[int, Mapping]], workdir: str, origin: str = ""
-) -> None:
-  """Raises FloatingPointError naming the first of the `pending` (step, metrics) that flagged
-  non-finite losses or gradients (the step skipped its updates), after logging its values;
-  `origin` (`restored_from`) says which checkpoint the run began from and whether it was
-  verified."""
-  for step, metrics in pending:
-    if float(np.asarray(metrics["train/finite"])[0]) >= 1:
-      continue
-    host = to_host(metrics)
-    bad = [k for k, v in host.items() if not math.isfinite(v)]
-    writer.write_scalars(step, host)
-    raise FloatingPointError(
-      f"non-finite training values at step {step} ({', '.join(bad) or 'gradients'}); "
-      f"updates of this step were skipped; {origin + '; ' if origin else ''}the last checkpoint "
-      f"is kept in {workdir} and a resume verifies its checksums before using it"
-    )
+  """How a run began, for the non-finite stop's message (`runtime.frame.restored_from`)."""
+  return frame_lib.restored_from(restored)

@@ -47,7 +47,7 @@ MODEL_KINDS = ("decoder", "convdraw")
 
 # The fields GQN's generator reads and no other model does: set by configs/gqn_convdraw.py, absent
 # from configs/common.py:base (a workdir written before they moved stores them:
-# runconfig.RETIRED).
+# config_schema.RETIRED).
 GENERATOR_FIELDS = (
   "model.draw_steps",
   "model.z_channels",

@@ -1,11 +1,13 @@
 """The view-synthesis training loop (paper section 4.1): `train_and_evaluate(config, workdir)`.
 
 Build the run's parts from the config (`components`: data pipelines, pose system and model),
-restore the workdir's latest checkpoint or initialise, then repeat one pmapped step
-(`step.train_step`: the model's loss and the rotation losses, eqs. 6-9), logging, evaluating on
-held-out views (`heldout`) and saving checkpoints on their schedules, until `total_steps`, a
-stop signal (`runtime.preemption`), or the plateau rule (`plateau`) on the held-out evaluations.
-The workdir's lock, records and writer are a `runtime.session.Session`.
+restore the workdir's latest checkpoint or initialise, then run the pmapped step
+(`step.train_step`: the model's loss and the rotation losses, eqs. 6-9; K =
+`steps_per_dispatch` of them scanned per dispatch) in the run frame's fit loop
+(`runtime.frame`: lock, records, metrics, checkpoints, signals, the finite policy), which logs,
+evaluates on held-out views (`heldout`) and saves checkpoints on their schedules, until
+`total_steps`, a stop signal, or the plateau rule (`runtime.stopping`) on the held-out
+evaluations (score: the held-out-view MSE 10^(-eval/psnr / 10)).
 
 Randomness: one root key from `config.seed`, split once into init and loop keys; the step folds in
 its step number, then splits by purpose. Per-scene draws (random neighbour quantisation) fold in
@@ -14,24 +16,120 @@ the scene's position in the global batch, so 1 device and 2 devices draw the sam
 
 from __future__ import annotations
 
-import contextlib
-import math
-from collections.abc import Callable
+import itertools
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import jax
+import jax.numpy as jnp
 import ml_collections
 import numpy as np
+from typing_extensions import override
 
-from camrep.runtime import checkpoint as ckpt_lib
-from camrep.runtime import preemption, runconfig, stopping
-from camrep.runtime import progress as progress_lib
+from camrep.data import pipeline as pipeline_lib
+from camrep.runtime import frame as frame_lib
 from camrep.runtime import session as session_lib
-from camrep.synthesis import components, heldout, plateau
+from camrep.runtime import stopping
+from camrep.runtime import workdir as workdir_lib
+from camrep.synthesis import components, config_schema, heldout
 from camrep.synthesis import step as step_lib
+
+# What the plateau rule's curve holds (final_metrics.json "stopping").
+SCORE = "10^(-eval/psnr / 10): held-out-view MSE (geometric mean over the evaluated views)"
+KEYS = ("image", "pose", "scene")
 
 
 def _print(line: str) -> None:
   print(line, flush=True)
+
+
+class SynthesisStage(frame_lib.Stage):
+  """View synthesis's part of the fit loop (`runtime.frame.Stage`): the replicated train state,
+  the pmapped step (scanned over K batches when K > 1), the training batches on the devices,
+  the held-out evaluation (lead only) and its plateau score."""
+
+  def __init__(self, config, model, tx, train_pipe, test_pipe, writer, *, lead: bool, log):
+    self.config, self.model, self.tx, self.train_pipe = config, model, tx, train_pipe
+    self.loop_key = step_lib.root_keys(config)[1]
+    self._evaluate = (
+      heldout.make_evaluate(model, train_pipe, test_pipe, writer, log=log) if lead else None
+    )
+
+  @override
+  def dispatch(self, n):
+    pose_steps = self.config.optax.pose_steps
+    if n == 1:
+      p_step = step_lib.make_p_train_step(self.model, self.tx, pose_steps=pose_steps)
+
+      def one(state, batch):
+        state, metrics = p_step(state, batch, self.loop_key)
+        return state, metrics, metrics["train/finite"]
+
+      return one
+    p_chunk = step_lib.make_p_train_chunk(self.model, self.tx, pose_steps=pose_steps)
+    return lambda state, batches_: p_chunk(state, batches_, self.loop_key)
+
+  @override
+  def chunks(self, spans):
+    spans = iter(spans)
+    first = next(spans, None)
+    if first is None:
+      return iter(())
+    start = first[0] - 1
+    if frame_lib.steps_per_dispatch(self.config) == 1:
+      return components.device_batches(self.config, self.train_pipe, start)
+    return _stacked_device_batches(self.config, self.train_pipe, itertools.chain([first], spans))
+
+  @override
+  def rows(self, metrics, n):
+    host = {k: np.asarray(v)[0] for k, v in metrics.items()}  # device 0's (device-averaged)
+    if n == 1:
+      return [{k: float(v) for k, v in host.items()}]
+    return [{k: float(v[i]) for k, v in host.items()} for i in range(n)]
+
+  @override
+  def saved(self, state):
+    return step_lib.state_dict(step_lib.unreplicate(state))
+
+  @override
+  def evaluate(self, state, step):
+    return self._evaluate(step_lib.unreplicate(state.params), step)
+
+  @override
+  def score(self, row):
+    return stopping.psnr_score(row["eval/psnr"]) if "eval/psnr" in row else None
+
+
+def _stack(xs: list[Any]) -> Any:
+  """Per-step (D, ...) arrays stacked on a steps axis: (D, n, ...)."""
+  xp = jnp if any(isinstance(x, jax.Array) for x in xs) else np
+  return xp.stack(xs, axis=1)
+
+
+def _stacked_device_batches(config, pipe, spans) -> Iterator[dict]:
+  """The training batches of each span (first step, n): (D, ...) for n = 1, (D, n, ...) stacked
+  for n > 1, copied to the devices `data.device_prefetch` dispatches ahead."""
+  first = next(spans)
+  total = config.total_steps
+  host = pipe.iterator(start_step=first[0] - 1, num_steps=max(total - first[0] + 1, 0))
+
+  def chunks():
+    for _, n in itertools.chain([first], spans):
+      bs = [next(host) for _ in range(n)]
+      yield {k: bs[0][k] for k in KEYS} if n == 1 else {k: _stack([b[k] for b in bs]) for k in KEYS}
+
+  n_ahead = int(config.data.get("device_prefetch", 2))
+  try:
+    it = (
+      pipeline_lib.prefetch_to_device(chunks(), n_ahead, devices=jax.local_devices())
+      if n_ahead > 0
+      else chunks()
+    )
+    for b in it:
+      yield {k: b[k] for k in KEYS}
+  finally:
+    if hasattr(host, "close"):
+      host.close()
 
 
 def train_and_evaluate(
@@ -45,7 +143,8 @@ def train_and_evaluate(
   The same command on a complete workdir changes nothing; with a larger `total_steps` (named in
   `allow_changes`) it extends the run. With the plateau rule on (`config.stop.min_improvement >
   0`) the run may complete before `total_steps`, and final_metrics.json records why
-  ("stopping": see `plateau`).
+  ("stopping": `runtime.stopping.stopping_record`). SIGTERM or Ctrl-C saves a checkpoint and
+  stops; the same command resumes.
 
   Several processes (jax.distributed): each runs this with the same config and workdir; each
   reads its own shard of the scenes, the pmapped step averages gradients over every device of
@@ -53,7 +152,7 @@ def train_and_evaluate(
   and writes metrics, images and final_metrics.json.
 
   Args:
-    config: the run's config.
+    config: the run's config (checked first: `config_schema.validate`).
     workdir: the run's directory.
     log: called with each progress line (default: print, flushed).
 
@@ -66,17 +165,26 @@ def train_and_evaluate(
     FloatingPointError: a loss or gradient became non-finite (the last checkpoint is kept).
     WorkdirError: the workdir cannot be written.
   """
-  components.check_config(config)
+  config_schema.validate(config)  # before anything is written
   lead = jax.process_index() == 0  # several processes: only process 0 logs, evaluates, writes
   record = components.run_record(config)  # the data and pose system, library defaults included
-  rule = components.stopping_rule(config)
-  with (
-    session_lib.Session(
-      workdir, config, resumable=runconfig.SYNTHESIS_RESUMABLE, record=record, lead=lead, log=log
-    ) as session,
-    ckpt_lib.Checkpointer(workdir, max_to_keep=config.max_to_keep) as ckpt,
-  ):
-    done = plateau.already_complete(config, workdir, ckpt.latest_step(), log, rule=rule)
+  rule = frame_lib.stopping_rule(config)
+  # What the steps depend on besides the config (recorded per start, checked at resume).
+  topology = workdir_lib.topology(
+    processes=jax.process_count(),
+    devices=jax.device_count(),
+    scenes_per_device=config.data.scenes_per_device,
+  )
+  with frame_lib.Frame(
+    workdir,
+    config,
+    schema=config_schema.SCHEMA,
+    record=record,
+    lead=lead,
+    log=log,
+    topology=topology,
+  ) as frame:
+    done = frame.already_complete(rule)
     if done is not None:
       return done
 
@@ -85,83 +193,23 @@ def train_and_evaluate(
     model = components.make_model(config, components.num_train_scenes(train_pipe))
     tx = step_lib.make_optimizers(config)
     init = step_lib.init_fn(config, model, tx)
-    state_d, _, restored = ckpt.restore_or_init(lambda: step_lib.state_dict(init()))
-    state, start = step_lib.from_state_dict(init, state_d), restored or 0
-    if restored is not None:
-      log(f"resumed from step {start} in {workdir}")
-    origin = step_lib.restored_from(ckpt.restored if restored is not None else None)
-    session.begin(start)
-    curve = plateau.recorded_curve(workdir, start) if lead and rule.active else []
-    p_step = step_lib.make_p_train_step(model, tx, pose_steps=config.optax.pose_steps)
-    if lead:  # only the lead evaluates (its evaluation set is built here, once)
-      evaluate = heldout.make_evaluate(model, train_pipe, test_pipe, session.writer, log=log)
+    state, start = frame.restore_or_init(
+      init, saved=step_lib.state_dict, restored=lambda d: step_lib.from_state_dict(init, d)
+    )
+    frame.begin(start)
+    # Only the lead evaluates (its evaluation set is built here, once).
+    stage = SynthesisStage(
+      config, model, tx, train_pipe, test_pipe, frame.writer, lead=lead, log=log
+    )
     pstate = step_lib.replicate(state, jax.local_device_count())
-    loop_key = step_lib.root_keys(config)[1]
-    total = config.total_steps
-    progress = progress_lib.Progress(total, start_step=start)
-    last, pending, step, stopped = {}, [], start, False
-    # A resumed run whose curve ends at its start (another rule now): the rule decides at once.
-    at_start = bool(curve) and curve[-1][0] == start
-    ended, reason = plateau.agree(rule, curve, lead, check_now=at_start)
-
-    # Train: one step; at log and save steps the non-finite check and the train scalars; the
-    # held-out evaluation and the plateau rule; the checkpoint.
-    with (
-      preemption.install_signal_handlers() as signals,
-      contextlib.closing(components.device_batches(config, train_pipe, start)) as batches,
-    ):
-      todo = range(start + 1, total + 1) if not ended else range(0)
-      for step, batch in zip(todo, batches, strict=False):
-        pstate, metrics = p_step(pstate, batch, loop_key)
-        pending.append((step, metrics))
-        stopped = preemption.stop_requested(signals)
-        save = progress_lib.itstime(step, config.ckpt_every_steps, total) or stopped
-        logs = progress_lib.itstime(step, config.log_every_steps, total)
-        if logs or save:  # the host reads the steps' metrics only here: the device runs ahead
-          step_lib.raise_if_not_finite(session.writer, pending, workdir, origin)
-          pending = []
-        if logs:
-          last.update(_write_train_scalars(session.writer, step, metrics, progress))
-        status = progress.update(step)
-        if status and lead:
-          log(f"{status} loss={float(np.asarray(metrics['train/loss'])[0]):.4f}")
-        evaluated = progress_lib.itstime(step, config.eval_every_steps, total)
-        if lead and evaluated:
-          last.update(evaluate(step_lib.unreplicate(pstate.params), step))
-          if rule.active:
-            curve.append((step, stopping.psnr_score(last["eval/psnr"])))
-        if evaluated and rule.active:
-          ended, reason = plateau.agree(rule, curve, lead)
-          if ended:
-            step_lib.raise_if_not_finite(session.writer, pending, workdir, origin)
-            pending, save = [], True
-            if lead:
-              log(f"stopping at step {step}: {reason}")
-        if save:
-          state_d = step_lib.state_dict(step_lib.unreplicate(pstate))
-          ckpt.save(step, state_d, extra={"step": step}, force=True)
-        if ended:
-          break
-        if stopped:
-          log(f"stopping at step {step} on a signal; checkpoint saved")
-          break
+    fit = frame_lib.fit(frame, stage, pstate, start, rule=rule)
 
     # The run is complete (at total_steps or at its plateau): final_metrics.json.
-    if ended or (not stopped and step == total):
-      ckpt.wait_until_finished()  # final_metrics.json only once its checkpoint exists
-      last = last if step > start else session_lib.last_logged(workdir)
+    last = fit.last
+    if fit.complete:
+      last = last if fit.step > start else session_lib.last_logged(workdir)
       record = dict(last)
       if rule.active:
-        why = reason if ended else "reached total_steps"
-        record["stopping"] = plateau.stopping_record(rule, curve, step, total, ended, why)
-      session.finish(step, record)
+        record["stopping"] = fit.stopping_record(rule, config.total_steps, score=SCORE)
+      frame.finish(fit.step, record)
   return last
-
-
-def _write_train_scalars(writer, step: int, metrics, progress) -> dict[str, float]:
-  """Writes a log step's train scalars (device 0's, device-averaged) and steps/s; returns them."""
-  host = step_lib.to_host(metrics)
-  if math.isfinite(progress.steps_per_second):
-    host["train/steps_per_sec"] = progress.steps_per_second
-  writer.write_scalars(step, host)
-  return host
