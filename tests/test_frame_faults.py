@@ -234,8 +234,8 @@ def test_the_coordinator_wait_says_how_long_it_has_waited(tmp_path):
 
 
 def _regression(syn_workdir, **kw):
-  c = regression_config.get_config("smoke")
-  c.setting, c.representation, c.synthesis_workdir = "gqn", "ours", str(syn_workdir)
+  c = regression_config.get_config("gqn,smoke")
+  c.representation, c.synthesis_workdir = "ours", str(syn_workdir)
   for k, v in kw.items():
     c[k] = v
   return c

@@ -21,8 +21,8 @@ from absl import flags
 
 from camrep.configs import gqn, regression
 from camrep.data import fingerprint, prepare, procedural
+from camrep.regression import config_schema, pose_system
 from camrep.regression import driver as R
-from camrep.regression import pose_system
 from camrep.runtime import cli, runconfig, writers
 from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import components, train
@@ -182,7 +182,7 @@ def _regression(workdir, **family):
   config.synthesis_workdir = str(workdir)
   for k, v in family.items():
     config.data.family[k] = v
-  R.check_config(config)
+  config_schema.check(config)
   return config
 
 

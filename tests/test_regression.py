@@ -20,6 +20,7 @@ import pytest
 from camrep import settings
 from camrep.configs import regression as regression_config
 from camrep.configs import shapenet_car
+from camrep.regression import config_schema as reg_schema
 from camrep.regression import driver as R
 from camrep.regression import pose_system
 from camrep.regression import tables as C
@@ -54,7 +55,7 @@ def _config(setting="car", representation="euler", **kw):
 
 def _checked(config):
   """The config, checked by the driver (`check_config`)."""
-  R.check_config(config)
+  reg_schema.check(config)
   return config
 
 
@@ -182,7 +183,7 @@ def test_config_errors(tmp_path):
   bad = _config("car", "quat")
   bad.setting = "shapenet"
   with pytest.raises(runconfig.ConfigError, match="unknown setting 'shapenet'"):
-    R.check_config(bad)
+    reg_schema.check(bad)
   with pytest.raises(runconfig.ConfigError, match="no checkpoint|config.json"):
     R.run(_config("car", "ours", synthesis_workdir=str(tmp_path)), str(tmp_path / "x"))
   # gqn: a context larger than a scene's views, on procedural and real data alike.

@@ -29,8 +29,8 @@ from camrep.configs import seven_scenes as seven_scenes_config
 from camrep.configs import shapenet_car
 from camrep.data import prepare
 from camrep.models import pose_regressor
+from camrep.regression import config_schema, learner
 from camrep.regression import driver as R
-from camrep.regression import learner
 from camrep.regression import views as views_lib
 from camrep.runtime import runconfig
 from camrep.synthesis import train as synthesis_train
@@ -147,7 +147,7 @@ def cache(tmp_path_factory):
 
 def _checked(config):
   """The config, checked by the driver (`check_config`)."""
-  R.check_config(config)
+  config_schema.check(config)
   return config
 
 
@@ -260,7 +260,7 @@ def test_streamed_run_matches_in_memory(tmp_path, prepared, cache, source):
 def test_refusals(tmp_path, prepared):
   data_dir = prepared("gibson")
   with pytest.raises(ConfigError, match="--config=configs/regression.py:gibson"):
-    R.check_config(_config("gibson", data_dir, "euler", setting="car"))
+    config_schema.check(_config("gibson", data_dir, "euler", setting="car"))
   with pytest.raises(ConfigError, match="does not exist"):
     _checked(_config("gibson", str(tmp_path / "absent"), "euler"))
   with pytest.raises(ConfigError, match="--config.data.dir=DIR"):
@@ -349,7 +349,7 @@ def _torchvision_npz(path, stages, *, seed=0, width=1.0):
 
 
 def _resnet_state(config):
-  R.check_config(config)
+  config_schema.check(config)
   reg = R.make_regressor(config, None, 1)
   batch = {
     "image": np.zeros((2, 32, 32, 3), np.uint8),
@@ -404,7 +404,7 @@ def test_resnet_weights_refusals(tmp_path):
     R.load_resnet_weights(config, state)
   c.model.resnet_weights = str(tmp_path / "absent.npz")
   with pytest.raises(ConfigError, match="does not exist"):
-    R.check_config(c)
+    config_schema.check(c)
   # Only the 7-Scenes config has a ResNet: another setting's has no such field.
   assert "resnet_weights" not in regression_config.get_config("car,smoke").model
 

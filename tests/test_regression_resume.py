@@ -34,8 +34,7 @@ TIMINGS = ("train_seconds", "steps_per_sec", "eval_seconds", "machine")
 
 def _flags(workdir, cache) -> list[str]:
   return [
-    "--config=configs/regression.py:smoke",
-    "--config.setting=car",
+    "--config=configs/regression.py:car,smoke",
     "--config.representation=euler",
     f"--config.total_steps={TOTAL}",
     f"--config.ckpt_every_steps={EVERY}",

@@ -210,6 +210,7 @@ class Frame:
     self._lock: workdir_lib.WorkdirLock | None = None
     self._ckpt: ckpt_lib.Checkpointer | None = None
     self._existed = os.path.isdir(workdir)
+    self._held = False  # this start took the workdir's lock (what it may undo)
     self._stored: dict[str, Any] | None = None
     self._resuming = False
 
@@ -270,6 +271,7 @@ class Frame:
     if self.lead:
       self._lock = workdir_lib.WorkdirLock(self.workdir)
       self._lock.acquire()
+      self._held = True
 
   def check_record(self, record: Mapping[str, Any]) -> None:
     """Checks (and keeps, for `begin`) what decides this start's data and pose system against
@@ -339,9 +341,10 @@ class Frame:
       pass  # the error itself says what happened
 
   def _abandon(self) -> None:
-    """Undoes a start that failed before `begin`: an empty checkpoints/ directory, and the
-    workdir itself when this start created it and it is empty."""
-    dirs = [os.path.join(self.workdir, ckpt_lib.CHECKPOINT_SUBDIR)]
+    """Undoes a start that failed before `begin`: an empty checkpoints/ directory (only when this
+    start held the lock: a start refused by another run's lock touches nothing of that run), and
+    the workdir itself when this start created it and it is empty."""
+    dirs = [os.path.join(self.workdir, ckpt_lib.CHECKPOINT_SUBDIR)] if self._held else []
     for d in dirs + ([] if self._existed else [self.workdir]):
       try:
         os.rmdir(d)  # only when empty
