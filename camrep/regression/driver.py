@@ -70,7 +70,7 @@ import jax
 import ml_collections
 import numpy as np
 
-from camrep.data import sources
+from camrep.data import records, sources
 from camrep.regression import learner, pose_system, scoring
 from camrep.regression import tables as tables_lib
 from camrep.regression import targets as T
@@ -379,7 +379,8 @@ def evaluate_splits(
       scalars["eval/validation/score"] = tables_lib.validation_score(config.setting, summary)
     writer.write_scalars(step, scalars)
     if name != "validation":
-      np.savez(os.path.join(workdir, f"errors_{name}.npz"), **errs)
+      names = records.scene_name_column(setup.data.info, name, errs["scene"])
+      np.savez(os.path.join(workdir, f"errors_{name}.npz"), **errs, **names)
     if name in ("validation", config.evals.test_split):
       summaries[name] = _json_summary(summary)
     else:

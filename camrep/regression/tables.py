@@ -33,6 +33,8 @@ from typing import Any
 
 import numpy as np
 
+from camrep.data import records
+
 RESULTS_FILE = "results.json"
 
 # (column key, header, setting, error name): the paper's Table 1 columns (mean test errors).
@@ -218,6 +220,7 @@ def data_label(run: Mapping[str, Any]) -> str:
       f"prepared `{d.get('dataset', d['source'])}` (source {d['source']}) at "
       f"{d.get('dataset_path', d.get('dir', '?'))}, test split `{split}`"
       + (f" ({n} test views)" if n is not None else "")
+      + records.instances_clause(d)
     )
   family, preset = d.get("family", "?"), d.get("preset", "?")
   look = look_overrides(d.get("family_overrides", {}))
