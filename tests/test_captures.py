@@ -831,6 +831,26 @@ def test_shared_capture_end_to_end(tmp_path):
   assert "prepared `llff`" in text and "instances: ethiopianHead (9 test views: every 8th" in text
 
 
+def test_capture_config_reads_a_default_prepared_capture(tmp_path):
+  """`shapenet_car.py:capture` (128 px, one instance per step) validates against a capture
+  prepared without a preset (128 px), and names the fix for a 64 px `--preset small` one."""
+  from camrep.configs import shapenet_car
+  from camrep.runtime import runconfig
+  from camrep.synthesis import config_schema
+
+  root = write_llff(tmp_path / "obj", rig(8)[0], rng=np.random.default_rng(16))
+  prepare.prepare_source("llff", tmp_path / "d", input_path=str(root), progress=False)
+  c = shapenet_car.get_config("capture")
+  c.data.source, c.data.dir = "llff", str(tmp_path / "d")
+  assert (c.model.image_size, c.data.scenes_per_device, c.data.preset) == (128, 1, "default")
+  config_schema.validate(c)
+  prepare.prepare_source("llff", tmp_path / "s", input_path=str(root), preset="small",
+                         progress=False)  # fmt: skip
+  c.data.dir = str(tmp_path / "s")
+  with pytest.raises((runconfig.ConfigError, DataError), match="small"):
+    config_schema.validate(c)
+
+
 @needs_stairs
 def test_readme_seven_scenes_command_prepares_the_stairs_sample(tmp_path):
   """The README's 7-Scenes prepare command with its defaults (margin included), then a regression
