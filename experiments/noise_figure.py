@@ -56,8 +56,14 @@ def load(workdir: str) -> dict:
     raise FileNotFoundError(
       f"{path} does not exist: run `python -m camrep.synthesis.evaluate --workdir={workdir} --what=noise`"
     )
-  with open(path, encoding="utf-8") as f:
-    noise = json.load(f)
+  try:
+    with open(path, encoding="utf-8") as f:
+      noise = json.load(f)
+  except json.JSONDecodeError as e:
+    raise ValueError(
+      f"{path} is not valid JSON ({e}), e.g. cut by a full disk: run `python -m "
+      f"camrep.synthesis.evaluate --workdir={workdir} --what=noise` again"
+    ) from None
   kind = config.get("rep", {}).get("kind", "grid")
   if config.get("model", {}).get("kind", "decoder") == "convdraw":  # GQN itself
     kind = "convdraw"
@@ -192,7 +198,7 @@ def main(argv=None) -> int:
     return 0
   try:
     runs = [load(w) for w in args.runs]
-  except FileNotFoundError as e:
+  except (FileNotFoundError, ValueError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
   if len({r["setting"] for r in runs}) != 1:

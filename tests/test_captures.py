@@ -13,6 +13,7 @@ import json
 import math
 import os
 import pathlib
+import shutil
 import struct
 
 import cv2
@@ -20,11 +21,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from camrep.data import pipeline, prepare, storage
+from camrep.data import pipeline, prepare, records, srn, storage
 from camrep.data.captures import cameras, colmap, llff, nerf, normalize
 from camrep.data.captures.cameras import (
   CountMismatchError,
   DistortionError,
+  DuplicateFrameError,
   MissingImageError,
   NonFinitePoseError,
   NotRigidError,
@@ -445,6 +447,8 @@ def test_round_trip_to_the_source_positions(tmp_path):
   np.testing.assert_allclose(stored.pose, want[stored.view], atol=1e-5)
   res = info["residuals"]
   assert 0 < res["angle_deg_median"] < 5 and len(info["angle_deg"]) == 10
+  assert info["normalization"]["up_rule"] == "plane" and norm.up_rule == "plane"
+  assert "independent of camera roll" in info["normalization"]["up_found_by"]
 
 
 def test_not_object_centric_is_refused_or_routed_to_6dof(tmp_path):
@@ -476,6 +480,126 @@ def test_not_object_centric_is_refused_or_routed_to_6dof(tmp_path):
   assert views_lib.scene_names(meta) == []
 
 
+def roll(c2w: np.ndarray, angles) -> np.ndarray:
+  """Each camera turned by angles[i] about its own optical axis (OpenCV z): c2w R_z(angle)."""
+  out = np.array(c2w, np.float64, copy=True)
+  for i, a in enumerate(np.broadcast_to(angles, (len(c2w),))):
+    rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    out[i, :3, :3] = out[i, :3, :3] @ rz
+  return out
+
+
+def labels(c2w: np.ndarray) -> tuple[np.ndarray, normalize.Normalization]:
+  """(N, 2) float64 (azimuth, polar) of the car setting, and the normalisation."""
+  norm, _ = normalize.object_centric(c2w)
+  return srn.c2w_to_angles(norm.apply(c2w)), norm
+
+
+def assert_same_labels(a: np.ndarray, b: np.ndarray, atol_deg: float = 1e-6) -> None:
+  diff = np.degrees((a - b + np.pi) % (2 * np.pi) - np.pi)  # azimuths wrap
+  assert np.abs(diff).max() < atol_deg, np.abs(diff).max(axis=0)
+
+
+@pytest.mark.parametrize("tilted", [False, True])
+def test_labels_do_not_depend_on_camera_roll(tilted):
+  """Rolling any camera by any angle about its optical axis changes no label: the up direction
+  comes from the camera centres (the normal of their plane), not from the cameras' up vectors."""
+  tilt = Rotation.from_rotvec([0.4, -0.3, 0.2]).as_matrix() if tilted else None
+  c2w, elev = rig(12, tilt=tilt)
+  base, norm = labels(c2w)
+  assert norm.up_rule == "plane" and norm.to_json()["up_rule"] == "plane"
+  np.testing.assert_allclose(base[:, 1], np.pi / 2 - elev, atol=1e-9)  # the rig's own elevations
+  rng = np.random.default_rng(20)
+  for angles in (rng.uniform(0, 2 * np.pi, 12), np.pi / 2, np.where(np.arange(12) % 2, np.pi, 0)):
+    rolled, norm = labels(roll(c2w, angles))
+    assert_same_labels(rolled, base, atol_deg=1e-9)
+    assert norm.up_rule == "plane"
+
+
+def test_portrait_and_landscape_mix_and_captures_from_above(tmp_path):
+  """Portrait photos (rolled +-90 deg) among landscape ones, through the LLFF reader: the same
+  labels as all-landscape; a capture taken from above, every other camera upside down, keeps
+  polar angles under 90 deg (the cameras' side of the plane is up)."""
+  n = 16
+  az = np.arange(n) * 2 * np.pi / n
+  elev = np.radians(np.where(np.arange(n) % 2, 60.0, 75.0))
+  eye = np.stack([np.cos(elev) * np.cos(az), np.cos(elev) * np.sin(az), np.sin(elev)], 1)
+  c2w = np.stack([look_at(CENTRE + 2.0 * e, CENTRE, np.array([0.0, 0.0, 1.0])) for e in eye])
+  rng = np.random.default_rng(21)
+  landscape = CaptureSource(write_llff(tmp_path / "l", c2w, rng=rng), format="llff")
+  portrait = roll(c2w, rng.choice([np.pi / 2, -np.pi / 2, 0.0], n))
+  mixed = CaptureSource(write_llff(tmp_path / "p", portrait, rng=rng), format="llff")
+  np.testing.assert_allclose(landscape.poses(0)[:, 1], np.pi / 2 - elev, atol=1e-6)
+  np.testing.assert_array_max_ulp(mixed.poses(0), landscape.poses(0), maxulp=2)
+  flipped = CaptureSource(
+    write_llff(tmp_path / "f", roll(c2w, np.where(np.arange(n) % 2, np.pi, 0.0)), rng=rng),
+    format="llff",
+  )
+  assert np.degrees(flipped.poses(0)[:, 1]).max() < 31.0  # from above: polar 15 and 30 deg
+  assert flipped.describe()["captures"][0]["normalization"]["up_rule"] == "plane"
+
+
+def test_up_fallbacks_are_named():
+  """A ring at the object's height: the plane's sign comes from the cameras' up vectors; a
+  forward-facing capture: the cameras' mean up vector. Both are recorded by name."""
+  c2w = np.stack([
+    look_at(CENTRE + 3.0 * np.array([np.cos(a), np.sin(a), 0.0]), CENTRE, np.array([0, 0, 1.0]))
+    for a in np.arange(10) * 2 * np.pi / 10])  # fmt: skip
+  up, info = normalize.up_direction(c2w, CENTRE)
+  assert info["rule"] == "plane_signed_by_camera_up"
+  np.testing.assert_allclose(up, [0, 0, 1], atol=1e-9)
+  np.testing.assert_allclose(normalize.up_direction(roll(c2w, np.pi), CENTRE)[0], [0, 0, -1],
+                             atol=1e-9)  # fmt: skip
+  grid = []
+  for i in range(12):  # forward-facing: a 3 x 4 grid of cameras looking along +y
+    eye = np.array([0.2 * (i % 4), 0.0, 0.15 * (i // 4)])
+    grid.append(look_at(eye, eye + [0.0, 1.0, 0.0], np.array([0, 0, 1.0])))
+  up, info = normalize.up_direction(np.stack(grid), np.array([0.3, 20.0, 0.15]))
+  assert info["rule"] == "mean_camera_up" and info["cap_deg"] < normalize.FORWARD_CAP_DEG
+  np.testing.assert_allclose(up, [0, 0, 1], atol=1e-9)
+  assert "depends on roll" in normalize.UP_RULES[info["rule"]]
+
+
+def _rolled_copy(src: pathlib.Path, dst: pathlib.Path, rng) -> pathlib.Path:
+  """`src` (a shared capture) with every camera rolled by a random angle; images linked."""
+  dst.mkdir()
+  for entry in src.iterdir():
+    if entry.is_dir():
+      os.symlink(entry, dst / entry.name)
+  if (src / "poses_bounds.npy").exists():
+    pb = np.load(src / "poses_bounds.npy")
+    mats = pb[:, :15].reshape(-1, 3, 5)
+    cv = llff.llff_to_opencv(mats[:, :, :3])
+    c2w = np.tile(np.eye(4), (len(pb), 1, 1))
+    c2w[:, :3, :3], c2w[:, :3, 3] = cv, mats[:, :, 3]
+    c2w = roll(c2w, rng.uniform(0, 2 * np.pi, len(pb)))
+    mats[:, :, :3] = llff.opencv_to_llff(c2w[:, :3, :3])
+    np.save(dst / "poses_bounds.npy", np.concatenate([mats.reshape(-1, 15), pb[:, 15:]], 1))
+    return dst
+  for f in src.glob("transforms_*.json"):
+    data = json.loads(f.read_text())
+    for fr in data["frames"]:  # OpenGL axes: z is the optical axis (backwards) too
+      m = np.asarray(fr["transform_matrix"], np.float64)
+      fr["transform_matrix"] = roll(m[None], rng.uniform(0, 2 * np.pi))[0].tolist()
+    (dst / f.name).write_text(json.dumps(data))
+  return dst
+
+
+@needs_captures
+@pytest.mark.parametrize("fmt,name", [("nerf", "chair"), ("llff", "ethiopianHead"),
+                                      ("llff", "moldGoldCape")])  # fmt: skip
+def test_shared_captures_labels_survive_random_rolls(tmp_path, fmt, name):
+  rolled = _rolled_copy(CAPTURES / name, tmp_path / name, np.random.default_rng(22))
+  a = CaptureSource(str(CAPTURES / name), format=fmt, image_size=16)
+  b = CaptureSource(str(rolled), format=fmt, image_size=16)
+  np.testing.assert_allclose(b.captures[0].c2w()[:, :3, 3], a.captures[0].c2w()[:, :3, 3])
+  assert not np.allclose(b.captures[0].c2w()[:, :3, :2], a.captures[0].c2w()[:, :3, :2])
+  for src in (a, b):
+    assert src.normalizations[0].up_rule == "plane"
+  assert_same_labels(labels(b.captures[0].c2w())[0], labels(a.captures[0].c2w())[0])
+  np.testing.assert_array_max_ulp(b.poses(0), a.poses(0), maxulp=2)  # the prepared (float32)
+
+
 # ------------------------------------------------------------------------------- splits, prepare
 
 
@@ -504,9 +628,14 @@ def test_splits_every_kth_held_out_and_unseen_captures(tmp_path, capsys):
   assert set(novel.scene.tolist()) == {0} and sorted(novel.view.tolist()) == list(range(6))
   roles = [(x["name"], x["role"], x["split_rule"]) for x in meta["source_info"]["captures"]]
   assert roles == [
-    ("a", "seen", "every 3th view held out"),
-    ("c", "unseen", "whole capture held out"),
+    (
+      "a",
+      "seen",
+      "every 3rd view held out (it has no splits of its own; --config.holdout_every=3)",
+    ),
+    ("c", "unseen", "whole capture held out (--config.unseen)"),
   ]
+  assert "  a (seen): train 6, test 4; every 3rd view held out" in out  # the summary says why
 
 
 def test_too_few_scenes_and_missing_config_errors_name_the_fix(tmp_path):
@@ -521,6 +650,118 @@ def test_too_few_scenes_and_missing_config_errors_name_the_fix(tmp_path):
   with pytest.raises(DataError, match=r"no config 'small'; it holds default \(no config\) at "
                      r"16x16 px.*--preset small.*--config\.data\.preset=default"):  # fmt: skip
     storage.dataset_dir(tmp_path / "d", "llff", config="small")
+
+
+def test_one_image_in_two_frames_is_refused_by_name(tmp_path):
+  rng = np.random.default_rng(13)
+  c2w, _ = rig(8)
+  root = write_nerf(tmp_path / "twice", c2w, rng=rng)
+  data = json.loads((root / "transforms.json").read_text())
+  frames = data["frames"]
+  (root / "transforms.json").write_text(json.dumps({**data, "frames": [*frames, frames[5]]}))
+  with pytest.raises(
+    DuplicateFrameError, match=r"r_5.png as './images/r_5', './images/r_5' \(twice\)"
+  ):
+    nerf.read_capture(root)
+  other = {**frames[5], "transform_matrix": frames[6]["transform_matrix"]}
+  (root / "transforms.json").write_text(json.dumps({**data, "frames": [*frames, other]}))
+  with pytest.raises(DuplicateFrameError, match=r"r_5.png .*\(under different poses\)"):
+    nerf.read_capture(root)
+  # Blender: a training image listed in the test file too.
+  root = write_nerf(tmp_path / "blender", c2w, rng=rng, blender=True)
+  test = json.loads((root / "transforms_test.json").read_text())
+  train = json.loads((root / "transforms_train.json").read_text())
+  test["frames"].append(train["frames"][0])
+  (root / "transforms_test.json").write_text(json.dumps(test))
+  with pytest.raises(DuplicateFrameError, match=r"r_1.png as './train/r_1' \(train\), "
+                     r"'./train/r_1' \(test\) \(in two splits"):  # fmt: skip
+    CaptureSource(root, format="nerf")
+  # COLMAP: one image name under two ids, and one id listed twice.
+  root = write_colmap(tmp_path / "colmap", c2w, rng=rng, text=True)
+  lines = (root / "sparse/0/images.txt").read_text().splitlines()
+  first = next(i for i, line in enumerate(lines) if line.endswith("frame_002.png"))
+  again = lines[first].replace(lines[first].split()[0], "99", 1)
+  (root / "sparse/0/images.txt").write_text("\n".join([*lines, again, ""]) + "\n")
+  with pytest.raises(
+    DuplicateFrameError, match="frame_002.png as 'frame_002.png', 'frame_002.png'"
+  ):
+    colmap.read_capture(root)
+  again = lines[first].replace("frame_002.png", "frame_003.png")
+  (root / "sparse/0/images.txt").write_text("\n".join([*lines, again, ""]) + "\n")
+  with pytest.raises(DuplicateFrameError, match="image id 3 is listed twice"):
+    colmap.read_capture(root)
+
+
+def test_a_changed_capture_is_refused_by_name_until_overwritten(tmp_path, capsys):
+  rng = np.random.default_rng(14)
+  root = write_nerf(tmp_path / "obj", rig(12)[0], rng=rng)
+  argv = ["--source=nerf", f"--input={root}", f"--data_dir={tmp_path / 'd'}", "--no_progress",
+          "--config.image_size=8"]  # fmt: skip
+  assert prepare.main(argv) == 0
+  assert prepare.main(argv) == 0 and "reused" in capsys.readouterr().out
+  data = json.loads((root / "transforms.json").read_text())
+  (root / "transforms.json").write_text(json.dumps({**data, "frames": data["frames"][:10]}))
+  assert prepare.main(argv) == 2
+  err = capsys.readouterr().err
+  assert "its inputs changed since it was prepared: obj: 10 frames, was 12; 2 frame(s) removed " \
+         "(images/r_10.png, images/r_11.png)" in err and "--overwrite" in err  # fmt: skip
+  (root / "transforms.json").write_text(json.dumps(data))
+  assert prepare.main(argv) == 0  # the same inputs again: reused
+  os.utime(root / "images" / "r_3.png", ns=(1, 1))
+  assert prepare.main(argv) == 2
+  assert "1 frame(s) changed (images/r_3.png)" in capsys.readouterr().err
+  assert prepare.main([*argv, "--overwrite"]) == 0 and "wrote" in capsys.readouterr().out
+  assert prepare.main(argv) == 0
+  # A dataset prepared before inputs were recorded: reused with a warning, not silently.
+  path = prepare.target_dir(tmp_path / "d", "nerf", None, storage.DEFAULT_VERSION)
+  meta = storage.load_metadata(path)
+  assert set(meta["inputs"]) == {"digest", "captures"}
+  del meta["inputs"]
+  (path / storage.METADATA_FILE).write_text(json.dumps(meta))
+  assert prepare.main(argv) == 0
+  assert "prepared before camrep recorded its inputs" in capsys.readouterr().err
+
+
+def test_a_capture_without_held_out_views_is_refused_for_evaluation(tmp_path):
+  rng = np.random.default_rng(15)
+  a = write_nerf(tmp_path / "a", rig(8)[0], rng=rng, blender=True)  # its own test split
+  b = write_nerf(tmp_path / "b", rig(8)[0], rng=rng)  # no split files
+  overrides = {"image_size": 8, "holdout_every": 0}
+  path = prepare.prepare_source(
+    "nerf", tmp_path / "d", input_path=[str(a), str(b)], overrides=overrides, progress=False
+  )
+  storage.StoredSplit(path, "train")
+  with pytest.raises(DataError, match=r"1 seen capture\(s\) have no held-out view in it: b "
+                     r"\(every view trains .*--config.holdout_every=K"):  # fmt: skip
+    storage.StoredSplit(path, "test")
+  meta = storage.load_metadata(path)
+  facts = records.naming(meta, {"test": "prepared test split (cars_train_test: ...)"})
+  assert facts["scene_names"] == {"0": "a", "1": "b"}
+  assert facts["splits"]["test"].startswith(
+    "held-out views of the training captures (a: 2 views, its own test split; b: 0 views, every "
+    "view trains"
+  )
+  errs = records.scene_name_column(facts, "test", np.array([1, 0, 1]))
+  assert errs["scene_name"].tolist() == ["b", "a", "b"]
+
+
+@needs_captures
+def test_a_blender_capture_with_only_its_training_split_holds_out_views(tmp_path, capsys):
+  """The shared chair without its val and test files: every 8th training view is held out, and
+  the summary says how the test split was made."""
+  root = tmp_path / "chair"
+  root.mkdir()
+  shutil.copy(CAPTURES / "chair" / "transforms_train.json", root)
+  os.symlink(CAPTURES / "chair" / "train", root / "train")
+  argv = ["--source=nerf", f"--input={root}", f"--data_dir={tmp_path / 'd'}", "--no_progress",
+          "--config.image_size=8"]  # fmt: skip
+  assert prepare.main(argv) == 0
+  out = capsys.readouterr().out
+  assert "  chair (seen): train 87, test 13; every 8th view held out (it has a training split " \
+         "but no test split; --config.holdout_every=8)" in out  # fmt: skip
+  path = prepare.target_dir(tmp_path / "d", "nerf", None, storage.DEFAULT_VERSION)
+  test = storage.StoredSplit(path, "test").index
+  assert sorted(test.view.tolist()) == list(range(0, 100, 8))
 
 
 # ------------------------------------------------------------------------------- real captures
@@ -576,11 +817,38 @@ def test_shared_capture_end_to_end(tmp_path):
       r.synthesis_workdir = str(tmp_path / "syn")
     results = driver.run(r, str(tmp_path / f"reg_{rep}"), log=lambda s: None)
     assert results["data"]["source"] == "llff" and results["data"]["num_test_views"] == 9
+    # Results name their data: the capture, and how its test views were chosen.
+    assert results["data"]["scene_names"] == {"0": "ethiopianHead"}
+    assert results["data"]["splits"]["test"].startswith(
+      "held-out views of the training captures (ethiopianHead: 9 views, every 8th view held out"
+    )
+    with np.load(tmp_path / f"reg_{rep}" / "errors_test.npz") as z:
+      assert set(z["scene_name"].tolist()) == {"ethiopianHead"} and len(z["scene_name"]) == 9
   table1 = load_experiment("table1")
   text = table1.build([json.loads((tmp_path / f"reg_{x}" / "results.json").read_text())
                        for x in ("ours", "quat")])  # fmt: skip
   assert "Table 1: pose regression on real data" in text and "Procedural columns" not in text
-  assert "prepared `llff`" in text
+  assert "prepared `llff`" in text and "instances: ethiopianHead (9 test views: every 8th" in text
+
+
+def test_capture_config_reads_a_default_prepared_capture(tmp_path):
+  """`shapenet_car.py:capture` (128 px, one instance per step) validates against a capture
+  prepared without a preset (128 px), and names the fix for a 64 px `--preset small` one."""
+  from camrep.configs import shapenet_car
+  from camrep.runtime import runconfig
+  from camrep.synthesis import config_schema
+
+  root = write_llff(tmp_path / "obj", rig(8)[0], rng=np.random.default_rng(16))
+  prepare.prepare_source("llff", tmp_path / "d", input_path=str(root), progress=False)
+  c = shapenet_car.get_config("capture")
+  c.data.source, c.data.dir = "llff", str(tmp_path / "d")
+  assert (c.model.image_size, c.data.scenes_per_device, c.data.preset) == (128, 1, "default")
+  config_schema.validate(c)
+  prepare.prepare_source("llff", tmp_path / "s", input_path=str(root), preset="small",
+                         progress=False)  # fmt: skip
+  c.data.dir = str(tmp_path / "s")
+  with pytest.raises((runconfig.ConfigError, DataError), match="small"):
+    config_schema.validate(c)
 
 
 @needs_stairs

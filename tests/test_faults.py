@@ -22,6 +22,7 @@ import sys
 import time
 import warnings
 
+import numpy as np
 import pytest
 from absl import flags
 from ml_collections import config_flags
@@ -448,3 +449,168 @@ def test_retention_that_keeps_no_checkpoint_is_refused(tmp_path):
   config.max_to_keep = 0
   with pytest.raises(runconfig.ConfigError, match="max_to_keep=0: must be a number > 0"):
     synthesis_schema.validate(config)
+
+
+# --------------------------------------------------------------------------------------------
+# Prepared data and the command lines around it: each of these printed a Python traceback.
+
+
+def _capture(tmp_path, **top):
+  """A small NeRF capture (transforms.json, 8 views) written by the captures tests' helper."""
+  from tests.test_captures import rig, write_nerf
+
+  return write_nerf(tmp_path / "cap", rig(8)[0], rng=np.random.default_rng(0), **top)
+
+
+def _prepare_args(root, data_dir, *extra):
+  return ["--source=nerf", f"--input={root}", f"--data_dir={data_dir}", "--no_progress",
+          "--config.image_size=8", *extra]  # fmt: skip
+
+
+def test_nerf_camera_angle_x_zero_is_refused(tmp_path, capsys):
+  root = _capture(tmp_path, camera_angle_x=0)
+  assert prepare.main(_prepare_args(root, tmp_path / "d")) == 2
+  _assert_one_error(capsys.readouterr().err, "frame 0: camera_angle_x=0 is not a field of view")
+  assert not (tmp_path / "d").exists()
+
+
+def test_prepare_disk_full_while_writing_records_keeps_the_complete_dataset(
+  tmp_path, monkeypatch, capsys
+):
+  import tensorflow_datasets as tfds
+
+  root = _capture(tmp_path)
+  args = _prepare_args(root, tmp_path / "d")
+  assert prepare.main(args) == 0
+  before = _snapshot(tmp_path / "d")
+
+  def full(*a, **k):  # what array_record raises when the disk fills (no errno, only text)
+    raise RuntimeError(
+      'Failed to finalize writing of split "train": write() failed: No space left on device; '
+      "writing .../nerf-train.array_record-00000-of-00001; at byte 307200"
+    )
+
+  with monkeypatch.context() as m:
+    m.setattr(tfds.core.file_adapters.ArrayRecordFileAdapter, "write_examples", full)
+    assert prepare.main([*args, "--overwrite"]) == 2  # overwriting: the old one must survive
+    _assert_one_error(capsys.readouterr().err, "disk full writing", "No space left on device")
+    assert _snapshot(tmp_path / "d") == before  # the complete dataset, nothing half-written
+    shutil.rmtree(tmp_path / "d")
+    assert prepare.main(args) == 2
+    _assert_one_error(capsys.readouterr().err, "disk full")
+  assert not list((tmp_path / "d").rglob("*.array_record*"))
+  assert prepare.main(args) == 0
+
+
+def test_a_second_prepare_of_one_dataset_is_refused_by_name(tmp_path, capsys):
+  root = _capture(tmp_path)
+  parent = tmp_path / "d" / "nerf"
+  parent.mkdir(parents=True)
+  me = {"pid": os.getpid(), "host": socket.gethostname(), "started": "now", "argv": []}
+  (parent / workdir_lib.LOCK_FILE).write_text(json.dumps(me))  # a live writer holds it
+  assert prepare.main(_prepare_args(root, tmp_path / "d")) == 2
+  _assert_one_error(capsys.readouterr().err, "another process is preparing this dataset", "PID")
+  assert sorted(os.listdir(parent)) == [workdir_lib.LOCK_FILE]  # nothing written
+  (parent / workdir_lib.LOCK_FILE).unlink()
+  assert prepare.main(_prepare_args(root, tmp_path / "d")) == 0
+  assert not (parent / workdir_lib.LOCK_FILE).exists()  # released
+
+
+def test_a_missing_flagfile_is_one_error(tmp_path, capsys):
+  missing = tmp_path / "no_such_flags"
+  for module in ("camrep.main", "camrep.regression"):  # the --config flag reads flagfiles
+    r = _run("-m", module, f"--flagfile={missing}", timeout=120)
+    assert r.returncode == 2, r.stderr[-2000:]
+    _assert_one_error(r.stderr, "Unable to open flagfile: [Errno 2] No such file", str(missing))
+  assert prepare.main([f"--flagfile={missing}"]) == 2
+  _assert_one_error(capsys.readouterr().err, "Unable to open flagfile")
+
+
+def test_data_dir_and_cache_dir_naming_a_file(tmp_path, capsys):
+  afile = tmp_path / "afile"
+  afile.write_text("")
+  assert prepare.main(_prepare_args(_capture(tmp_path), afile)) == 2
+  _assert_one_error(capsys.readouterr().err, f"{afile}: --data_dir names a file, not a directory")
+  r = _run("-m", "camrep.regression", "--config=configs/regression.py:smoke",
+           f"--workdir={tmp_path}/w", f"--config.data.cache_dir={afile}", timeout=300)  # fmt: skip
+  assert r.returncode == 2, r.stderr[-2000:]
+  _assert_one_error(r.stderr, f"{afile}: already exists and is not a directory")
+  assert not (tmp_path / "w").exists()
+
+
+def test_a_cut_noise_json_is_one_error(tmp_path, capsys):
+  from tests.utils import load_experiment
+
+  wd = tmp_path / "w"
+  (wd / ev.EVAL_SUBDIR).mkdir(parents=True)
+  (wd / "config.json").write_text("{}")
+  (wd / ev.EVAL_SUBDIR / "noise.json").write_text('{"setting": "gqn", "alphas": [0.0, 0.')
+  noise_figure = load_experiment("noise_figure")
+  argv = ["--runs", str(wd), "--png", str(tmp_path / "n.png"), "--md", str(tmp_path / "n.md")]
+  assert noise_figure.main(argv) == 2
+  _assert_one_error(capsys.readouterr().err, "noise.json is not valid JSON", "--what=noise")
+
+
+def test_a_non_utf8_data_dir_is_refused_before_writing(tmp_path, capsys):
+  # Under a non-UTF-8 locale, Python keeps a non-ASCII name's bytes as surrogates ("dé" in
+  # UTF-8 -> "d\udcc3\udca9"), which the ArrayRecord writer refuses with a TypeError.
+  root = _capture(tmp_path)
+  odd = os.path.join(str(tmp_path), "d\udcc3\udca9")
+  assert prepare.main(_prepare_args(root, odd)) == 2
+  _assert_one_error(capsys.readouterr().err, "not valid in this locale's file-system encoding")
+  assert sorted(os.listdir(tmp_path)) == ["cap"]
+  env = {"LC_ALL": "C", "LANG": "C", "PYTHONCOERCECLOCALE": "0", "PYTHONUTF8": "0"}
+  argv = _prepare_args(root, os.fsencode(odd).decode("utf-8"))  # the name's real UTF-8 bytes
+  r = subprocess.run(
+    [sys.executable, "-m", "camrep.data.prepare", *argv],
+    capture_output=True, text=True, cwd=ROOT, timeout=300, env={**os.environ, **env},
+  )  # fmt: skip
+  assert r.returncode == 2, r.stderr[-2000:]
+  _assert_one_error(r.stderr, "file-system encoding (ascii)")
+  assert sorted(os.listdir(tmp_path)) == ["cap"]
+
+
+@pytest.mark.skipif(shutil.which("nvidia-smi") is not None, reason="this machine has a GPU")
+def test_jax_platforms_gpu_without_one_is_one_error(tmp_path):
+  r = _run("-m", "camrep.main", "--config=configs/gqn.py:smoke", f"--workdir={tmp_path}/w",
+           env={"JAX_PLATFORMS": "gpu"}, timeout=120)  # fmt: skip
+  assert r.returncode == 2, r.stderr[-2000:]
+  _assert_one_error(r.stderr, "JAX_PLATFORMS='gpu': JAX cannot start that platform", "cpu")
+  assert not (tmp_path / "w").exists()
+  r = _run("-m", "camrep.data.prepare", "--source=rooms", "--preset=small",
+           f"--data_dir={tmp_path}/d", env={"JAX_PLATFORMS": "gpu"}, timeout=120)  # fmt: skip
+  assert r.returncode == 2, r.stderr[-2000:]
+  _assert_one_error(r.stderr, "JAX_PLATFORMS='gpu'")
+  assert not (tmp_path / "d").exists()  # refused before anything was written
+
+
+def test_prepare_refuses_a_negative_image_size(tmp_path, capsys):
+  root = _capture(tmp_path)
+  for argv in (
+    ["--source=rooms", "--preset=small", f"--data_dir={tmp_path / 'd'}", "--config.image_size=-5"],
+    [*_prepare_args(root, tmp_path / "d"), "--config.image_size=-5"],
+  ):
+    assert prepare.main(argv) == 2
+    _assert_one_error(capsys.readouterr().err, "--config.image_size=-5: must be a positive integer")
+  assert not (tmp_path / "d").exists()
+
+
+def test_help_lists_config_its_variants_and_every_source():
+  from camrep.data import sources
+
+  for module in ("camrep.main", "camrep.regression"):
+    r = _run("-m", module, "--help", timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    text = " ".join(r.stdout.split())
+    assert " --config: " in text, module  # a flag line, not only the docstring
+    assert "shapenet_car[:quick|:medium|:smoke" in text and "--config.FIELD=VALUE" in text
+    assert "quick: minutes on 2 CPU cores" in text
+  r = _run("-m", "camrep.data.prepare", "--help", timeout=120)
+  assert r.returncode == 0, r.stderr[-2000:]
+  head = r.stdout.split("flags:")[0]
+  listed = head.split("Sources (")[1].split("The capture sources")[0]
+  for name in sources.SOURCES:  # each with its layout
+    assert name in listed, name
+  for layout in ("transforms_{train,val,test}.json", "poses_bounds.npy", "sparse/0/"):
+    assert layout in listed
+  assert " --config: --config.FIELD=VALUE" in " ".join(r.stdout.split("flags:")[1].split())

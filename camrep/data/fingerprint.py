@@ -9,7 +9,8 @@ from other data even when the config leaves it implicit (library defaults).
                              prepared (`data.dir`): {"kind": "prepared", "source", "dataset"
                              (its directory when recorded; a move keeps the fingerprint),
                              "identity": its camrep_source.json less the preparation time and
-                             the raw input's path, "fingerprint"}.
+                             the raw input's path, its inputs' per-frame stamps replaced by
+                             their digest, "fingerprint"}.
 
 Fingerprints are "sha256:<hex>" of canonical JSON:
   procedural "fingerprint": the family name, every resolved parameter, the renderer version:
@@ -117,6 +118,8 @@ def prepared_record(path: str | os.PathLike) -> dict[str, Any]:
   path = pathlib.Path(path)
   meta = storage.load_metadata(path)
   identity = {k: v for k, v in meta.items() if k != "prepare_seconds"}
+  if isinstance(identity.get("inputs"), Mapping):  # per-frame stamps: their digest stands for them
+    identity["inputs"] = identity["inputs"].get("digest")
   settings = identity.get("metadata")
   if isinstance(settings, Mapping):  # where the raw data was read from is not what it is
     identity["metadata"] = {k: v for k, v in settings.items() if k != "input"}

@@ -19,8 +19,118 @@ Pose conventions (radians for angles, the dataset's own length unit for position
 
 Splits: "train"; "test" (held-out views of the training scenes); "test_scenes" (held-out whole
 scenes, for the families that have them).
+
+A prepared captures dataset also says what its instances are called and how its splits were made
+(`naming`, `split_summary`): results name captures, not scene ids.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
 RECORD_KEYS = ("image", "pose", "scene", "view")
+
+
+# ---------------------------------------------------------------------------------------------
+# What a prepared dataset's instances are called and how its splits were made (captures record
+# both in camrep_source.json's "source_info"; other sources name nothing here).
+
+
+def capture_facts(metadata: Mapping[str, Any]) -> list[dict[str, Any]]:
+  """The per-capture facts of a prepared captures dataset (`CaptureSource.describe`), or []."""
+  info = metadata.get("source_info") or {}
+  return list(info.get("captures", [])) if info.get("kind") == "captures" else []
+
+
+def split_summary(metadata: Mapping[str, Any]) -> list[str]:
+  """One line per capture: its role, views per split and the rule that made them (prepare's
+  summary), e.g. "chair (seen): train 88, val 100, test 12; every 8th view held out (...)"."""
+  lines = []
+  for c in capture_facts(metadata):
+    splits = c.get("splits", {})
+    order = [s for s in ("train", "val", "test", "test_scenes") if s in splits]
+    counts = ", ".join(f"{s} {splits[s]}" for s in order + sorted(set(splits) - set(order)))
+    lines.append(f"{c.get('name')} ({c.get('role')}): {counts}; {c.get('split_rule')}")
+  return lines
+
+
+def naming(metadata: Mapping[str, Any], splits: Mapping[str, str]) -> dict[str, Any]:
+  """What a run's record of its data says about a prepared dataset's instances and splits.
+
+  For a captures dataset: "scene_names" {scene id: capture name} of the seen captures (the ids
+  of train, val and test), "test_scene_names" the same for the unseen ones ("test_scenes" ids,
+  from 0 on their own), "captures" (name, role, scene id, views per split, split rule), and
+  "splits": `splits` with each description replaced by the source's own ("test": held-out
+  views of the training captures, per capture how they were chosen). Other datasets: {}.
+
+  Args:
+    metadata: the dataset's camrep_source.json.
+    splits: {evaluation split: description} as the run would record it.
+  """
+  caps = capture_facts(metadata)
+  if not caps:
+    return {}
+  seen = [c for c in caps if c.get("role") == "seen"]
+  unseen = [c for c in caps if c.get("role") != "seen"]
+
+  def views(group: list[dict[str, Any]], split: str) -> str:
+    return "; ".join(
+      f"{c['name']}: {c.get('splits', {}).get(split, 0)} views, {c.get('split_rule')}"
+      for c in group
+    )
+
+  described = {
+    "train": f"training views of the seen captures ({views(seen, 'train')})",
+    "val": f"the captures' own val views ({views(seen, 'val')})",
+    "test": f"held-out views of the training captures ({views(seen, 'test')})",
+    "test_scenes": f"whole captures held out as novel instances ({views(unseen, 'test_scenes')})",
+  }
+  out: dict[str, Any] = {
+    "scene_names": {str(c["scene"]): c["name"] for c in seen},
+    "captures": [
+      {k: c.get(k) for k in ("name", "role", "scene", "splits", "split_rule")} for c in caps
+    ],
+    "splits": {name: described.get(name, text) for name, text in splits.items()},
+  }
+  if unseen:
+    out["test_scene_names"] = {str(c["scene"]): c["name"] for c in unseen}
+  return out
+
+
+def scene_name_column(
+  data_info: Mapping[str, Any], split: str, scene_ids: np.ndarray
+) -> dict[str, np.ndarray]:
+  """{"scene_name": (N,) str} for per-example files (errors_<split>.npz), from a run's record
+  of its data (`naming`'s "scene_names" / "test_scene_names"); {} when it names no scenes.
+
+  Args:
+    data_info: results.json's "data".
+    split: the evaluation split.
+    scene_ids: (N,) int scene ids of the examples.
+  """
+  names = data_info.get("scene_names") or {}
+  if split == "test_scenes" and "test_scene_names" in data_info:
+    names = data_info["test_scene_names"]
+  if not names:
+    return {}
+  ids = np.asarray(scene_ids).reshape(-1)
+  return {"scene_name": np.asarray([str(names.get(str(int(i)), "")) for i in ids], dtype=str)}
+
+
+def instances_clause(data_info: Mapping[str, Any]) -> str:
+  """ "; instances: NAME (N test views: RULE), ..." for a table's data line, from a run's record
+  of a captures dataset (`naming`); "" for other data (their tables read as before)."""
+  caps = data_info.get("captures")
+  if not caps:
+    return ""
+  split = data_info.get("test_split", "test")
+  key = "test_scenes" if split == "test_scenes" else split
+  parts = [
+    f"{c['name']} ({c.get('splits', {}).get(key, 0)} {key} views: {c.get('split_rule')})"
+    for c in caps
+    if (c.get("role") == "seen") != (key == "test_scenes")
+  ]
+  return "; instances: " + ", ".join(parts)

@@ -28,15 +28,25 @@ On-disk layout (`DATA_DIR/NAME[/CONFIG]/VERSION/`):
   camrep_source.json                     name, pose names, image shape, per-split counts,
                                          whatever metadata the caller passed (overrides, input)
                                          and, as "source_info", the source's `describe()` when
-                                         it has one (captures: normalisation, residuals)
+                                         it has one (captures: normalisation, residuals, split
+                                         rules); as "inputs", the source's `inputs()` when it
+                                         has one (captures: a fingerprint of the files read)
+
+One writer at a time per dataset: `prepare` holds `DATA_DIR/NAME[/CONFIG]/.camrep.lock` while it
+writes, and a second writer is refused by name. A captures dataset in which a seen capture has no
+held-out view is refused when its "test" split is opened (`check_held_out`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import errno
 import json
 import os
 import pathlib
+import shutil
+import sys
 import tempfile
 import time
 import types
@@ -378,13 +388,30 @@ def prepare(
     version: tfds version string.
     config: optional builder-config name (e.g. the preset).
     metadata: extra JSON-serialisable facts to record (overrides, input path, ...).
-    overwrite: regenerate even when the dataset already exists.
+    overwrite: regenerate even when the dataset already exists (the old one is kept, moved
+      aside, until the new one is complete, and put back if writing fails).
     progress: show a tqdm bar per split.
 
   Returns:
     The dataset directory `data_dir/name[/config]/version`.
+
+  Raises:
+    DataError: `data_dir` is a file or not UTF-8 (`check_path`), or another process is
+      preparing the same dataset (a lock in `data_dir/name[/config]`).
+    OSError: a full disk or a read-only file system (errno set, for `camrep.runtime.cli`); no
+      half-written version is left, and an overwritten one is back in place.
   """
   name = name or source.name
+  check_path(data_dir, "data_dir")
+  parent = pathlib.Path(data_dir) / name / (config or "")
+  with _writer_lock(parent):
+    return _prepare_locked(
+      source, data_dir, name, version, config, metadata, overwrite=overwrite, progress=progress
+    )
+
+
+def _prepare_locked(source, data_dir, name, version, config, metadata, *, overwrite, progress):
+  """`prepare` under the writer's lock."""
   cls = builder_class(name, version=version, config=config)
   tfds.disable_progress_bar()  # Our per-view tqdm bar replaces tfds' (a process-wide switch).
   t0 = time.perf_counter()
@@ -399,16 +426,36 @@ def prepare(
   sidecars = [path / f"views_index_{s}.npz" for s in source_splits(source)]
   if not overwrite and all(f.exists() for f in [path / METADATA_FILE, *sidecars]):
     return path  # Finished earlier (prepare writes the metadata last).
-  mode = (
-    tfds.download.GenerateMode.FORCE_REDOWNLOAD
-    if overwrite
-    else tfds.download.GenerateMode.REUSE_DATASET_IF_EXISTS
-  )
+  # An overwritten dataset stays whole beside the new one until that is complete.
+  aside = path.with_name(f".{path.name}.replaced-{os.getpid()}")
+  if overwrite and path.exists():
+    os.replace(path, aside)
+  try:
+    _write(builder, source, path, name, version, config, metadata, t0)
+  except BaseException:
+    if aside.exists():
+      shutil.rmtree(path, ignore_errors=True)
+      os.replace(aside, path)
+    raise
+  shutil.rmtree(aside, ignore_errors=True)
+  return path
+
+
+def _write(builder, source, path, name, version, config, metadata, t0) -> None:
+  """The records (tfds), the sidecars, then the metadata that marks the dataset finished."""
   with tempfile.TemporaryDirectory() as download_dir:  # Nothing is downloaded; keep it tidy.
-    builder.download_and_prepare(
-      download_dir=download_dir,
-      download_config=tfds.download.DownloadConfig(download_mode=mode),
-    )
+    try:
+      builder.download_and_prepare(
+        download_dir=download_dir,
+        download_config=tfds.download.DownloadConfig(
+          download_mode=tfds.download.GenerateMode.REUSE_DATASET_IF_EXISTS
+        ),
+      )
+    except RuntimeError as e:  # array_record reports a full disk as text, without an errno
+      err = _os_error_in_text(str(e), path)
+      if err is None:
+        raise
+      raise err from e
   splits = {}
   shape = image_shape(source)
   for split in builder.info.splits:
@@ -430,9 +477,77 @@ def prepare(
   describe = getattr(source, "describe", None)
   if callable(describe):  # optional: facts the source states about itself (captures)
     meta["source_info"] = describe()
+  inputs = getattr(source, "inputs", None)
+  if callable(inputs):  # optional: a fingerprint of the files it read (captures)
+    meta["inputs"] = inputs()
   text = json.dumps(meta, indent=2, sort_keys=True, default=str)
   writers.write_text_atomic(path / METADATA_FILE, text)  # last: it marks a finished dataset
-  return path
+
+
+def _os_error_in_text(text: str, path: pathlib.Path) -> OSError | None:
+  """The OSError a message describes in words ("No space left on device", ...), or None."""
+  for code in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES):
+    if os.strerror(code) in text:
+      return OSError(code, os.strerror(code), os.fspath(path))
+  return None
+
+
+@contextlib.contextmanager
+def _writer_lock(parent: pathlib.Path) -> Iterator[None]:
+  """One writer per dataset name (and config): `parent/.camrep.lock` (the workdirs' lock,
+  `camrep.runtime.workdir.WorkdirLock`), refused by name while another process holds it.
+
+  Raises:
+    DataError: another live process is preparing the same dataset.
+    OSError: the lock cannot be written (a full disk, a read-only file system).
+  """
+  from camrep.runtime import workdir as workdir_lib
+
+  try:
+    parent.mkdir(parents=True, exist_ok=True)
+  except (FileExistsError, NotADirectoryError) as e:
+    raise DataError(e.filename or parent, "a file is in the way of the dataset directory") from None
+  lock = workdir_lib.WorkdirLock(os.fspath(parent))
+  try:
+    lock.acquire()
+  except workdir_lib.WorkdirError as e:
+    if isinstance(e.__cause__, OSError):
+      raise e.__cause__ from None
+    h = lock.holder() or {}
+    who = f"PID {h.get('pid', '?')} on {h.get('host', '?')}, started {h.get('started', '?')}"
+    raise DataError(
+      parent,
+      f"another process is preparing this dataset ({who}; lock {lock.path}): wait for it to "
+      "finish (then prepare again to reuse its result), or prepare into another --data_dir or "
+      "--config_name; if that process is gone (another host, a crashed machine), delete the lock "
+      "file",
+    ) from None
+  try:
+    yield
+  finally:
+    lock.release()
+
+
+def check_path(path: str | os.PathLike, what: str) -> None:
+  """Refuses a data path the record files cannot take, before anything is written.
+
+  Raises:
+    DataError: `path` exists and is not a directory, or is not UTF-8 text (a non-ASCII name
+      under a non-UTF-8 locale: Python keeps its bytes as surrogates, which ArrayRecord's
+      writer and reader refuse).
+  """
+  text = os.fspath(path)
+  try:
+    text.encode("utf-8")
+  except UnicodeEncodeError:
+    raise DataError(
+      text.encode("utf-8", "backslashreplace").decode("ascii", "backslashreplace"),
+      f"{what} is not valid in this locale's file-system encoding "
+      f"({sys.getfilesystemencoding()}), and the record files take UTF-8 paths only: run under a "
+      "UTF-8 locale (e.g. LC_ALL=C.UTF-8) or use an ASCII path",
+    ) from None
+  if os.path.exists(text) and not os.path.isdir(text):
+    raise DataError(text, f"{what} names a file, not a directory")
 
 
 def _version_dirs(base: pathlib.Path) -> list[pathlib.Path]:
@@ -469,6 +584,7 @@ def dataset_dir(
   Raises:
     DataError: the directory, dataset, config or version does not exist.
   """
+  check_path(data_dir, "data_dir")
   root = pathlib.Path(data_dir)
   if not root.is_dir():
     raise DataError(root, "data_dir does not exist; run `python -m camrep.data.prepare` first")
@@ -532,6 +648,37 @@ def load_metadata(path: str | os.PathLike) -> dict[str, Any]:
     raise DataError(file, f"not valid JSON ({e})") from None
 
 
+def check_held_out(metadata: Mapping[str, Any], path: str | os.PathLike, split: str) -> None:
+  """Refuses to evaluate on the "test" split of a captures dataset in which a seen capture has
+  no view: its held-out figures would silently come from the other captures only.
+
+  Args:
+    metadata: the dataset's `camrep_source.json` (`load_metadata`).
+    path: the dataset directory, for the message.
+    split: the split being opened; only "test" is checked.
+
+  Raises:
+    DataError: naming the captures without held-out views, their split rule and the fixes.
+  """
+  info = metadata.get("source_info") or {}
+  if split != "test" or info.get("kind") != "captures":
+    return
+  empty = [
+    c
+    for c in info.get("captures", [])
+    if c.get("role") == "seen" and not c.get("splits", {}).get("test")
+  ]
+  if empty:
+    names = "; ".join(f"{c.get('name')} ({c.get('split_rule', '?')})" for c in empty)
+    raise DataError(
+      path,
+      f"cannot evaluate on its 'test' split: {len(empty)} seen capture(s) have no held-out view "
+      f"in it: {names}. Prepare again with --overwrite and --config.holdout_every=K (K > 0; 8 "
+      "is LLFF's convention) to hold out every K-th view, give the capture a test split of its "
+      "own, or keep it whole for testing with --config.unseen",
+    )
+
+
 class StoredSplit(Sequence):
   """Random access to one stored split.
 
@@ -550,6 +697,7 @@ class StoredSplit(Sequence):
     self.path = path
     self.split = split
     self.metadata = load_metadata(path)
+    check_held_out(self.metadata, path, split)
     builder = tfds.builder_from_directory(os.fspath(path))
     available = list(builder.info.splits)
     if split not in available:

@@ -78,6 +78,7 @@ import numpy as np
 from typing_extensions import override
 
 from camrep.configs import regression as regression_config
+from camrep.data import records
 from camrep.regression import config_schema, learner, pose_system, scoring
 from camrep.regression import tables as tables_lib
 from camrep.regression import views as views_lib
@@ -377,7 +378,8 @@ def evaluate_splits(
       scalars["eval/validation/score"] = tables_lib.validation_score(config.setting, summary)
     writer.write_scalars(step, scalars)
     if name != "validation":
-      np.savez(os.path.join(workdir, f"errors_{name}.npz"), **errs)
+      names = records.scene_name_column(setup.data.info, name, errs["scene"])
+      np.savez(os.path.join(workdir, f"errors_{name}.npz"), **errs, **names)
     if name in ("validation", config.evals.test_split):
       summaries[name] = _json_summary(summary)
     else:

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from camrep import settings
+from camrep.data import records
 
 RESULTS_FILE = "results.json"
 
@@ -207,6 +208,7 @@ def data_label(run: Mapping[str, Any]) -> str:
       f"prepared `{d.get('dataset', d['source'])}` (source {d['source']}) at "
       f"{d.get('dataset_path', d.get('dir', '?'))}, test split `{split}`"
       + (f" ({n} test views)" if n is not None else "")
+      + records.instances_clause(d)
     )
   family, preset = d.get("family", "?"), d.get("preset", "?")
   look = look_overrides(d.get("family_overrides", {}))

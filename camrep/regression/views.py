@@ -49,7 +49,7 @@ import grain
 import numpy as np
 
 from camrep import settings as settings_lib
-from camrep.data import pipeline, sources, storage
+from camrep.data import pipeline, records, sources, storage
 from camrep.runtime.runconfig import ConfigError
 
 ImageReader = Callable[[np.ndarray], np.ndarray]
@@ -487,6 +487,7 @@ def make_real_data(config) -> Data:
   names = scene_names(meta)
   if names:
     info["scene_names"] = {str(i): n for i, n in enumerate(names)}
+  info.update(records.naming(meta, info["splits"]))  # captures: names, true split descriptions
   return Data(train, evals, info)
 
 

@@ -10,7 +10,8 @@ Exit status, the same for every tool:
      of the message names the flag, field, file or directory; more lines may follow): a bad
      flag, an unknown `--config.` field, a value of the wrong type, enum or sign, a config whose
      parts do not fit, a workdir or dataset that cannot be used, an unusable checkpoint, a full
-     disk or a read-only file system
+     disk or a read-only file system, a file where a directory is needed, a missing
+     `--flagfile`, a `JAX_PLATFORMS` the machine cannot start
   3  a training run stopped on non-finite values (the last checkpoint is kept; a resume verifies it)
 
 Usage in a tool's module, either with flags defined at import (camrep.main, camrep.regression):
@@ -84,6 +85,65 @@ def resource_error(exc: BaseException) -> OSError | None:
   return None
 
 
+# OSErrors of a path that names the wrong kind of thing (a file where a directory is needed).
+PATH_ERRNOS = (errno.ENOTDIR, errno.EISDIR, errno.EEXIST)
+
+
+def path_error(exc: BaseException) -> str | None:
+  """'PATH: ...' for an OSError in `exc`'s chain about a path of the wrong kind (a file where a
+  directory was needed, e.g. `--data_dir` or `data.cache_dir` naming a file), or None."""
+  seen = set()
+  while exc is not None and id(exc) not in seen:
+    seen.add(id(exc))
+    if isinstance(exc, OSError) and exc.errno in PATH_ERRNOS and exc.filename:
+      what = {
+        errno.ENOTDIR: "is a file (or lies under one), where a directory is needed",
+        errno.EISDIR: "is a directory, where a file is needed",
+        errno.EEXIST: "already exists and is not a directory",
+      }[exc.errno]
+      return f"{exc.filename}: {what} ({exc.strerror or os.strerror(exc.errno)})"
+    exc = exc.__cause__ or exc.__context__
+  return None
+
+
+_JAX_BACKEND_TEXT = ("Unable to initialize backend", "Unknown backend", "no platforms that are")
+
+
+def jax_backend_error(exc: BaseException) -> str | None:
+  """The `error:` message for JAX failing to start the platform `JAX_PLATFORMS` names (e.g.
+  `gpu` on a machine without one), or None when `exc` is something else."""
+  seen = set()
+  while exc is not None and id(exc) not in seen:
+    seen.add(id(exc))
+    if isinstance(exc, RuntimeError) and any(t in str(exc) for t in _JAX_BACKEND_TEXT):
+      platforms = os.environ.get("JAX_PLATFORMS", "")
+      first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+      return (
+        f"JAX_PLATFORMS={platforms!r}: JAX cannot start that platform on this machine ({first}); "
+        "unset JAX_PLATFORMS to use what the machine has, or set JAX_PLATFORMS=cpu"
+      )
+    exc = exc.__cause__ or exc.__context__
+  return None
+
+
+def check_jax_backend() -> None:
+  """Starts JAX's backend, so that a tool refuses an unusable `JAX_PLATFORMS` before it writes
+  anything.
+
+  Raises:
+    UsageError: JAX cannot start the requested platform (`jax_backend_error`).
+  """
+  import jax
+
+  try:
+    jax.devices()
+  except RuntimeError as e:
+    message = jax_backend_error(e)
+    if message is None:
+      raise
+    raise UsageError(message) from None
+
+
 def describe_resource_error(e: OSError) -> str:
   """'disk full writing PATH (No space left on device)' and the like."""
   what = {
@@ -140,7 +200,7 @@ def describe_flag_error(exc: BaseException, argv: Sequence[str]) -> str:
   """One message for a failure while parsing the command line: a bad flag value, a missing
   or failing config file, an unknown `--config.` field."""
   if isinstance(exc, flags.Error):
-    text = _clean(str(exc))
+    text = _clean(str(exc)).removeprefix("ERROR:: ")  # absl's --flagfile errors
     if text.startswith("flag --"):
       return text.replace("flag --", "--", 1)
     named = _override_named_by(text, argv)
@@ -226,9 +286,10 @@ def _handled(body: Callable[[], Any]) -> int:
     return EXIT_USER
   except Exception as e:
     res = resource_error(e)
-    if res is None:
+    message = describe_resource_error(res) if res else jax_backend_error(e) or path_error(e)
+    if message is None:
       raise
-    print(f"error: {describe_resource_error(res)}", file=sys.stderr, flush=True)
+    print(f"error: {message}", file=sys.stderr, flush=True)
     return EXIT_USER
   return int(code or 0)
 
@@ -314,6 +375,10 @@ def define_overrides(
   config_flags.DEFINE_config_dict(
     "config", config, help_string, flag_values=fv, lock_config=True, sys_argv=list(argv)
   )
+  # A key flag of the tool that asked for it, so that its `--help` lists it (absl lists the main
+  # module's key flags; ml_collections gives the flag to this module).
+  caller = sys._getframe(1).f_globals.get("__name__", "")
+  fv.register_key_flag_for_module(sys.argv[0] if caller == "__main__" else caller, fv["config"])
 
 
 def overrides(fv: flags.FlagValues) -> dict[str, Any]:

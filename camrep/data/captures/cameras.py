@@ -69,6 +69,10 @@ class DistortionError(CaptureError):
   """A distorted camera that the caller asked not to undistort."""
 
 
+class DuplicateFrameError(CaptureError):
+  """One image file listed in two frames: twice, under two poses, or in two splits."""
+
+
 # ---------------------------------------------------------------------------------------------
 # Records.
 
@@ -112,7 +116,8 @@ class Frame:
 
 @dataclasses.dataclass
 class Capture:
-  """A capture: frames in a stable order (by file name, or the order of the split files).
+  """A capture: frames in a stable order (by file name, or the order of the split files), each
+  a distinct image file (checked on construction, `check_distinct_frames`).
 
   Attributes:
     name: the capture's folder name.
@@ -130,6 +135,9 @@ class Capture:
   points: np.ndarray | None = None
   bounds: np.ndarray | None = None
 
+  def __post_init__(self):
+    check_distinct_frames(self)
+
   def c2w(self) -> np.ndarray:
     """(N, 4, 4) camera-to-world matrices of the frames."""
     return np.stack([f.c2w for f in self.frames])
@@ -137,6 +145,44 @@ class Capture:
 
 # ---------------------------------------------------------------------------------------------
 # Checks and conversions.
+
+
+def check_distinct_frames(capture: Capture) -> None:
+  """Refuses a capture that lists one image file in two frames (compared by resolved path).
+
+  The same image under two poses gives it two labels; in two splits (Blender's train and test
+  files), a held-out view also trains; twice in one split, it is weighted twice.
+
+  Raises:
+    DuplicateFrameError: naming every image listed more than once (up to 5) and its frames.
+  """
+  seen: dict[str, list[int]] = {}
+  for i, f in enumerate(capture.frames):
+    seen.setdefault(os.path.realpath(f.image_path), []).append(i)
+  dups = [idx for idx in seen.values() if len(idx) > 1]
+  if not dups:
+    return
+  parts = []
+  for idx in dups[:5]:
+    frames = [capture.frames[i] for i in idx]
+    where = ", ".join(f"{f.name!r}" + (f" ({f.split})" if f.split else "") for f in frames)
+    splits = {f.split for f in frames}
+    poses = {np.asarray(f.c2w, np.float64).round(9).tobytes() for f in frames}
+    if len(splits) > 1:
+      why = "in two splits: a held-out view would also train"
+    elif len(poses) > 1:
+      why = "under different poses"
+    else:
+      why = "twice"
+    parts.append(f"{os.path.basename(frames[0].image_path)} as {where} ({why})")
+  more = f" and {len(dups) - 5} more" if len(dups) > 5 else ""
+  raise DuplicateFrameError(
+    capture.root,
+    f"{len(dups)} image(s) listed in more than one frame: "
+    + "; ".join(parts)
+    + more
+    + "; list each image once, in one split",
+  )
 
 
 def check_pose(m: np.ndarray, where: PathLike, what: str = "pose") -> np.ndarray:

@@ -8,12 +8,23 @@ captures.
 
 Splits:
 
-* "train" / "test" (and "val"): a capture's own split files where it has them (Blender's
-  `transforms_{train,val,test}.json`); otherwise every `holdout_every`-th view (views 0, k, 2k, ...
-  by file order, LLFF's convention with k = 8) is a held-out "test" view of that seen instance,
-  the rest "train" (holdout_every=0: every view trains).
+* "train" / "test" (and "val"): a capture with a test split of its own (Blender's
+  `transforms_test.json`) keeps its own splits. Any other seen capture holds out every
+  `holdout_every`-th of its training views (views 0, k, 2k, ... in file order, LLFF's convention
+  with k = 8) as "test" views of that instance: one without split files, and one with a training
+  split but no test split (Blender's `transforms_train.json` alone; its val views stay "val").
+  holdout_every=0: every view trains (the capture has no held-out view; evaluation refuses a
+  dataset in which a seen capture has none, `storage.check_held_out`).
 * "test_scenes": the captures named in `unseen` (folder names, or an int: the last N inputs),
   all their views, as novel instances indexed from 0 on their own (as SRN's `cars_test`).
+
+Each capture's split rule, in words, and its per-split view counts are in `describe()` (and so in
+the prepared dataset's `camrep_source.json` and prepare's summary).
+
+Inputs: `inputs()` fingerprints what the records are made from (every frame's image and mask
+file by size and modification time, pose, intrinsics and own split), so that `prepare` can tell
+a changed capture from the one it prepared. One image file in two frames is refused
+(`cameras.check_distinct_frames`).
 
 Images: alpha (RGBA) and masks composited on `background`, distortion undone with OpenCV (or
 refused with `undistort=False`), then centre-cropped to a square and resized with INTER_AREA to
@@ -38,6 +49,7 @@ from camrep.data.captures.cameras import (
   Capture,
   CaptureError,
   DistortionError,
+  MissingImageError,
   load_frame_image,
   parse_background,
 )
@@ -128,6 +140,8 @@ class CaptureSource:
     self.name = f"{format}{SUFFIXES[setting]}"
     self.pose_names = setting.pose_columns
     self.image_size = int(image_size)
+    if self.image_size < 1:
+      raise DataError(None, f"image_size must be a positive number of pixels, got {image_size}")
     self.background = parse_background(background)
     self.holdout_every = int(holdout_every)
     if self.holdout_every < 0:
@@ -164,7 +178,9 @@ class CaptureSource:
     self.seen = [i for i in range(len(paths)) if i not in unseen_idx]
     if not self.seen:
       raise DataError(None, "every capture is unseen: at least one must train")
-    self._split_of = [self._frame_splits(i) for i in range(len(self.captures))]
+    rules = [self._frame_splits(i) for i in range(len(self.captures))]
+    self._split_of = [labels for labels, _ in rules]
+    self._split_rule = [rule for _, rule in rules]
     self.normalizations: list[normalize.Normalization] = []
     self.reports: list[dict[str, Any]] = []
     self._poses: list[np.ndarray] = []
@@ -190,14 +206,30 @@ class CaptureSource:
     present = {s for split in self._split_of for s in split}
     self.splits = tuple(s for s in SPLIT_ORDER if s in present)
 
-  def _frame_splits(self, i: int) -> list[str]:
+  def _frame_splits(self, i: int) -> tuple[list[str], str]:
+    """Capture i's split label per frame, and the rule that made them (in words)."""
     frames = self.captures[i].frames
+    own = [f.split for f in frames]
     if i in self.unseen:
-      return ["test_scenes"] * len(frames)
-    if any(f.split is not None for f in frames):
-      return [f.split or "train" for f in frames]
+      return ["test_scenes"] * len(frames), "whole capture held out (--config.unseen)"
+    if "test" in own:
+      return [s or "train" for s in own], "its own test split"
     k = self.holdout_every
-    return ["test" if k and j % k == 0 else "train" for j in range(len(frames))]
+    why = (
+      "it has a training split but no test split"
+      if any(s is not None for s in own)
+      else "it has no splits of its own"
+    )
+    if not k:
+      return [s or "train" for s in own], f"every view trains ({why}; --config.holdout_every=0)"
+    labels, j = [], 0
+    for s in own:
+      if s in (None, "train"):
+        labels.append("test" if j % k == 0 else "train")
+        j += 1
+      else:
+        labels.append(s)
+    return labels, f"every {_ordinal(k)} view held out ({why}; --config.holdout_every={k})"
 
   def _scene_list(self, split: str) -> list[int]:
     self._check_split(split)
@@ -260,15 +292,7 @@ class CaptureSource:
           "scene": self.scene_index(i),
           "num_frames": len(cap.frames),
           "splits": {s: labels.count(s) for s in SPLIT_ORDER if s in labels},
-          "split_rule": (
-            "whole capture held out"
-            if i in self.unseen
-            else "capture's own split files"
-            if any(f.split for f in cap.frames)
-            else f"every {self.holdout_every}th view held out"
-            if self.holdout_every
-            else "every view trains"
-          ),
+          "split_rule": self._split_rule[i],
           "distorted_frames": int(sum(f.distorted for f in cap.frames)),
           "masked_frames": int(sum(f.mask_path is not None for f in cap.frames)),
           "normalization": self.normalizations[i].to_json(),
@@ -284,6 +308,51 @@ class CaptureSource:
       "pose_names": list(self.pose_names),
       "captures": out,
     }
+
+  def inputs(self) -> dict[str, Any]:
+    """What the records are made from, per capture: a digest per frame (keyed by its image's
+    path in the capture) of its image and mask files' sizes and modification times (ns), its
+    camera-to-world pose, intrinsics, distortion and own split; and digests of the lot.
+
+    Returns:
+      {"digest": str, "captures": [{"name", "root", "digest", "frames": {path: digest}}]}.
+
+    Raises:
+      MissingImageError: an image or mask file vanished since the capture was read.
+    """
+    from camrep.data.fingerprint import digest
+
+    out = []
+    for cap in self.captures:
+      frames = {}
+      for f in cap.frames:
+        entry = {
+          "image": _file_stamp(f.image_path),
+          "mask": None if f.mask_path is None else _file_stamp(f.mask_path),
+          "c2w": np.asarray(f.c2w, np.float64).tolist(),
+          "camera": [f.fx, f.fy, f.cx, f.cy, f.width, f.height],
+          "distortion": np.asarray(f.distortion, np.float64).tolist(),
+          "split": f.split,
+        }
+        frames[os.path.relpath(f.image_path, cap.root)] = digest(entry)
+      root = os.path.abspath(cap.root)
+      out.append({"name": cap.name, "root": root, "digest": digest(frames), "frames": frames})
+    return {"digest": digest([c["digest"] for c in out]), "captures": out}
+
+
+def _file_stamp(path: str) -> list[int]:
+  """[size in bytes, modification time in ns] of a file."""
+  try:
+    st = os.stat(path)
+  except OSError as e:
+    raise MissingImageError(path, f"cannot read ({e.strerror or e})") from None
+  return [int(st.st_size), int(st.st_mtime_ns)]
+
+
+def _ordinal(k: int) -> str:
+  """1st, 2nd, 3rd, 4th, ..., 11th, 12th, 13th, 21st, ..."""
+  suffix = "th" if 10 <= k % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(k % 10, "th")
+  return f"{k}{suffix}"
 
 
 def _factory(fmt: str, setting: settings.Setting) -> Callable[..., CaptureSource]:

@@ -33,6 +33,7 @@ from camrep.data.captures.cameras import (
   Capture,
   CaptureError,
   CountMismatchError,
+  DuplicateFrameError,
   Frame,
   MissingImageError,
   NonFinitePoseError,
@@ -140,10 +141,21 @@ def read_images_bin(path: PathLike) -> dict[int, dict]:
     r.pos += n2d * 24
     if r.pos > len(r.buf):
       raise CaptureError(r.path, f"truncated in the 2-D points of image {name!r}")
+    _check_new_id(r.path, out, image_id, name)
     out[image_id] = dict(
       qvec=np.array(qt[:4]), tvec=np.array(qt[4:]), camera_id=cam_id, name=name, num_points2d=n2d
     )
   return out
+
+
+def _check_new_id(path: str, images: dict[int, dict], image_id: int, name: str) -> None:
+  """Refuses an image id listed twice (the second would silently replace the first)."""
+  if image_id in images:
+    raise DuplicateFrameError(
+      path,
+      f"image id {image_id} is listed twice ({images[image_id]['name']!r} and {name!r}): one "
+      "registration would silently replace the other",
+    )
 
 
 def read_images_txt(path: PathLike) -> dict[int, dict]:
@@ -163,8 +175,13 @@ def read_images_txt(path: PathLike) -> dict[int, dict]:
         path, f"image line {lines[i]!r}: expected ID QW QX QY QZ TX TY TZ CAM NAME"
       )
     try:
+      image_id = int(parts[0])
+    except ValueError as e:
+      raise CaptureError(path, f"image line {lines[i]!r}: {e}") from None
+    _check_new_id(path, out, image_id, parts[9].strip())
+    try:
       vals = [float(v) for v in parts[1:8]]
-      out[int(parts[0])] = dict(
+      out[image_id] = dict(
         qvec=np.array(vals[:4]),
         tvec=np.array(vals[4:]),
         camera_id=int(parts[8]),

@@ -69,6 +69,23 @@ def _load_json(path: str) -> dict:
   return data
 
 
+def _field_of_view(cam: dict, key: str, path: str, where: str) -> float:
+  """`cam[key]`, a field of view in radians, checked to lie in (0, pi).
+
+  Raises:
+    CaptureError: 0, negative, pi or more, or not finite (fx = w / (2 tan(angle / 2)) would
+      divide by zero or be negative).
+  """
+  angle = float(cam[key])
+  if not (math.isfinite(angle) and 0.0 < angle < math.pi):
+    raise CaptureError(
+      path,
+      f"{where}: {key}={cam[key]!r} is not a field of view in (0, pi) radians; give the "
+      "camera's angle (e.g. 0.69 for 40 degrees) or its focal length in pixels (fl_x, fl_y)",
+    )
+  return angle
+
+
 def _frame(path: str, i: int, top: dict, fr: dict, split: str | None) -> Frame:
   """One frame of a transforms file: top-level camera keys overridden by the frame's own."""
   where = f"frame {i}"
@@ -107,13 +124,13 @@ def _frame(path: str, i: int, top: dict, fr: dict, split: str | None) -> Frame:
     if "fl_x" in cam:
       fx = float(cam["fl_x"])
     elif "camera_angle_x" in cam:
-      fx = 0.5 * w / math.tan(0.5 * float(cam["camera_angle_x"]))
+      fx = 0.5 * w / math.tan(0.5 * _field_of_view(cam, "camera_angle_x", path, where))
     else:
       raise CaptureError(path, f"{where}: no focal length (camera_angle_x or fl_x)")
     if "fl_y" in cam:
       fy = float(cam["fl_y"])
     elif "camera_angle_y" in cam:
-      fy = 0.5 * h / math.tan(0.5 * float(cam["camera_angle_y"]))
+      fy = 0.5 * h / math.tan(0.5 * _field_of_view(cam, "camera_angle_y", path, where))
     else:
       fy = fx
     cx = float(cam.get("cx", w / 2.0))
