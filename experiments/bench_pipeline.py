@@ -294,6 +294,133 @@ def input_bound(
   return out
 
 
+def host_loop(
+  *,
+  scenes: int = 2000,
+  steps: int = 300,
+  paths: tuple[str, ...] = ("per_batch", "table", "table_k", "prerendered"),
+  k: int = 8,
+  per_batch_steps: int = 20,
+) -> dict[str, dict[str, float]]:
+  """Host time per step of the paper-layout loop with the step and the renderer stubbed.
+
+  The loop is `camrep.synthesis.train`'s: `pipe.iterator` with `configs/gqn.py`'s reader
+  threads and prefetch, `prefetch_to_device`, the step; the batch layout is the paper's (one
+  device, 30 scenes x 9 views of 64 px rooms, "random" views). The renderer returns
+  preallocated images left on the device (as on a GPU, where rendering is device work) and the
+  step is a jitted function of the batch's poses, so what is left is the host's work. The rooms
+  split has `scenes` scenes (a batch's cost does not depend on their number once they are
+  built; the paper's 200,000 cost more to build, printed). Paths:
+
+    per_batch    scenes and poses built for each batch (`RenderPipeline(table=False)`)
+    table        the split's scenes and poses built once into a `SceneTable`, batches
+                 gathered by index (the default where the table fits in memory)
+    table_k      the same, `k` steps per element (`iterator(steps_per_element=k)`, the batches
+                 of a train loop that runs k steps per dispatch)
+    prerendered  images of the whole split rendered ahead into host memory and served by index
+                 (a `BatchPipeline` over random images: the serving cost alone)
+
+  Returns {path: {"wall_ms": ..., "cpu_ms": ...}} per step; prints one line per path and
+  `host_ms_per_step=<table wall ms>`.
+  """
+  import jax
+  import jax.numpy as jnp
+
+  from camrep.configs import gqn
+  from camrep.data import scene_table
+
+  c = gqn.get_config()
+  d = c.data
+  family = procedural.make_family("rooms", num_train_scenes=scenes, num_test_scenes=1)
+  pcfg = pipeline.PipelineConfig(
+    scenes_per_device=d.scenes_per_device,
+    views_per_scene=d.views_per_scene,
+    mode=d.mode,
+    num_threads=d.num_threads,
+    prefetch=d.prefetch,
+  )
+  shape = (pcfg.views_per_scene, family.image_size, family.image_size, 3)
+  stubs: dict[tuple[int, ...], jax.Array] = {}
+
+  def stub_render(self, rows, T_world_cam, camera, **kw):
+    lead = np.shape(rows)
+    if lead not in stubs:
+      stubs[lead] = jnp.zeros((*lead, *shape), jnp.uint8)
+    return stubs[lead]
+
+  scene_table.SceneTable.render = stub_render
+
+  @jax.jit
+  def step(s, b):
+    return s + 1, {"train/finite": jnp.isfinite(jnp.sum(b["pose"]))}
+
+  def loop(pipe, n_steps: int, per: int = 1) -> dict[str, float]:
+    warm = 3 * per
+    host = pipe.iterator(start_step=0, num_steps=n_steps + warm, steps_per_element=per)
+    it = pipeline.prefetch_to_device(host, int(d.device_prefetch), device_axis=1 if per > 1 else 0)
+    s = jnp.zeros(())
+    for i, b in enumerate(it):
+      if i == 3:  # after warm-up (threads started, prefetch queue full, compiles done)
+        t0, c0 = time.perf_counter(), time.process_time()
+      s, m = step(s, b)
+    jax.block_until_ready(s)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    host.close()
+    return {"wall_ms": wall / n_steps * 1e3, "cpu_ms": cpu / n_steps * 1e3}
+
+  out = {}
+  print(
+    f"host loop: paper layout {pcfg.scenes_per_step} scenes x {pcfg.views_per_scene} views of "
+    f"{family.image_size} px rooms, {pcfg.num_threads} reader threads, prefetch {pcfg.prefetch},"
+    f" device prefetch {d.device_prefetch}; step and renderer stubbed; split {scenes} scenes",
+    flush=True,
+  )
+  for path in paths:
+    if path == "per_batch":
+      pipe = pipeline.render_pipeline(family, "train", pcfg, table=False, images_on_device=True)
+      out[path] = loop(pipe, per_batch_steps)
+    elif path in ("table", "table_k"):
+      pipe = pipeline.render_pipeline(
+        family, "train", pcfg, table=True, images_on_device=True, table_workers=0
+      )
+      t0 = time.perf_counter()
+      table = pipe.table
+      build = time.perf_counter() - t0
+      print(
+        f"  table of {scenes} scenes: built in {build:.1f} s ({build / scenes * 1e3:.2f} ms a "
+        f"scene; the paper's 200,000: ~{build / scenes * 2e5 / 60:.0f} min on one core), "
+        f"{table.nbytes / 2**20:.1f} MiB ({table.nbytes / scenes / 1024:.2f} KiB a scene)",
+        flush=True,
+      )
+      per = k if path == "table_k" else 1
+      out[path] = loop(pipe, steps - steps % per, per)
+    elif path == "prerendered":
+      n_views = family.num_views("train")
+      n = scenes * n_views
+      index = storage.ViewIndex(
+        record=np.arange(n),
+        index=np.arange(n),
+        scene=np.repeat(np.arange(scenes), n_views),
+        view=np.tile(np.arange(n_views), scenes),
+        pose=np.random.default_rng(0).uniform(-1, 1, (n, 3)).astype(np.float32),
+        pose_names=tuple(family.pose_names),
+        image_shape=(family.image_size, family.image_size),
+      )
+      images = np.random.default_rng(1).integers(0, 255, (n, *shape[1:]), dtype=np.uint8)
+      pipe = pipeline.BatchPipeline(index, images.__getitem__, pcfg)
+      out[path] = loop(pipe, steps)
+    r = out[path]
+    label = f"{path} (k={k})" if path == "table_k" else path
+    print(
+      f"  {label:>18}: {r['wall_ms']:8.3f} ms/step wall, {r['cpu_ms']:8.3f} ms/step CPU "
+      f"({1e3 / r['wall_ms']:.0f} steps/s)",
+      flush=True,
+    )
+  if "table" in out:
+    print(f"host_ms_per_step={out['table']['wall_ms']:.4f}", flush=True)
+  return out
+
+
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--source", default="rooms", choices=("rooms", "stand_in"))
@@ -318,7 +445,26 @@ def main() -> None:
     "--e2e", default="render", help="--config: end-to-end data paths (render, config, prepared)"
   )
   parser.add_argument("--prepared_scenes", type=int, default=64, help="--config: 0 to skip")
+  parser.add_argument(
+    "--host",
+    action="store_true",
+    help="host time per step, paper layout, step and renderer stubbed",
+  )
+  parser.add_argument("--host_scenes", type=int, default=2000, help="--host: scenes in the split")
+  parser.add_argument("--host_steps", type=int, default=300, help="--host: timed steps")
+  parser.add_argument(
+    "--host_paths", default="per_batch,table,table_k,prerendered", help="--host: paths to time"
+  )
+  parser.add_argument("--host_k", type=int, default=8, help="--host: steps per element (table_k)")
   args = parser.parse_args()
+  if args.host:
+    host_loop(
+      scenes=args.host_scenes,
+      steps=args.host_steps,
+      paths=tuple(args.host_paths.split(",")),
+      k=args.host_k,
+    )
+    return
   if args.config:
     config = load_config(args.config)
     if args.width:

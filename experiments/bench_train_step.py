@@ -19,7 +19,9 @@ Measures, in one run (these machines are noisy: compare the ratios printed by on
             step at 64 and 128 px) and forced host device count (subprocesses);
   decode    (`--tables`) pose decoding throughput, arg-min alone and with refinement;
   parts     (`--breakdown`) encoder, decoder and rotation losses timed alone (forward +
-            backward), with their FLOPs: where the step's time goes.
+            backward), with their FLOPs: where the step's time goes;
+  rewrites  (`--rewrites=off,on`) the step with the models' convs computed as written against
+            their equivalent rewrites (`camrep.models.layers.rewrites`): FLOPs and time ratios.
 
 The last line reads `mfu=<fraction> images_per_s=<number>` (the "step" figures at `--width`, the
 first `--dtype` and the first `--grad_modes`). With `--end_to_end=CONFIG` (e.g.
@@ -35,6 +37,8 @@ Commands (2-core CPU):
   .venv/bin/python experiments/bench_train_step.py --width=paper --steps=2  # ~8 min
   .venv/bin/python experiments/bench_train_step.py --width=quick --grad_modes=matmul \
     --dtype=float32,bfloat16                                                 # ~3 min
+  .venv/bin/python experiments/bench_train_step.py --width=paper --scenes=4 --grad_modes=matmul \
+    --rewrites=off,on --steps=2 --repeats=3   # the layers as written against their rewrites
   .venv/bin/python experiments/bench_train_step.py --width=quick --scenes=8 --grad_modes=xla \
     --end_to_end=configs/gqn.py:quick                                        # ~4 min
   .venv/bin/python experiments/bench_train_step.py --skip_synthesis --regression gqn,car \
@@ -78,6 +82,12 @@ def _parse(argv=None):
     "--dtype", default="float32", help="compute dtypes (model.dtype) to time, e.g. float32,bfloat16"
   )
   p.add_argument("--bf16", action="store_true", help="also time a conv layer in bfloat16")
+  p.add_argument(
+    "--rewrites",
+    default="on",
+    help="the models' equivalent conv rewrites (camrep.models.layers.rewrites) to time: on, "
+    "off, or off,on (both in one run, interleaved, and the ratio)",
+  )
   p.add_argument(
     "--regression",
     default="",
@@ -531,13 +541,18 @@ def _in_subprocess(spec: dict, devices: int) -> dict:
   return json.loads(next(x for x in out.splitlines() if x.startswith("RESULT "))[7:])
 
 
+def _rewrites_label(on: str, rewrites: list[str]) -> str:
+  """Timer-name suffix of a rewrites setting (none when only one is timed)."""
+  return f" rewrites {on}" if len(rewrites) > 1 else ""
+
+
 def main(argv=None) -> None:
   args = _parse(argv)
   if args.child:
     return _child(args)
   import jax
 
-  from camrep.models import fastconv
+  from camrep.models import fastconv, layers
 
   width = _width(args.width)
   print(
@@ -547,13 +562,22 @@ def main(argv=None) -> None:
   )
   dtypes = args.dtype.split(",")
   modes = args.grad_modes.split(",")
+  rewrites = args.rewrites.split(",")
   timers = {}
+
+  def context(mode: str, on: str):
+    stack = contextlib.ExitStack()
+    stack.enter_context(fastconv.weight_grad(mode))
+    stack.enter_context(layers.rewrites(on == "on"))
+    return stack
+
   for dtype in dtypes if not args.skip_synthesis else []:
     config = gqn_config(width, args.scenes)
     config.model.dtype = dtype
     for mode in modes:
-      timer = StepTimer(config, context=lambda m=mode: fastconv.weight_grad(m))
-      timers[f"{dtype} weight grad {mode}"] = (timer, dtype)
+      for on in rewrites:
+        timer = StepTimer(config, context=lambda m=mode, o=on: context(m, o))
+        timers[f"{dtype} weight grad {mode}" + _rewrites_label(on, rewrites)] = (timer, dtype)
   settings = [x for x in args.regression.split(",") if x]
   reg_modes = [x for x in args.regression_grad_modes.split(",") if x] or [""]
   regression_rows = []
@@ -601,9 +625,32 @@ def main(argv=None) -> None:
     )
   if args.skip_synthesis:
     return
+  if len(rewrites) > 1:
+    for dtype in dtypes:
+      for mode in modes:
+        rows = [
+          inter[f"{dtype} weight grad {mode}" + _rewrites_label(o, rewrites)] for o in rewrites
+        ]
+        print(
+          f"  {dtype} weight grad {mode}, rewrites {rewrites[1]} / {rewrites[0]}: GFLOP/step "
+          f"{rows[1]['flops'] / 1e9:.1f} / {rows[0]['flops'] / 1e9:.1f} = "
+          f"{rows[1]['flops'] / rows[0]['flops']:.3f}x, s/step {rows[1]['sec']['median']:.3f} / "
+          f"{rows[0]['sec']['median']:.3f} = {rows[1]['sec']['median'] / rows[0]['sec']['median']:.3f}x"
+          f" (s/step {format_spread(rows[1]['sec'])} against {format_spread(rows[0]['sec'])})",
+          flush=True,
+        )
+  for on in rewrites[1:]:
+    for dtype in dtypes:
+      for mode in modes:
+        r = inter[f"{dtype} weight grad {mode}" + _rewrites_label(on, rewrites)]
+        print(
+          f"  {dtype} weight grad {mode:6s} rewrites {on}: s/step {format_spread(r['sec'])}  "
+          f"{r['flops'] / 1e9:.1f} GFLOP/step  MFU {format_spread(r['mfu'])}",
+          flush=True,
+        )
   for dtype in dtypes:
     for mode in modes:
-      r = inter[f"{dtype} weight grad {mode}"]
+      r = inter[f"{dtype} weight grad {mode}" + _rewrites_label(rewrites[0], rewrites)]
       results[dtype, mode] = {
         "sec": r["sec"]["median"],
         "images_per_s": r["images_per_s"]["median"],
@@ -680,11 +727,12 @@ def main(argv=None) -> None:
     )
   main_r = results[dtypes[0], modes[0]]
   print(f"peak RSS {peak_rss_mb():.0f} MiB", flush=True)
-  mfu = inter[f"{dtypes[0]} weight grad {modes[0]}"]["mfu"]
+  first = f"{dtypes[0]} weight grad {modes[0]}" + _rewrites_label(rewrites[0], rewrites)
+  mfu = inter[first]["mfu"]
   print(
     f"mfu={main_r['mfu']:.4f} images_per_s={main_r['images_per_s']:.2f} "
     f"mfu_min={mfu['min']:.4f} mfu_max={mfu['max']:.4f} "
-    f"cpu_mfu={inter[f'{dtypes[0]} weight grad {modes[0]}']['cpu_mfu']['median']:.4f}"
+    f"cpu_mfu={inter[first]['cpu_mfu']['median']:.4f}"
   )
   if args.end_to_end:
     sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))

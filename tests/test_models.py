@@ -406,3 +406,109 @@ def test_fastconv_mode_and_fallbacks():
   y = fastconv.conv_general_dilated(x, w, (1, 1), "SAME", rhs_dilation=(2, 2))
   want = jax.lax.conv_general_dilated(x, w, (1, 1), "SAME", rhs_dilation=(2, 2))
   np.testing.assert_array_equal(y, want)
+
+
+# --------------------------------------------------------------------------------------------
+# Equivalent rewrites (layers.ConvMean, UpConv, ConcatConstantConv).
+
+
+def _rewrite_grads(module, args, *, scale: float = 1.0):
+  """(initial params, {rewrites on/off: (loss, grads in (params, args[0]))}) in float64."""
+  params = module.init(jax.random.key(0), *args)
+
+  def loss(p, x0, *rest):
+    out = module.apply(p, x0, *rest)
+    out = out[0] if isinstance(out, tuple) else out
+    return sum(jnp.sum(jnp.sin(scale * y)) for y in jax.tree.leaves(out))
+
+  res = {}
+  for on in (False, True):
+    with layers.rewrites(on):
+      res[on] = jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))(params, *args)
+  return params, res
+
+
+def _assert_same_function(module, args, *, scale: float = 1.0):
+  """The rewritten layers create the plain layers' parameters (same tree, same values) and give
+  their values and gradients (parameters and first input) to float64 round-off."""
+  with layers.rewrites(False):
+    plain = module.init(jax.random.key(0), *args)
+  with layers.rewrites(True):
+    fast = module.init(jax.random.key(0), *args)
+  assert jax.tree.structure(plain) == jax.tree.structure(fast)
+  jax.tree.map(np.testing.assert_array_equal, plain, fast)
+  _, res = _rewrite_grads(module, args, scale=scale)
+  (v0, g0), (v1, g1) = res[False], res[True]
+  assert_close(v1, v0, atol=1e-10 * max(1.0, abs(float(v0))), rtol=1e-12)
+  # Gradients that are 0 in exact arithmetic (biases before an instance norm) are round-off of
+  # the size of the largest gradient times 1e-16 either way: compare on that scale.
+  top = max(float(jnp.max(jnp.abs(g))) for g in jax.tree.leaves(g0))
+  for a, b in zip(jax.tree.leaves(g1), jax.tree.leaves(g0), strict=True):
+    assert_close(a, b, atol=1e-11 * top, rtol=1e-9)
+
+
+@pytest.mark.parametrize("kernel", [1, 2, 3, 4])
+@pytest.mark.parametrize("kind", ["ConvMean", "UpConv", "ConcatConstantConv"])
+def test_rewritten_convs_compute_the_plain_layers(kind, kernel):
+  """Each rewrite equals its plain form (conv then mean; conv of the nearest x2 upsampling; conv
+  of x concatenated with a tiled vector) in value and gradient, odd and even kernels, sizes with
+  borders on every side."""
+  with x64():
+    rng = np.random.default_rng(kernel)
+    x = jnp.asarray(rng.normal(size=(3, 5, 6, 4)))
+    args = (x, jnp.asarray(rng.normal(size=(3, 7)))) if kind == "ConcatConstantConv" else (x,)
+    _assert_same_function(layers.conv(5, kernel, name="c", kind=getattr(layers, kind)), args)
+
+
+@pytest.mark.parametrize(
+  "name",
+  [
+    "gqn_encoder",
+    "gqn_decoder",
+    *(pytest.param(n, marks=pytest.mark.slow) for n in ("car", "gibson")),
+  ],
+)
+def test_rewritten_models_compute_the_plain_models(name):
+  """The GQN encoder and decoder and the car and Gibson decoders with their rewritten layers:
+  the same parameters, values and gradients as computed as written (float64)."""
+  with x64():
+    rng = np.random.default_rng(0)
+    images = jnp.asarray(rng.uniform(-1, 1, (1, 2, 16, 16, 3)))
+    poses = jnp.asarray(rng.normal(size=(1, 2, 10)))
+    z = jnp.asarray(rng.normal(size=(1, 2, 20)))
+    if name == "gqn_encoder":
+      _assert_same_function(models.GQNEncoderTiny(), (images, poses))
+    elif name == "gqn_decoder":
+      scene = {k: jnp.asarray(rng.normal(size=(1, 16))) for k in STYLE_KEYS}
+      scene["u"] = jnp.asarray(rng.normal(size=(1, 128)))
+      _assert_same_function(models.GQNDecoderTiny(), (scene, poses), scale=3.0)
+    elif name == "car":
+      _assert_same_function(models.CarDecoderTiny(), (z,), scale=3.0)
+    else:
+      ids = jnp.asarray([[0, 2]])
+      _assert_same_function(models.GibsonDecoderTiny(), (z, ids), scale=3.0)
+
+
+def test_rewrites_cut_the_paper_size_step_flops():
+  """The rewrites remove over 30% of the paper-size GQN model's multiply-adds (forward and
+  backward of encoder and decoder, `runtime.flops`), and restored parameters need no change."""
+  from camrep.runtime import flops
+
+  enc, dec = models.GQNEncoder(), models.GQNDecoder()
+  images = SDS((30, 6, 64, 64, 3), jnp.float32)
+  poses, queries = SDS((30, 6, POSE_DIM), jnp.float32), SDS((30, 3, POSE_DIM), jnp.float32)
+  enc_p = _abstract_params(enc, images, poses)
+  scene = jax.eval_shape(lambda p, i, q: enc.apply({"params": p}, i, q)[0], enc_p, images, poses)
+  dec_p = _abstract_params(dec, scene, queries)
+
+  def loss(ep, dp, i, p, q):
+    s, _ = enc.apply({"params": ep}, i, p)
+    return jnp.sum(dec.apply({"params": dp}, s, q)[0])
+
+  counts = {}
+  for on in (False, True):
+    with layers.rewrites(on):
+      counts[on] = flops.count_flops(
+        jax.grad(loss, argnums=(0, 1)), enc_p, dec_p, images, poses, queries
+      )
+  assert counts[True] < 0.7 * counts[False]

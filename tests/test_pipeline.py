@@ -1,4 +1,5 @@
-"""Tests of camrep.data.pipeline: layout, determinism, resume, process shards, pairs, errors."""
+"""Tests of camrep.data.pipeline: layout, determinism, resume, process shards, pairs, errors, the
+view choice computed for all scenes at once, K stacked steps."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import itertools
 import numpy as np
 import pytest
 
-from camrep.data import pipeline, storage
+from camrep.data import draws, pipeline, procedural, storage
 from camrep.data.errors import DataError
 from camrep.data.pipeline import PipelineConfig
 
@@ -174,6 +175,115 @@ def test_prefetch_to_device_keeps_order_and_values():
       assert all(isinstance(v, jax.Array) for v in a.values())
       for k in a:
         np.testing.assert_array_equal(np.asarray(a[k]), b[k])
+
+
+def _reference_views(pipe, step: int, scene_poses: list[np.ndarray]) -> np.ndarray:
+  """The view choice of one step, scene by scene, as the pipeline made it before its draws were
+  computed for all scenes at once: view positions (S, V)."""
+  cfg = pipe.config
+  rng = np.random.default_rng([cfg.seed, 1, step, pipe.process_index])
+  out = []
+  for poses in scene_poses:
+    n, v = len(poses), cfg.views_per_scene
+    if cfg.mode == "random":
+      out.append(rng.choice(n, size=v, replace=False))
+      continue
+    n_pairs = v // 2
+    anchors = rng.choice(n, size=n_pairs, replace=False)
+    dist = pipeline.pose_distance(poses[anchors, None], poses[None], pipe._scale, pipe._periodic)
+    dist[np.arange(n_pairs), anchors] = np.inf
+    k = min(cfg.pair_k, n - 1)
+    nearest = np.argpartition(dist, k - 1, axis=1)[:, :k]
+    partners = nearest[np.arange(n_pairs), rng.integers(k, size=n_pairs)]
+    out.append(np.stack([anchors, partners], axis=1).reshape(-1))
+  return np.stack(out)
+
+
+def test_sequential_draws_equal_numpys_own():
+  """`draws.sequential_draws` gives, for many generators and scenes at once, numpy's own
+  `choice(n, size, replace=False)` (and "pairs" `integers`) drawn scene after scene."""
+  rs = np.random.default_rng(0)
+  for trial in range(600):
+    n_gen, n_scenes, size = int(rs.integers(1, 4)), int(rs.integers(1, 40)), int(rs.integers(1, 12))
+    counts = rs.integers(size, size + rs.integers(1, 80), size=(n_gen, n_scenes))
+    pair_k = None
+    if trial % 2:
+      counts, pair_k = np.maximum(counts, 2), int(rs.integers(1, 6))
+    seeds = [[int(rs.integers(0, 1000)), 1, trial, g] for g in range(n_gen)]
+    got = draws.sequential_draws(
+      [np.random.default_rng(s) for s in seeds], counts, size, pair_k=pair_k
+    )
+    want = draws.numpy_draws([np.random.default_rng(s) for s in seeds], counts, size, pair_k=pair_k)
+    assert got is not None
+    np.testing.assert_array_equal(got[0], want[0])
+    if pair_k is not None:
+      np.testing.assert_array_equal(got[1], want[1])
+  # A population past numpy's Floyd branch (n > 10,000 and size > n // 50) is left to numpy.
+  big = np.array([[20_000]])
+  assert draws.sequential_draws([np.random.default_rng(0)], big, 500) is None
+
+
+class _ZeroWords(np.random.PCG64):
+  """A PCG64 whose raw outputs are all 0: every bounded draw of range 2 is rejected (Lemire)."""
+
+  def random_raw(self, size=None, output=True):
+    return np.zeros(size, np.uint64)
+
+
+def test_a_rejected_draw_leaves_the_choice_to_numpy(monkeypatch):
+  # Range [0, 2]: threshold (2^32 - 3) mod 3 = 1 > the leftover 0 of a zero word.
+  assert draws.sequential_draws([np.random.Generator(_ZeroWords(0))], np.array([[5]]), 3) is None
+  cfg = PipelineConfig(scenes_per_device=3, views_per_scene=4, mode="pairs", seed=2)
+  want = [make(cfg).plan(k) for k in range(6)]
+  monkeypatch.setattr(draws, "sequential_draws", lambda *a, **k: None)
+  for k in range(6):
+    for a, b in zip(make(cfg).plan(k), want[k], strict=True):
+      np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("mode", ["random", "pairs"])
+def test_plans_are_the_scene_by_scene_choice(mode):
+  """Batches keep their views: the plan of every step is the one numpy drew scene by scene
+  (memory pipeline over the ring, and the four procedural families' render pipelines)."""
+  cfg = PipelineConfig(scenes_per_device=3, views_per_scene=4, mode=mode, seed=5)
+  pipe = make(cfg)
+  for step in range(25):
+    rows, _ = pipe.plan(step)
+    pos = pipe._positions([step])[0]
+    per_scene = [pipe._rows_pad[c, : pipe._counts[c]] for c in pos]
+    want = _reference_views(pipe, step, [pipe.index.pose[r] for r in per_scene])
+    np.testing.assert_array_equal(rows[0], [r[w] for r, w in zip(per_scene, want, strict=True)])
+  for name in procedural.FAMILIES:
+    family = procedural.make_family(name, preset="small", image_size=16)
+    fcfg = PipelineConfig(scenes_per_device=2, views_per_scene=4, mode=mode, seed=5)
+    render = pipeline.render_pipeline(family, "train", fcfg)
+    for step in range(8):
+      views, scenes = render.plan(step)
+      want = _reference_views(render, step, [render._scene_poses(s) for s in scenes[0]])
+      np.testing.assert_array_equal(views[0], want, err_msg=name)
+
+
+def test_batches_stack_consecutive_steps():
+  """`batches(start, k)` is `batch(start + i)` stacked; `iterator(steps_per_element=k)` hands
+  them out k at a time (the last element shorter), and `prefetch_to_device(device_axis=1)`
+  splits their device axis."""
+  import jax
+
+  cfg = PipelineConfig(num_devices=1, scenes_per_device=2, views_per_scene=3, seed=4)
+  pipe = make(cfg)
+  stacked = pipe.batches(3, 4)
+  assert stacked["image"].shape == (4, 1, 2, 3, 4, 4, 3)
+  for i in range(4):
+    assert_batches_equal(jax.tree.map(lambda x, i=i: x[i], stacked), pipe.batch(3 + i))
+  got = list(pipe.iterator(start_step=2, num_steps=7, steps_per_element=3))
+  assert [len(b["scene"]) for b in got] == [3, 3, 1]
+  for i, b in enumerate(got):
+    assert_batches_equal(b, pipe.batches(2 + 3 * i, len(b["scene"])))
+  (fed,) = pipeline.prefetch_to_device([stacked], 1, device_axis=1)
+  assert fed["image"].sharding.spec == jax.sharding.PartitionSpec(None, "devices")
+  np.testing.assert_array_equal(np.asarray(fed["pose"]), stacked["pose"])
+  with pytest.raises(ValueError, match="steps_per_element"):
+    pipe.dataset(steps_per_element=0)
 
 
 def test_epochs_draw_scenes_without_replacement():

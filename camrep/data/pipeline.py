@@ -54,6 +54,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import os
+import threading
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import Any
 
@@ -62,7 +63,7 @@ import jax
 import numpy as np
 from absl import flags as absl_flags
 
-from camrep.data import batches, storage
+from camrep.data import batches, draws, scene_table, storage
 from camrep.data.errors import DataError
 from camrep.data.storage import ViewIndex, ViewSource
 
@@ -162,26 +163,28 @@ def prefetch_to_device(
   *,
   keys: Sequence[str] = ("image", "pose", "scene"),
   devices: Sequence[Any] | None = None,
+  device_axis: int = 0,
 ) -> Iterator[dict[str, jax.Array]]:
   """Copies batches to the local devices `size` batches ahead of the consumer.
 
-  Each array is split along its leading (device) axis over `devices`, as the pmapped step takes
-  it, by `jax.device_put`, which returns at once: the copies of the next batches run while the
-  current step computes (flax.jax_utils.prefetch_to_device, with today's sharding API).
+  Each array is split along its device axis over `devices`, as the pmapped step takes it, by
+  `jax.device_put`, which returns at once: the copies of the next batches run while the current
+  step computes (flax.jax_utils.prefetch_to_device, with today's sharding API).
 
   Args:
-    batches: host batches, arrays (D, ...) with D = len(devices).
+    batches: host batches, arrays (D, ...) with D = len(devices), or (K, D, ...) with
+      `device_axis=1` (K steps stacked, `BatchPipeline.batches`).
     size: batches in flight (2 is enough to hide one batch's copy behind a step).
     keys: the fields to copy (the others are dropped).
-    devices: the devices of the leading axis (default: `jax.local_devices()`).
+    devices: the devices of the device axis (default: `jax.local_devices()`).
+    device_axis: the axis split over the devices.
 
   Returns:
-    An iterator of {key: jax.Array (D, ...)} in the order of `batches`.
+    An iterator of {key: jax.Array} in the order of `batches`.
   """
   devices = list(jax.local_devices() if devices is None else devices)
-  sharding = jax.sharding.NamedSharding(
-    jax.sharding.Mesh(np.asarray(devices), ("devices",)), jax.sharding.PartitionSpec("devices")
-  )
+  spec = jax.sharding.PartitionSpec(*([None] * device_axis), "devices")
+  sharding = jax.sharding.NamedSharding(jax.sharding.Mesh(np.asarray(devices), ("devices",)), spec)
   queue: collections.deque = collections.deque()
   it = iter(batches)
 
@@ -255,6 +258,49 @@ def pose_distance(
   return np.sqrt(np.sum(delta**2, axis=-1))
 
 
+def pair_views(
+  anchors: np.ndarray,
+  picks: np.ndarray,
+  poses: np.ndarray,
+  counts: np.ndarray,
+  pair_k: int,
+  scale: np.ndarray,
+  periodic: np.ndarray,
+) -> np.ndarray:
+  """In "pairs" mode, each anchor view followed by a partner among its nearest views.
+
+  The partner of anchor a is `nearest[pick]`, where `nearest` are the positions of the
+  min(pair_k, n - 1) views of the scene nearest to a by `pose_distance` (a itself left out), in
+  the order `np.argpartition` gives them.
+
+  Args:
+    anchors: int (M, A) anchor views of M scenes (positions among each scene's views).
+    picks: int (M, A) draws in [0, min(pair_k, n - 1)).
+    poses: float (..., V_max, P), M scenes' view poses (scene m: its first counts[m] rows).
+    counts: int (M,) views of each scene.
+    pair_k: the neighbourhood size.
+    scale: (P,) from `pose_scales`.
+    periodic: bool (P,).
+
+  Returns:
+    int64 (M, 2 A): anchor, partner, anchor, partner, ...
+  """
+  m, n_anchors = anchors.shape
+  poses = poses.reshape(m, *poses.shape[-2:])
+  out = np.empty((m, n_anchors, 2), np.int64)
+  out[:, :, 0] = anchors
+  for n in np.unique(counts):  # scenes of one view count at a time (scene6dof's differ)
+    sel = np.flatnonzero(counts == n)
+    p, a = poses[sel, :n], anchors[sel]
+    anchor_poses = np.take_along_axis(p, a[:, :, None], axis=1)
+    dist = pose_distance(anchor_poses[:, :, None], p[:, None], scale, periodic)
+    np.put_along_axis(dist, a[:, :, None], np.inf, axis=2)
+    k = min(pair_k, int(n) - 1)
+    nearest = np.argpartition(dist, k - 1, axis=2)[:, :, :k]
+    out[sel, :, 1] = np.take_along_axis(nearest, picks[sel][:, :, None], axis=2)[:, :, 0]
+  return out.reshape(m, 2 * n_anchors)
+
+
 class BatchPipeline:
   """Deterministic, step-indexed batches over one split (see the module docstring).
 
@@ -311,7 +357,7 @@ class BatchPipeline:
     self.all_scene_ids = all_ids
     self._all_rows = dict(zip(all_ids.tolist(), rows, strict=True))
     self.scene_ids = all_ids[mine]
-    self._scene_rows = [rows[i] for i in mine]
+    scene_rows = [rows[i] for i in mine]
 
     need = config.scenes_per_step
     shard = len(all_ids) // process_count
@@ -331,6 +377,11 @@ class BatchPipeline:
         f"{config.mode!r} mode with views_per_scene={config.views_per_scene} needs {need_views} "
         f"views in every scene, but a scene has only {min_views}",
       )
+    self._counts = np.array([len(r) for r in scene_rows], np.int64)
+    # Each scene's rows, padded with its last row to the longest scene's count.
+    self._rows_pad = np.stack(
+      [np.pad(r, (0, self._counts.max() - len(r)), mode="edge") for r in scene_rows]
+    )
     self._periodic = np.array([n in PERIODIC_POSE_NAMES for n in index.pose_names], bool)
     self._scale = pose_scales(index.pose, self._periodic)
     self._epoch_cache: dict[int, np.ndarray] = {}
@@ -346,27 +397,59 @@ class BatchPipeline:
       self._epoch_cache[epoch] = perm
     return perm
 
-  def _choose(self, n: int, rng: np.random.Generator, poses: np.ndarray | None) -> np.ndarray:
-    """Positions of V views among a scene's n views (see the module docstring for the modes).
+  def _positions(self, steps: Sequence[int]) -> np.ndarray:
+    """Positions in `scene_ids` of the scenes of each step's batch: int64 (K, D S)."""
+    b = self.config.scenes_per_step
+    out = np.empty((len(steps), b), np.int64)
+    for i, step in enumerate(steps):
+      if step < 0:
+        raise ValueError(f"step must be >= 0, got {step}")
+      epoch, pos = divmod(int(step), self.steps_per_epoch)
+      out[i] = self._epoch_order(epoch)[pos * b : (pos + 1) * b]
+    return out
 
-    `poses` (n, P) is needed in "pairs" mode only.
+  def _views(
+    self, steps: Sequence[int], counts: np.ndarray, poses: Callable[[], np.ndarray]
+  ) -> np.ndarray:
+    """Positions of the chosen views among each scene's views: int64 (K, D S, V).
+
+    Step k's scenes draw from one generator `default_rng([seed, 1, k, process_index])`, scene
+    after scene: "random": `choice(n, V, replace=False)`; "pairs": `choice(n, V / 2,
+    replace=False)` anchors, then `integers(min(pair_k, n - 1), size=V / 2)` picks among each
+    anchor's nearest views (the module docstring). `draws.sequential_draws` computes these draws
+    for all scenes at once; where it cannot (a rejected draw, about once in 10^8 steps), numpy
+    draws them scene by scene, the same numbers.
+
+    Args:
+      steps: the K steps.
+      counts: int (K, D S) views of each step's scenes.
+      poses: "pairs" mode: returns the scenes' view poses, float (K D S, V_max, P).
     """
-    v = self.config.views_per_scene
-    if self.config.mode == "random":
-      return rng.choice(n, size=v, replace=False)
-    n_pairs = v // 2
-    anchors = rng.choice(n, size=n_pairs, replace=False)
-    dist = pose_distance(poses[anchors, None], poses[None], self._scale, self._periodic)
-    dist[np.arange(n_pairs), anchors] = np.inf
-    k = min(self.config.pair_k, n - 1)
-    nearest = np.argpartition(dist, k - 1, axis=1)[:, :k]
-    partners = nearest[np.arange(n_pairs), rng.integers(k, size=n_pairs)]
-    return np.stack([anchors, partners], axis=1).reshape(-1)
+    cfg = self.config
+    pairs = cfg.mode == "pairs"
+    size = cfg.views_per_scene // 2 if pairs else cfg.views_per_scene
+    pair_k = cfg.pair_k if pairs else None
 
-  def _select_views(self, rows: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Picks V rows of one scene's views."""
-    poses = None if self.config.mode == "random" else self.index.pose[rows]
-    return rows[self._choose(len(rows), rng, poses)]
+    def rngs():
+      return [np.random.default_rng([cfg.seed, 1, int(s), self.process_index]) for s in steps]
+
+    drawn = draws.sequential_draws(rngs(), counts, size, pair_k=pair_k)
+    if drawn is None:
+      drawn = draws.numpy_draws(rngs(), counts, size, pair_k=pair_k)
+    chosen, picks = drawn
+    if not pairs:
+      return chosen
+    m = counts.size
+    views = pair_views(
+      chosen.reshape(m, size),
+      picks.reshape(m, size),
+      poses(),
+      counts.reshape(-1),
+      cfg.pair_k,
+      self._scale,
+      self._periodic,
+    )
+    return views.reshape(*counts.shape, cfg.views_per_scene)
 
   def plan(self, step: int) -> tuple[np.ndarray, np.ndarray]:
     """Which views make up the batch at `step` (no image is read).
@@ -378,20 +461,31 @@ class BatchPipeline:
       rows: int64 (D, S, V), rows of `index`.
       scenes: int64 (D, S), scene ids.
     """
-    if step < 0:
-      raise ValueError(f"step must be >= 0, got {step}")
+    rows, scenes = self._plans([step])
+    return rows[0], scenes[0]
+
+  def _plans(self, steps: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """`plan` of K steps: rows (K, D, S, V), scene ids (K, D, S)."""
     cfg = self.config
-    b = cfg.scenes_per_step
-    epoch, pos = divmod(int(step), self.steps_per_epoch)
-    chosen = self._epoch_order(epoch)[pos * b : (pos + 1) * b]
-    rng = np.random.default_rng([cfg.seed, 1, int(step), self.process_index])
-    rows = np.stack([self._select_views(self._scene_rows[c], rng) for c in chosen])
-    shape = (cfg.num_devices, cfg.scenes_per_device)
-    return rows.reshape(*shape, cfg.views_per_scene), self.scene_ids[chosen].reshape(shape)
+    pos = self._positions(steps)
+    views = self._views(steps, self._counts[pos], lambda: self.index.pose[self._rows_pad[pos]])
+    rows = self._rows_pad[pos[..., None], views]
+    shape = (len(steps), cfg.num_devices, cfg.scenes_per_device)
+    return rows.reshape(*shape, cfg.views_per_scene), self.scene_ids[pos].reshape(shape)
 
   def batch(self, step: int) -> Batch:
     """The batch at `step`: a pure function of (seed, step, process, split); a `ViewBatch`."""
-    rows, scenes = self.plan(step)
+    return self._read([step], stacked=False)
+
+  def batches(self, start: int, k: int) -> Batch:
+    """The batches of steps start .. start + k - 1 stacked on a new leading axis: a `ViewBatch`
+    of (K, D, S, V, ...) arrays, element i equal to `batch(start + i)`, read in one go."""
+    return self._read(range(start, start + k), stacked=True)
+
+  def _read(self, steps: Sequence[int], *, stacked: bool) -> Batch:
+    rows, scenes = self._plans(steps)
+    if not stacked:
+      rows, scenes = rows[0], scenes[0]
     return Batch(
       image=self._read_images(self.index.record[rows]),
       pose=self.index.pose[rows].astype(np.float32),
@@ -399,17 +493,32 @@ class BatchPipeline:
       view=self.index.view[rows].astype(np.int32),
     )
 
-  def dataset(self, *, start_step: int = 0, num_steps: int | None = None) -> grain.MapDataset:
-    """A grain MapDataset whose i-th element is `batch(start_step + i)`.
+  def dataset(
+    self, *, start_step: int = 0, num_steps: int | None = None, steps_per_element: int = 1
+  ) -> grain.MapDataset:
+    """A grain MapDataset whose i-th element is `batch(start_step + i)`, or with
+    `steps_per_element` K > 1, `batches(start_step + i K, K)` (the last one shorter when K does
+    not divide `num_steps`).
 
     Args:
       start_step: first step (resume point).
       num_steps: number of steps; None for an (effectively) endless stream.
+      steps_per_element: K, consecutive steps stacked in each element.
     """
+    k = int(steps_per_element)
+    if k < 1:
+      raise ValueError(f"steps_per_element must be >= 1, got {steps_per_element}")
     stop = _NO_END if num_steps is None else start_step + num_steps
-    return grain.MapDataset.range(start_step, stop).map(self.batch)
+    if k == 1:
+      return grain.MapDataset.range(start_step, stop).map(self.batch)
+    n = -(-(stop - start_step) // k)
+    return grain.MapDataset.range(0, n).map(
+      lambda i: self.batches(start_step + i * k, min(k, stop - start_step - i * k))
+    )
 
-  def iterator(self, *, start_step: int = 0, num_steps: int | None = None) -> Iterator[Batch]:
+  def iterator(
+    self, *, start_step: int = 0, num_steps: int | None = None, steps_per_element: int = 1
+  ) -> Iterator[Batch]:
     """Batches from `start_step` on, prefetched by worker processes or reader threads.
 
     With `config.num_workers` > 0, grain's `mp_prefetch` runs that many (spawned) processes,
@@ -419,12 +528,16 @@ class BatchPipeline:
     Args:
       start_step: first step (resume point).
       num_steps: number of steps; None for an endless stream.
+      steps_per_element: K: each element stacks K consecutive steps (`dataset`), for a train
+        loop that runs K steps per dispatch.
 
     Returns:
       A grain DatasetIterator (also supports `get_state`/`set_state`).
     """
     cfg = self.config
-    ds = self.dataset(start_step=start_step, num_steps=num_steps)
+    ds = self.dataset(
+      start_step=start_step, num_steps=num_steps, steps_per_element=steps_per_element
+    )
     # num_threads 0: read in the consumer's thread (grain's default would be 16 threads and a
     # 500-batch buffer).
     threads = cfg.num_threads
@@ -538,14 +651,21 @@ def tfds_pipeline(
 class RenderPipeline(BatchPipeline):
   """`BatchPipeline` over a procedural family that renders each batch's views on demand.
 
-  No index of all views is built (paper-size rooms have 200,000 scenes x 10 views): a scene's
-  poses are computed when the scene is drawn, then only the selected views are rendered. Batches
+  No index of all views is built (paper-size rooms have 200,000 scenes x 10 views). Batches
   follow the same rules as `BatchPipeline` (epoch permutations of this process's scenes,
   per-step view choice), so a resumed run sees the same data.
 
-  Rendering: the batch's D S scenes and their (D S, V) poses go to the renderer as
-  arrays in ONE jitted call (`family.render_batch`: vmapped over scenes and views, uint8
-  conversion on the device; one compile per batch layout). The images are the same as the
+  Scenes and poses: with a table (`table`, default: when `scene_table.estimate_nbytes` is at
+  most `max_table_bytes`), the scenes and view poses of this process's shard are built once, on
+  the first batch, into a `scene_table.SceneTable` (about 3 ms of Python a scene, in
+  `table_workers` processes; 1 KiB a rooms scene), and every batch after that gathers its
+  scenes, poses and cameras by index: no Python per scene, no scene built twice. Without one (a
+  split too large for memory, or `table=False`), each batch builds its own scenes and poses
+  (about 3 ms a scene, every step): slower, the same batches.
+
+  Rendering: the batch's scenes and their (D S, V) cameras go to the renderer in ONE jitted call
+  (`render.render_table_views`: the scenes gathered by row on the device, vmapped over scenes and
+  views, uint8 conversion on the device; one compile per batch layout). The images equal the
   family's per-scene `render_views` (the old path, `one_call=False`, one call per scene, each
   padded to the family's `batch_size`) within one grey level, in practice bit-identical. With
   `images_on_device` (default: when JAX's default backend is not the CPU) "image" is the
@@ -564,6 +684,9 @@ class RenderPipeline(BatchPipeline):
     one_call: bool = True,
     images_on_device: bool | None = None,
     max_images_per_call: int | None = None,
+    table: bool | None = None,
+    table_workers: int | None = None,
+    max_table_bytes: int = scene_table.TABLE_MAX_BYTES,
   ):
     """Checks the layout against the family's split.
 
@@ -573,10 +696,15 @@ class RenderPipeline(BatchPipeline):
       config: batch layout and seed.
       process_index: this process.
       process_count: number of processes.
-      one_call: render the batch in one call (`family.render_batch`); False: one
-        `family.render_views` call per scene (the old path, kept for benchmarks).
+      one_call: render the batch in one call; False: one `family.render_views` call per scene
+        (the old path, kept for benchmarks).
       images_on_device: leave "image" as a device `jax.Array` (None: unless the backend is CPU).
       max_images_per_call: bound on images per renderer call (memory); None: the whole batch.
+      table: build this shard's scenes and poses once into a `SceneTable` (True), or build each
+        batch's (False); None: a table when its estimate is at most `max_table_bytes`.
+      table_workers: processes that build the table (None: `default_num_workers()`, the
+        usable cores but two; 0: this process).
+      max_table_bytes: the bound of `table=None`.
     """
     config.validate()
     if not 0 <= process_index < process_count:
@@ -607,8 +735,10 @@ class RenderPipeline(BatchPipeline):
         f"{len(self.all_scene_ids)} scenes for {process_count} process(es)",
       )
     if getattr(family, "fixed_view_count", True):
+      self._counts = np.full(len(self.scene_ids), family.num_views(split), np.int64)
       views = family.num_views(split)
     else:  # per-scene trajectories (scene6dof): the shortest one bounds the batch layout
+      self._counts = np.array([family.num_views(split, int(s)) for s in self.scene_ids])
       views = min(family.num_views(split, int(s)) for s in self.all_scene_ids)
     need_views = config.scene_views_needed
     if views < need_views:
@@ -621,53 +751,86 @@ class RenderPipeline(BatchPipeline):
     self._scale = pose_scales(sample, self._periodic)
     self._epoch_cache = {}
     self.index = None
+    if table is None:
+      estimate = scene_table.estimate_nbytes(family, split, self.scene_ids)
+      table = estimate <= max_table_bytes
+    self.uses_table = bool(table) and self.one_call
+    self._table_workers = default_num_workers() if table_workers is None else table_workers
+    self._table: scene_table.SceneTable | None = None
+    self._table_lock = threading.Lock()
+
+  def __getstate__(self) -> dict:
+    state = dict(self.__dict__)
+    state["_table_lock"] = None
+    return state
+
+  def __setstate__(self, state: dict) -> None:
+    self.__dict__.update(state)
+    self._table_lock = threading.Lock()
+
+  @property
+  def table(self) -> scene_table.SceneTable | None:
+    """This shard's `SceneTable` (built on first use), or None without one."""
+    if not self.uses_table:
+      return None
+    with self._table_lock:
+      if self._table is None:
+        self._table = scene_table.SceneTable.build(
+          self.family, self.split, self.scene_ids, workers=self._table_workers
+        )
+    return self._table
 
   def _scene_poses(self, scene: int) -> np.ndarray:
     return np.asarray(self.family.poses(self.split, int(scene)), np.float32)
 
-  def _plan(self, step: int) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
-    """`plan` plus each chosen scene's poses, so `batch` does not compute them again."""
-    if step < 0:
-      raise ValueError(f"step must be >= 0, got {step}")
+  def _tables(self, pos: np.ndarray) -> tuple[scene_table.SceneTable, np.ndarray]:
+    """A table holding the scenes at positions `pos` of `scene_ids`, and their rows in it: the
+    shard's table, or one built for these scenes alone."""
+    table = self.table
+    if table is not None:
+      return table, pos
+    ids, rows = np.unique(self.scene_ids[pos], return_inverse=True)
+    return scene_table.SceneTable.build(self.family, self.split, ids), rows.reshape(pos.shape)
+
+  def _plans_in(self, steps: Sequence[int]):
+    """(table, rows (K, D S), views (K, D S, V)) of K steps."""
+    pos = self._positions(steps)
+    table, rows = self._tables(pos)
+    views = self._views(steps, table.num_views[rows], lambda: table.poses[rows.reshape(-1)])
+    return table, rows, views
+
+  def _plans(self, steps: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+    """(view ids (K, D, S, V), scene ids (K, D, S)) of K steps."""
+    table, rows, views = self._plans_in(steps)
+    shape = (len(steps), self.config.num_devices, self.config.scenes_per_device)
+    return views.reshape(*shape, -1), table.scene_ids[rows].reshape(shape)
+
+  def _read(self, steps: Sequence[int], *, stacked: bool) -> Batch:
+    """The batches of `steps` (`batch`, `batches`), rendered in one call: image NumPy, or a
+    jax.Array with `images_on_device`."""
     cfg = self.config
-    b = cfg.scenes_per_step
-    epoch, pos = divmod(int(step), self.steps_per_epoch)
-    chosen = self._epoch_order(epoch)[pos * b : (pos + 1) * b]
-    rng = np.random.default_rng([cfg.seed, 1, int(step), self.process_index])
-    scenes = self.scene_ids[chosen]
-    scene_poses = [self._scene_poses(s) for s in scenes]
-    views = np.stack([self._choose(len(p), rng, p) for p in scene_poses])
-    shape = (cfg.num_devices, cfg.scenes_per_device)
-    return views.reshape(*shape, cfg.views_per_scene), scenes.reshape(shape), scene_poses
-
-  def plan(self, step: int) -> tuple[np.ndarray, np.ndarray]:
-    """(view ids (D, S, V), scene ids (D, S)) of the batch at `step`."""
-    views, scenes, _ = self._plan(step)
-    return views, scenes
-
-  def batch(self, step: int) -> Batch:
-    """The batch at `step` (a pure function of (seed, step, process, split)), rendered: a
-    `ViewBatch` whose image is NumPy, or a jax.Array with `images_on_device`."""
-    views, scenes, scene_poses = self._plan(step)
-    flat_v, flat_s = views.reshape(-1, views.shape[-1]), scenes.reshape(-1)
-    poses = np.stack([all_poses[v] for v, all_poses in zip(flat_v, scene_poses, strict=True)])
-    poses = poses.astype(np.float32)
-    if self.one_call and hasattr(self.family, "render_batch"):
-      images = self.family.render_batch(
-        flat_s,
-        poses,
+    table, rows, views = self._plans_in(steps)
+    lead = (len(steps), cfg.num_devices, cfg.scenes_per_device)
+    if not stacked:
+      lead = lead[1:]
+    rows, views = rows.reshape(lead), views.reshape(*lead, cfg.views_per_scene)
+    poses = table.poses[rows[..., None], views]
+    scenes = table.scene_ids[rows]
+    if not self.one_call:
+      per_scene = zip(scenes.reshape(-1), poses.reshape(-1, *poses.shape[-2:]), strict=True)
+      images = np.stack([self.family.render_views(int(s), p) for s, p in per_scene])
+      images = images.reshape(*views.shape, *images.shape[2:])
+    else:
+      images = table.render(
+        rows,
+        table.c2w[rows[..., None], views],
+        self.family.camera,
+        shadows=self.family.config.shadows,
         max_images=self.max_images_per_call,
         on_device=self.images_on_device,
       )
-    else:
-      per_scene = zip(flat_s, poses, strict=True)
-      images = np.stack([self.family.render_views(int(s), p) for s, p in per_scene])
-    lead = views.shape
     return Batch(
-      image=images.reshape(*lead, *images.shape[2:]),
-      pose=poses.reshape(*lead, -1),
-      scene=scenes.astype(np.int32),
-      view=views.astype(np.int32),
+      image=images, pose=poses, scene=scenes.astype(np.int32), view=views.astype(np.int32)
     )
 
   def num_scene_views(self, scene: int) -> int:

@@ -29,8 +29,9 @@ Output is float32 RGB in [0, 1], (H, W, 3); `to_uint8` converts for view records
 
 Everything here is a pure function of its inputs (the renderer has no randomness). The only
 jitted entry points are the module-level `render_views` (many poses of one scene),
-`render_batch` (one pose each of a batch of scenes) and `render_scenes_views` (V poses each of S
-scenes, the procedural training batches, optionally converted to uint8 on the device):
+`render_batch` (one pose each of a batch of scenes), `render_scenes_views` (V poses each of S
+scenes, the procedural training batches, optionally converted to uint8 on the device) and
+`render_table_views` (the same for scenes gathered by row from a stacked table on the device):
 compiling the whole ray caster once per (camera, primitive budget, batch shape) is the point of
 this module. `render` is the plain,
 un-jitted single-image function they wrap.
@@ -848,7 +849,41 @@ def render_scenes_views(
   Returns:
     (S, V, H, W, 3) uint8, or float32 in [0, 1].
   """
+  return _scenes_views(scenes, T_world_cam, camera, shadows=shadows, uint8=uint8)
 
+
+@functools.partial(jax.jit, static_argnames=("camera", "shadows", "uint8"))
+def render_table_views(
+  table: Scene,
+  rows: jax.Array,
+  T_world_cam: jax.Array,
+  camera: Camera,
+  *,
+  shadows: bool = True,
+  uint8: bool = True,
+) -> jax.Array:
+  """Jitted: `render_scenes_views` of the scenes at `rows` of a stacked table of scenes; the
+  rows are gathered inside the call, so only indices and cameras cross to the device.
+
+  Args:
+    table: `Scene` whose leaves have a leading axis N (`camrep.data.scene_table.SceneTable`).
+    rows: int32 (*L) rows of the table (any leading shape L; repeats allowed).
+    T_world_cam: (*L, V, 4, 4) camera-to-world matrices of the scene at each row.
+    camera: intrinsics (static).
+    shadows: static.
+    uint8: static; as `render_scenes_views`.
+
+  Returns:
+    (*L, V, H, W, 3) uint8, or float32 in [0, 1].
+  """
+  flat = rows.reshape(-1)
+  scenes = jax.tree.map(lambda a: jnp.take(a, flat, axis=0), table)
+  T = T_world_cam.reshape(-1, *T_world_cam.shape[rows.ndim :])
+  images = _scenes_views(scenes, T, camera, shadows=shadows, uint8=uint8)
+  return images.reshape(*rows.shape, *images.shape[1:])
+
+
+def _scenes_views(scenes: Scene, T_world_cam, camera: Camera, *, shadows: bool, uint8: bool):
   def one_scene(scene, T):
     return jax.vmap(lambda t: render(scene, t, camera, shadows=shadows))(T)
 

@@ -106,30 +106,30 @@ class ResAdaINDecoder(nn.Module):
     x = layers.dense(4 * 4 * c256, name="fc", dtype=self.dtype)(z).reshape((s * q, 4, 4, c256))
     acts["fc"] = x
 
-    h = layers.upsample2(x)
-    a = layers.conv(c256, 3, name="res8_conv_a", dtype=self.dtype)(layers.lrelu(h))
-    a = layers.conv(c256, 3, name="res8_conv_b", dtype=self.dtype)(layers.lrelu(a))
+    # Each block upsamples x2 (nearest) before its first conv and its 1x1 skip conv; the convs
+    # of upsampled inputs are `layers.UpConv`s (computed at the low resolution).
+    up = functools.partial(layers.conv, dtype=self.dtype, kind=layers.UpConv)
+    conv = functools.partial(layers.conv, dtype=self.dtype)
+    a = up(c256, 3, name="res8_conv_a")(layers.lrelu(x))  # lrelu commutes with upsampling
+    a = conv(c256, 3, name="res8_conv_b")(layers.lrelu(a))
     a = layers.lrelu(layers.adain(a, style["gamma8"], style["beta8"]))
-    x = a + layers.conv(c256, 1, name="res8_skip", dtype=self.dtype)(h)
+    x = a + up(c256, 1, name="res8_skip")(x)
     acts["res8"] = x
 
-    h = layers.upsample2(x)
-    a = layers.conv(c256, 3, name="res16_conv_a", dtype=self.dtype)(h)
-    a = layers.conv(c256, 3, name="res16_conv_b", dtype=self.dtype)(layers.lrelu(a))
+    a = up(c256, 3, name="res16_conv_a")(x)
+    a = conv(c256, 3, name="res16_conv_b")(layers.lrelu(a))
     a = layers.lrelu(layers.adain(a, style["gamma16"], style["beta16"]))
-    x = a + layers.conv(c256, 1, name="res16_skip", dtype=self.dtype)(h)
+    x = a + up(c256, 1, name="res16_skip")(x)
     acts["res16"] = x
 
-    h = layers.upsample2(x)
-    a = layers.conv(c128, 3, name="res32_conv_a", dtype=self.dtype)(h)
-    a = layers.lrelu(layers.conv(c128, 3, name="res32_conv_b", dtype=self.dtype)(layers.lrelu(a)))
-    x = a + layers.conv(c128, 1, name="res32_skip", dtype=self.dtype)(h)
+    a = up(c128, 3, name="res32_conv_a")(x)
+    a = layers.lrelu(conv(c128, 3, name="res32_conv_b")(layers.lrelu(a)))
+    x = a + up(c128, 1, name="res32_skip")(x)
     acts["res32"] = x
 
-    h = layers.upsample2(x)
-    a = layers.conv(c64, 3, name="res64_conv_a", dtype=self.dtype)(h)
-    a = layers.conv(3, 3, name="res64_conv_b", dtype=self.dtype)(layers.lrelu(a))
-    x = a + layers.conv(3, 1, name="res64_skip", dtype=self.dtype)(h)
+    a = up(c64, 3, name="res64_conv_a")(x)
+    a = conv(3, 3, name="res64_conv_b")(layers.lrelu(a))
+    x = a + up(3, 1, name="res64_skip")(x)
     acts["res64"] = x
 
     for k, v in acts.items():
@@ -229,13 +229,13 @@ class UpConvDecoder(nn.Module):
     acts["fc"] = x
     x = norm_act(layers.conv_transpose(c256, 4, strides=2, name="conv8", dtype=self.dtype)(x), "8")
     acts["conv8"] = x
+    # conv{16,32,64} and to_rgb convolve x upsampled x2 (nearest): `layers.UpConv`s.
+    up = functools.partial(layers.conv, dtype=self.dtype, kind=layers.UpConv)
     for name in list(widths)[1:]:
-      h = layers.upsample2(x)
-      x = norm_act(layers.conv(widths[name], 4, name=f"conv{name}", dtype=self.dtype)(h), name)
-      if name == "16":
-        x = x + h
+      y = norm_act(up(widths[name], 4, name=f"conv{name}")(x), name)
+      x = y + layers.upsample2(x) if name == "16" else y
       acts[f"conv{name}"] = x
-    x = layers.conv(3, 4, name="to_rgb", dtype=self.dtype)(layers.upsample2(x))
+    x = up(3, 4, name="to_rgb")(x)
     acts["to_rgb"] = x
 
     for k, v in acts.items():

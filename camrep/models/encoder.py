@@ -85,11 +85,18 @@ class SceneEncoder(nn.Module):
   block_channels: int = 128
   dtype: Any = None
 
-  def _block(self, x: Array, name: str) -> Array:
-    """[conv 3x3 + conv 1x1] summed, then ReLU."""
+  def _block(self, x: Array, name: str, tiled: Array | None = None) -> Array:
+    """[conv 3x3 + conv 1x1] summed, then ReLU; with `tiled` (N, P), over x concatenated with
+    `tiled` broadcast to every pixel (`layers.ConcatConstantConv`)."""
     c = layers.scaled(self.block_channels, self.width)
-    a = layers.conv(c, 3, name=f"{name}_conv3", dtype=self.dtype)(x)
-    b = layers.conv(c, 1, name=f"{name}_conv1", dtype=self.dtype)(x)
+    kw = dict(dtype=self.dtype)
+    if tiled is None:
+      a = layers.conv(c, 3, name=f"{name}_conv3", **kw)(x)
+      b = layers.conv(c, 1, name=f"{name}_conv1", **kw)(x)
+    else:
+      kw["kind"] = layers.ConcatConstantConv
+      a = layers.conv(c, 3, name=f"{name}_conv3", **kw)(x, tiled)
+      b = layers.conv(c, 1, name=f"{name}_conv1", **kw)(x, tiled)
     return nn.relu(a + b)
 
   @nn.compact
@@ -120,9 +127,7 @@ class SceneEncoder(nn.Module):
     x = nn.relu(layers.conv(tc, 2, strides=2, name="conv1", dtype=self.dtype)(x))
     x = self._block(x, "block2")
     x = nn.relu(layers.conv(tc, 2, strides=2, name="conv3", dtype=self.dtype)(x))
-    tiled = jnp.broadcast_to(p[:, None, None, :], (*x.shape[:3], p.shape[-1])).astype(x.dtype)
-    x = jnp.concatenate([x, tiled], axis=-1)
-    x = self._block(x, "block4")
+    x = self._block(x, "block4", tiled=p)  # the pose vector tiled over the 16 x 16 map
     h5 = nn.relu(layers.conv(tc, 3, name="conv5", dtype=self.dtype)(x))
     x = nn.relu(layers.conv(tc, 2, strides=2, name="conv6", dtype=self.dtype)(h5))
     h7 = self._block(x, "block7")
@@ -137,8 +142,8 @@ class SceneEncoder(nn.Module):
       if head.source not in feats:
         raise ValueError(f"head {head.name}: unknown source {head.source!r}, not in {SOURCES}")
       c = layers.scaled(head.channels, self.width) if head.scaled else head.channels
-      y = layers.conv(c, 3, name=f"head_{head.name}", dtype=self.dtype)(feats[head.source])
-      y = layers.global_avg_pool(layers.at_least_f32(y)).reshape((s, v, c))
+      pooled = layers.conv(c, 3, name=f"head_{head.name}", dtype=self.dtype, kind=layers.ConvMean)
+      y = pooled(feats[head.source]).reshape((s, v, c))  # conv 3x3 then the mean over (H, W)
       per_view[head.name] = y
       out[head.name] = jnp.sum(y, axis=1)
     aux = {"per_view": per_view, "rms": {k: layers.rms(f) for k, f in feats.items()}}

@@ -133,8 +133,10 @@ def _conv_mm_fwd(x, w, strides, pads, precision):
 
 def _conv_mm_bwd(strides, pads, precision, res, dy):
   x, w = res
-  _, vjp_x = jax.vjp(lambda x_: _xla_conv(x_, w, strides, pads, precision), x)
-  (dx,) = vjp_x(dy)
+  # The input gradient is the transpose of the (linear in x) conv: `linear_transpose` gives it
+  # without tracing the forward conv again (a `vjp` would, as dead code in the jaxpr).
+  transpose = jax.linear_transpose(lambda x_: _xla_conv(x_, w, strides, pads, precision), x)
+  (dx,) = transpose(dy)
   dw = kernel_grad_matmul(x, dy, w.shape[:2], strides, pads).astype(w.dtype)
   return dx, dw
 
