@@ -4,7 +4,7 @@ representation and ours with 95% intervals, their paired ratio and a verdict.
   python experiments/lead_table.py --runs results/converge/regression --out results/lead_table.md
 
 Reads the regression runs under RUNS (RUNS/<column>/<representation>/<lr>_seed<k>/, as
-experiments/run_comparison.py lays them out: columns car, gqn (rooms), gibson (area),
+`python -m camrep.comparison` lays them out: columns car, gqn (rooms), gibson (area),
 seven_scenes and the capture columns car_<NAME>); per column, each representation's learning
 rate is chosen on the validation split (`camrep.regression.tables.select`). One row per table
 column of the paper (car rotation; rooms and area x, y, yaw; 7-Scenes median position and

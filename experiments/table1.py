@@ -2,10 +2,11 @@
 
 Columns come from procedural families or from prepared real datasets (SRN cars, GQN, Gibson), as
 the runs' results.json record it; the data of each column is stated under the table. Reads the
-results.json files of `camrep.regression` runs (nothing else), groups them by
-(setting, representation), picks each group's learning rate on the validation errors
-(`camrep.regression.tables`: mean of error / paper-ours-error over the setting's columns, averaged over
-the seeds every lr has), and writes a Markdown file with
+results of `camrep.regression` runs (results.json and errors_<split>.npz, or their compact
+records run.json; nothing else), groups them by (setting, representation), picks each group's
+learning rate on the validation errors (`camrep.regression.tables`: mean of error /
+paper-ours-error over the setting's columns, averaged over the seeds every lr has), and writes a
+Markdown file with
 
   1. the measured table in the paper's layout: car mean rotation error (deg); rooms (GQN) mean
      |x|, |y| errors (scene units) and yaw error (deg); area (Gibson) mean |x|, |y| (m) and yaw

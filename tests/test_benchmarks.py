@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.utils import load_experiment
+from camrep.bench import lie as bench_lie
+from camrep.bench import train_step as bench_train_step
 
 
 class _FakeTimer:
@@ -21,7 +22,7 @@ class _FakeTimer:
 
 
 def test_interleaved_divides_each_round_by_its_own_peak(monkeypatch):
-  bts = load_experiment("bench_train_step")
+  bts = bench_train_step
   order = []
   peaks = iter([100.0, 50.0, 20.0])
 
@@ -48,7 +49,6 @@ def test_interleaved_divides_each_round_by_its_own_peak(monkeypatch):
 
 
 def test_lie_apply_ratio_is_measured_per_round():
-  bench_lie = load_experiment("bench_lie")
   r = bench_lie.apply_ratio(pairs=16, n_blocks=2, s=4, rounds=2, calls=1)
   assert len(r["ratios"]) == len(r["taylor2"]) == len(r["spectral"]) == 2
   np.testing.assert_allclose(r["ratios"], np.array(r["spectral"]) / np.array(r["taylor2"]))
@@ -59,7 +59,7 @@ def test_lie_apply_ratio_is_measured_per_round():
 def test_regression_timer_builds_and_times_the_learners_step(tmp_path):
   """`RegressionTimer` builds the driver's training batch and step of a setting (GQN, :smoke) with
   the regressor's conv gradients replaced as asked, and times it."""
-  bts = load_experiment("bench_train_step")
+  bts = bench_train_step
   timer = bts.RegressionTimer(
     "gqn", variant="smoke", cache_dir=str(tmp_path), weight_grad="matmul", log=lambda *_: None
   )

@@ -32,7 +32,7 @@ from camrep.data.captures.cameras import (
 )
 from camrep.data.captures.collection import CaptureSource
 from camrep.data.errors import DataError
-from tests.utils import load_experiment
+from experiments import table1
 
 pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
@@ -576,7 +576,6 @@ def test_shared_capture_end_to_end(tmp_path):
       r.synthesis_workdir = str(tmp_path / "syn")
     results = driver.run(r, str(tmp_path / f"reg_{rep}"), log=lambda s: None)
     assert results["data"]["source"] == "llff" and results["data"]["num_test_views"] == 9
-  table1 = load_experiment("table1")
   text = table1.build([json.loads((tmp_path / f"reg_{x}" / "results.json").read_text())
                        for x in ("ours", "quat")])  # fmt: skip
   assert "Table 1: pose regression on real data" in text and "Procedural columns" not in text

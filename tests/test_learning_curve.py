@@ -7,7 +7,7 @@ import json
 import cv2
 import numpy as np
 
-from tests.utils import load_experiment
+from experiments import learning_curve
 
 
 def _workdir(tmp_path, name, representation, rows):
@@ -20,7 +20,7 @@ def _workdir(tmp_path, name, representation, rows):
 
 
 def test_tables_and_figure_from_metrics(tmp_path, capsys):
-  lc = load_experiment("learning_curve")
+  lc = learning_curve
   key = "eval/test_scenes/yaw_error_deg_mean"
   a = _workdir(
     tmp_path,
@@ -49,7 +49,7 @@ def test_tables_and_figure_from_metrics(tmp_path, capsys):
 
 
 def test_runs_with_one_label_are_seeds_of_one_curve(tmp_path):
-  lc = load_experiment("learning_curve")
+  lc = learning_curve
   key = "eval/psnr"
   a = _workdir(tmp_path, "s0", "ours", [{"step": 1, key: 10.0}, {"step": 2, key: 12.0}])
   b = _workdir(tmp_path, "s1", "ours", [{"step": 1, key: 14.0}, {"step": 2, key: 16.0}])
@@ -62,7 +62,7 @@ def test_runs_with_one_label_are_seeds_of_one_curve(tmp_path):
 
 
 def test_refusals(tmp_path, capsys):
-  lc = load_experiment("learning_curve")
+  lc = learning_curve
   a = _workdir(tmp_path, "a", "ours", [{"step": 1, "eval/psnr": 20.0}])
   assert lc.main(["--runs", a, "--metrics", "eval/ssim"]) == 2
   assert "eval/ssim is not logged" in capsys.readouterr().err
@@ -74,7 +74,7 @@ def test_refusals(tmp_path, capsys):
 
 
 def test_bands_over_seeds_per_representation(tmp_path, capsys):
-  lc = load_experiment("learning_curve")
+  lc = learning_curve
   key = "eval/validation/score"
   runs = [
     _workdir(tmp_path, f"{rep}{seed}", rep, [{"step": 100, key: v}, {"step": 200, key: v / 2}])
@@ -94,7 +94,7 @@ def test_bands_over_seeds_per_representation(tmp_path, capsys):
 def test_bands_group_view_synthesis_runs_by_pose_input(tmp_path, capsys):
   """Synthesis workdirs (no representation) are grouped by rep.kind; GQN's ConvDRAW (whose
   rep.kind is lowdim) by its model.kind, not with the low-dim decoder."""
-  lc = load_experiment("learning_curve")
+  lc = learning_curve
   runs = []
   for name, rep, model, psnr in (
     ("car_seed0", "grid", "decoder", 20.0),

@@ -5,7 +5,7 @@ once, each in its own workdir under --out, then tabulates `eval/psnr - eval/psnr
 every run's metrics.jsonl. On a GPU, several small (`:quick`) runs share the device well; on the
 2-core CPU run them one at a time (--parallel=1).
 
-  .venv/bin/python experiments/sweep.py --config=configs/gqn.py:quick --out=/tmp/sweep \\
+  .venv/bin/python tools/sweep.py --config=configs/gqn.py:quick --out=/tmp/sweep \\
       --steps=3000 --every=500 --parallel=8 \\
       --variant 'base=' \\
       --variant 'lr_rep_3e-3=--config.optax.lr_rep=3e-3' \\

@@ -23,26 +23,26 @@ Measures, in one run (these machines are noisy: compare the ratios printed by on
 
 The last line reads `mfu=<fraction> images_per_s=<number>` (the "step" figures at `--width`, the
 first `--dtype` and the first `--grad_modes`). With `--end_to_end=CONFIG` (e.g.
-`configs/gqn.py:quick`), the run goes on with `bench_pipeline.py --config=CONFIG` at `--width`:
+`configs/gqn.py:quick`), the run goes on with `camrep.bench.pipeline --config=CONFIG` at `--width`:
 the step alone, the input pipelines alone (procedural rendered on demand, per scene and in one
-call; in memory; prepared on disk) and the end-to-end loop (issue 14, part 5); the last line is
+call; in memory; prepared on disk) and the end-to-end loop; the last line is
 then `input_bound_ratio=<end-to-end / step alone> steps_per_s=<end-to-end>`.
 
 Commands (2-core CPU):
 
-  .venv/bin/python experiments/bench_train_step.py --width=quick            # ~2 min
-  .venv/bin/python experiments/bench_train_step.py --width=quick --tables   # ~6 min
-  .venv/bin/python experiments/bench_train_step.py --width=paper --steps=2  # ~8 min
-  .venv/bin/python experiments/bench_train_step.py --width=quick --grad_modes=matmul \
+  .venv/bin/python -m camrep.bench.train_step --width=quick            # ~2 min
+  .venv/bin/python -m camrep.bench.train_step --width=quick --tables   # ~6 min
+  .venv/bin/python -m camrep.bench.train_step --width=paper --steps=2  # ~8 min
+  .venv/bin/python -m camrep.bench.train_step --width=quick --grad_modes=matmul \
     --dtype=float32,bfloat16                                                 # ~3 min
-  .venv/bin/python experiments/bench_train_step.py --width=quick --scenes=8 --grad_modes=xla \
+  .venv/bin/python -m camrep.bench.train_step --width=quick --scenes=8 --grad_modes=xla \
     --end_to_end=configs/gqn.py:quick                                        # ~4 min
-  .venv/bin/python experiments/bench_train_step.py --skip_synthesis --regression gqn,car \
+  .venv/bin/python -m camrep.bench.train_step --skip_synthesis --regression gqn,car \
     --regression_grad_modes matmul,by_channels --steps 5 --repeats 4         # ~3 min + data
 
 On a GPU (mixed precision is meant for it; conv weight gradients from XLA / cuDNN):
 
-  python experiments/bench_train_step.py --width=paper --grad_modes=xla --steps=30 \
+  python -m camrep.bench.train_step --width=paper --grad_modes=xla --steps=30 \
     --dtype=float32,bfloat16
 """
 
@@ -141,8 +141,7 @@ def gqn_config(
   width: float, scenes: int, *, image_size: int = 64, setting: str = "gqn", devices: int = 1
 ):
   """The paper's config of `setting` at `width`, `scenes` per device, procedural data in memory."""
-  sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
-  from configs import gqn, shapenet_car
+  from camrep.configs import gqn, shapenet_car
 
   c = (gqn if setting == "gqn" else shapenet_car).get_config()
   c.model.width = width
@@ -163,7 +162,7 @@ class StepTimer:
 
   Attributes:
     images: images per step; flops: FLOPs per step counted from the jaxpr (`camrep.runtime.flops`:
-      the same on CPU and GPU, where XLA's cost analysis leaves cuDNN convolutions out; issue 14);
+      the same on CPU and GPU, where XLA's cost analysis leaves cuDNN convolutions out);
     xla_flops: XLA's count; compile_s: seconds to compile; finite: the warm-up step's finite flag.
   """
 
@@ -249,11 +248,9 @@ class RegressionTimer(StepTimer):
     import jax.numpy as jnp
     import numpy as np
 
+    from camrep.configs import regression
     from camrep.regression import driver, learner
     from camrep.regression import views as views_lib
-
-    sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
-    from configs import regression
 
     config = regression.get_config(variant)
     config.setting, config.representation = setting, representation
@@ -522,7 +519,13 @@ def _in_subprocess(spec: dict, devices: int) -> dict:
   env = dict(os.environ)
   env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
   out = subprocess.run(
-    [sys.executable, __file__, "--child", json.dumps({**spec, "devices": devices})],
+    [
+      sys.executable,
+      "-m",
+      "camrep.bench.train_step",
+      "--child",
+      json.dumps({**spec, "devices": devices}),
+    ],
     env=env,
     capture_output=True,
     text=True,
@@ -687,8 +690,7 @@ def main(argv=None) -> None:
     f"cpu_mfu={inter[f'{dtypes[0]} weight grad {modes[0]}']['cpu_mfu']['median']:.4f}"
   )
   if args.end_to_end:
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-    import bench_pipeline
+    from camrep.bench import pipeline as bench_pipeline
 
     print(f"\ninput pipelines and end-to-end loop of {args.end_to_end} at width {width}:")
     config = bench_pipeline.load_config(args.end_to_end)

@@ -1,4 +1,4 @@
-"""One report of camrep on a GPU: the step alone, end to end, paper configs, :medium runs (issue 30).
+"""One report of camrep on a GPU: the step alone, end to end, paper configs, :medium runs.
 
 A GPU is lent to this project now and then, for well under an hour, in commands of at most 10
 minutes that cannot reach a package registry. This script measures everything in a few such
@@ -13,33 +13,41 @@ commands ("calls"), each a group of phases run as subprocesses under one time bu
                 device memory; goals: float32 <= 10.5 ms, bfloat16 <= 7 ms
   profile       a jax.profiler trace of 10 float32 paper-size steps, summarised: the ops (device
                 kernels on a GPU, XLA thunks on a CPU) that take the step's time, per step
-  e2e           the paper GQN config end to end (`bench_pipeline.input_bound`): the step alone,
-                batches rendered on demand on the device (one renderer call a batch), a prepared
-                dataset of 256 rooms, and the train loop fed by each: steps/s, ratio to the step
-                alone (goal >= 0.9), ETA of the config's 1M steps
+  host          the paper GQN config's train loop with the step and the renderer stubbed
+                (`camrep.bench.host.host_loop`), on the machine's CPU: the host's time a step
+                (drawing scenes and poses, assembling and copying the batch, dispatching)
+  e2e           the paper GQN config end to end (`camrep.bench.pipeline.input_bound`): the step
+                alone, batches rendered on demand (one renderer call a batch, waited for on the
+                device), a prepared dataset of 256 rooms, and the train loop fed by each as
+                `camrep.synthesis.train` runs it (`camrep.bench.host.train_loop`: metrics read
+                only at log steps): steps/s, ratio to the step alone (goal >= 0.9), ETA of the
+                config's 1M steps
   car, gibson, seven_scenes
                 the same for configs/shapenet_car.py, gibson.py, seven_scenes.py at paper size
-                (prepared data only for families with a scene count: car)
-  medium        the `:medium` comparison (experiments/run_comparison.py --size medium) measured
-                against its plan (`PLANS["medium"]`): a shortened GQN view-synthesis run
-                extrapolated to 20,000 steps, `camrep.synthesis.evaluate` on it, and two whole
-                regression runs (the first renders and caches the data)
+                (prepared data only for families with a scene count: car; at --variant smoke
+                with a stubbed step: the GQN phase compiles a real one)
+  medium        the `:medium` comparison (`python -m camrep.comparison --size medium`) measured
+                against its plan (camrep/comparison/plans.toml): a shortened GQN view-synthesis
+                run extrapolated to 20,000 steps, `camrep.synthesis.evaluate` on it, and two
+                whole regression runs (the first renders and caches the data)
 
 Each phase writes DIR/gpu_report_<phase>.json; every call rewrites DIR/gpu_report.md and .json
 from the phase files present (and those of --merge folders), so the last merge is the report.
+The exit status is 1 when a phase of the call failed (its error is in its file and the report).
 `--dry_run` prints the plan and the commands, imports nothing heavy and runs on any machine.
+`--variant smoke` runs every phase at the :smoke sizes (a check of the code in about a minute
+on a CPU, figures meaningless; the tests run it).
 
-  python experiments/gpu_report.py --dry_run                       # the plan and the commands
-  python experiments/gpu_report.py --phases env,step --out $OUT    # on the GPU machine
-  python experiments/gpu_report.py --merge DIR1 DIR2 ... --out results/gpu   # on the CPU
-  python experiments/gpu_report.py --phases all --variant smoke --out /tmp/r  # CPU check, tiny
+  python -m camrep.bench.gpu_report --dry_run                       # the plan and the commands
+  python -m camrep.bench.gpu_report --phases env,step --out $OUT    # on the GPU machine
+  python -m camrep.bench.gpu_report --merge DIR1 DIR2 ... --out results/gpu   # on the CPU
+  python -m camrep.bench.gpu_report --phases all --variant smoke --out /tmp/r  # CPU check
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import importlib.util
 import json
 import os
 import platform
@@ -49,22 +57,11 @@ import sys
 import tempfile
 import time
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+SMOKE = "smoke"
 
 
-def _sibling(name: str):
-  """experiments/<name>.py as a module (experiments/ is not a package; no sys.path edits)."""
-  if name in sys.modules:
-    return sys.modules[name]
-  spec = importlib.util.spec_from_file_location(name, os.path.join(HERE, f"{name}.py"))
-  module = importlib.util.module_from_spec(spec)
-  sys.modules[name] = module
-  spec.loader.exec_module(module)
-  return module
-
-
-PHASES = ("env", "step", "profile", "e2e", "car", "gibson", "seven_scenes", "medium")
+PHASES = ("env", "step", "profile", "host", "e2e", "car", "gibson", "seven_scenes", "medium")
 # Config of each end-to-end phase.
 E2E_CONFIGS = {
   "e2e": "configs/gqn.py",
@@ -75,27 +72,34 @@ E2E_CONFIGS = {
 # The calls a lent GPU runs, each well inside the device tool's 10 minutes, with a guess of its
 # minutes on one H100 (compiles dominate: ~1 min per paper-size step and renderer).
 CALLS = (
-  ("env,step,profile", 7),
+  ("env,step,profile,host", 7),
   ("e2e", 7),
   ("car,gibson,seven_scenes", 7),
   ("medium", 7),
 )
 WHEELHOUSE = ".whl"
 GOALS = {"float32": 10.5e-3, "bfloat16": 7e-3}
-H100_LAST = "H100, 2026-11-22: step alone 0.015 s float32; end to end 3.5 steps/s, ETA 80 h"
+HOST_GOAL_MS = 1.0
 
 
 def wheelhouse_command() -> str:
-  return ".venv/bin/python experiments/build_wheelhouse.py"
+  return ".venv/bin/python tools/build_wheelhouse.py"
+
+
+def install_command(wheelhouse: str = WHEELHOUSE) -> str:
+  """The GPU machine's command that installs the carried wheels (prefix of every report call);
+  the working tree's camrep is then imported from $PWD."""
+  return (
+    "python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade "
+    f"--target /tmp/site {wheelhouse}/*.whl && export PYTHONPATH=/tmp/site:$PWD"
+  )
 
 
 def gpu_command(phases: str) -> str:
   """The device tool's `run` command of one call (run with carry=[".whl"])."""
-  build_wheelhouse = _sibling("build_wheelhouse")
-
   return (
-    f"{build_wheelhouse.install_command(WHEELHOUSE)} && "
-    f"PYTHONPATH=. PYTHONUNBUFFERED=1 python3 experiments/gpu_report.py --phases {phases} --out $OUT"
+    f"{install_command(WHEELHOUSE)} && "
+    f"PYTHONUNBUFFERED=1 python3 -m camrep.bench.gpu_report --phases {phases} --out $OUT"
   )
 
 
@@ -120,15 +124,14 @@ def how_to_run() -> list[str]:
   lines += [f"| {i} | `{p}` | ~{m} |" for i, (p, m) in enumerate(CALLS, 1)]
   lines += [
     "",
-    "The calls are in order of priority (calls 1 and 2 answer the step and end-to-end goals). A "
-    "session has ~30 minutes of device time and a machine goes back after 30 s idle: issue the "
-    "next call as soon as one returns, and stop after call 2 or 3 if less than ~8 minutes are "
-    "left.",
+    "The calls are in order of priority (calls 1 and 2 answer the step and end-to-end goals). "
+    "Device time is short and a machine goes back soon after it is idle: issue the next call as "
+    "soon as one returns, and stop when less than ~8 minutes of device time are left.",
     "",
     "Each call brings back DIR/gpu_report_<phase>.json, gpu_report.md and gpu_report.json "
     "under the tool's files_at. Then, on the CPU machine, merge them into one report:",
     "",
-    "       .venv/bin/python experiments/gpu_report.py --merge FILES_AT_1 FILES_AT_2 ... "
+    "       .venv/bin/python -m camrep.bench.gpu_report --merge FILES_AT_1 FILES_AT_2 ... "
     "--out results/gpu",
     "",
   ]
@@ -156,7 +159,7 @@ def _device_memory() -> dict:
   """Peak device memory of this process (GPU allocator stats; RSS on the CPU), MiB."""
   import jax
 
-  peak_rss_mb = _sibling("bench_train_step").peak_rss_mb
+  from camrep.bench.train_step import peak_rss_mb
 
   stats = jax.local_devices()[0].memory_stats() or {}
   out = {"host_peak_rss_mib": peak_rss_mb()}
@@ -201,26 +204,26 @@ def phase_env(args) -> dict:
 
 def phase_step(args) -> dict:
   """The paper GQN step alone, float32 and bfloat16, MFU against the same dtype's peak."""
-  _sibling("bench_pipeline")  # bench_train_step imports it by name
-  bts = _sibling("bench_train_step")
   import jax
 
-  smoke = args.variant == "smoke"
-  width, scenes = (1 / 32, 2) if smoke else (1.0, 30)
+  from camrep.bench import train_step as bts
+
+  smoke = args.variant == SMOKE
   on_gpu = jax.devices()[0].platform == "gpu"
   timers = {}
-  for dtype in ("float32", "bfloat16"):
-    config = bts.gqn_config(width, scenes)
+  # At smoke one dtype: each is its own program, and compiling is most of a check's time.
+  for dtype in ("float32",) if smoke else ("float32", "bfloat16"):
+    config = _step_config(smoke)
     config.model.dtype = dtype
     timers[dtype] = (bts.StepTimer(config), dtype)
   res = bts.interleaved(
     timers,
-    rounds=args.rounds,
-    steps=2 if smoke else args.steps,
-    peak_n=8192 if on_gpu else 2048,
-    peak_reps=10 if on_gpu else 3,
+    rounds=1 if smoke else args.rounds,
+    steps=1 if smoke else args.steps,
+    peak_n=256 if smoke else 8192 if on_gpu else 2048,
+    peak_reps=1 if smoke else 10 if on_gpu else 3,
   )
-  res["width"], res["scenes"] = width, scenes
+  res["width"], res["scenes"] = config.model.width, config.data.scenes_per_device
   res["memory"] = _device_memory()
   return res
 
@@ -255,17 +258,25 @@ def summarise_trace(folder: str, steps: int, top: int = 25) -> dict:
   }
 
 
+def _step_config(smoke: bool):
+  """The paper GQN step's config (width 1, 30 scenes x 9 views, data in memory), or at smoke
+  configs/gqn.py:smoke itself (the e2e phase's, so that a compilation cache serves both)."""
+  from camrep.bench import train_step as bts
+  from camrep.configs import gqn
+
+  return gqn.get_config(SMOKE) if smoke else bts.gqn_config(1.0, 30)
+
+
 def phase_profile(args) -> dict:
   """Where the float32 paper-size step's time goes: a jax.profiler trace of 10 steps."""
-  _sibling("bench_pipeline")  # bench_train_step imports it by name
-  bts = _sibling("bench_train_step")
   import jax
 
-  smoke = args.variant == "smoke"
-  config = bts.gqn_config(*((1 / 32, 2) if smoke else (1.0, 30)))
-  timer = bts.StepTimer(config)
-  timer.times(3)
-  steps = 2 if smoke else 10
+  from camrep.bench import train_step as bts
+
+  smoke = args.variant == SMOKE
+  timer = bts.StepTimer(_step_config(smoke))
+  timer.times(1 if smoke else 3)
+  steps = 1 if smoke else 10
   folder = tempfile.mkdtemp(prefix="gpu_report_trace_")
   with jax.profiler.trace(folder):
     times = timer.times(steps)
@@ -277,16 +288,28 @@ def phase_profile(args) -> dict:
   }
 
 
+def phase_host(args) -> dict:
+  """The paper GQN config's train loop with the step and renderer stubbed: the host's time a
+  step (`camrep.bench.host.host_loop`; goal <= HOST_GOAL_MS)."""
+  from camrep.bench import host as host_lib
+  from camrep.bench import pipeline as bench_pipeline
+
+  spec = E2E_CONFIGS["e2e"] + (f":{args.variant}" if args.variant else "")
+  config = bench_pipeline.load_config(spec)
+  config.data.in_memory = False  # the paper config's data path: batches rendered (stubbed here)
+  out = host_lib.host_loop(config, steps=4 if args.variant == SMOKE else max(args.steps, 50))
+  return {"config": spec, "cpu_cores": os.cpu_count(), **out}
+
+
 def phase_e2e(args, config_path: str) -> dict:
   """Step alone, renderers, prepared data and the end-to-end loops of one config."""
-  bench_pipeline = _sibling("bench_pipeline")
+  from camrep.bench import pipeline as bench_pipeline
+  from camrep.data import sources
 
-  from camrep.synthesis import components
-
-  smoke = args.variant == "smoke"
+  smoke = args.variant == SMOKE
   spec = config_path + (f":{args.variant}" if args.variant else "")
   config = bench_pipeline.load_config(spec)
-  family = components.make_source(config)
+  family = sources.family_of_config(config.data)
   prepared = hasattr(family.config, "num_train_scenes")
   e2e = ("render", "prepared") if prepared else ("render",)
   steps = 2 if smoke else args.steps
@@ -298,6 +321,8 @@ def phase_e2e(args, config_path: str) -> dict:
     prepared_scenes=(4 if smoke else 256) if prepared else 0,
     pipeline_steps=2 if smoke else 10,
     per_scene=False,
+    # At smoke only the GQN phase compiles its model's step; the others check their data paths.
+    stub=smoke and config_path != E2E_CONFIGS["e2e"],
   )
   total = int(config.total_steps)
   out = {
@@ -336,12 +361,14 @@ def _last_rate(workdir: str) -> float | None:
 
 
 def phase_medium(args) -> dict:
-  """:medium runs against `run_comparison.PLANS["medium"]` (seconds on one H100, derived)."""
-  import run_comparison as rc
+  """:medium runs against the comparison's medium plan (seconds on one H100, derived); at
+  --variant smoke one smoke run of each kind, to check the code."""
+  from camrep.comparison import plan as plan_lib
+  from camrep.configs import gqn
 
-  plan = rc.PLANS["medium"]
-  smoke = args.variant == "smoke"
-  variant = "smoke" if smoke else "medium"
+  plan = plan_lib.plans()["medium"]
+  smoke = args.variant == SMOKE
+  variant = SMOKE if smoke else "medium"
   py = sys.executable
   tmp = tempfile.mkdtemp(prefix="gpu_report_medium_")
   deadline = time.perf_counter() + args.budget_s - 20
@@ -350,90 +377,73 @@ def phase_medium(args) -> dict:
   def left() -> float:
     return max(10.0, deadline - time.perf_counter())
 
-  # View synthesis, shortened: K steps timed whole, the rest extrapolated at the logged rate.
-  from camrep.configs import gqn
+  def run(name: str, argv: list[str], plan_s: float, **extra) -> int:
+    sec, code = _run_timed(argv, os.path.join(tmp, f"{name}.log"), left())
+    row = {"command": shlex.join(argv), "exit": code, "seconds": sec, "plan_s": plan_s, **extra}
+    if code != 0:
+      row["log_tail"] = _tail(os.path.join(tmp, f"{name}.log"))
+    out["runs"].append(row)
+    return code
 
+  # View synthesis, shortened: K steps timed whole, the rest extrapolated at the logged rate.
   total = int(gqn.get_config(variant).total_steps)
-  k = min(total, 4 if smoke else 2000)
+  k = min(total, 2 if smoke else 2000)
   wd = os.path.join(tmp, "synthesis_gqn")
   argv = [py, "-m", "camrep.main", f"--config=configs/gqn.py:{variant}", f"--workdir={wd}"]
   argv += [f"--config.total_steps={k}", f"--config.eval_every_steps={k}"]
-  argv += [f"--config.ckpt_every_steps={k}", "--config.log_every_steps=100" if not smoke else ""]
-  argv = [a for a in argv if a]
-  sec, code = _run_timed(argv, os.path.join(tmp, "synthesis.log"), left())
+  argv += [f"--config.ckpt_every_steps={k}", f"--config.log_every_steps={min(k, 100)}"]
+  code = run(
+    "synthesis", argv, plan.synthesis_s["gqn"], run=f"synthesis gqn:{variant}, {k} of {total} steps"
+  )
   rate = _last_rate(wd) if code == 0 else None
-  projected = sec + (total - k) / rate if rate else None
-  out["runs"].append(
-    {
-      "run": f"synthesis gqn:{variant}, {k} of {total} steps",
-      "command": shlex.join(argv),
-      "exit": code,
-      "seconds": sec,
-      "steps_per_s": rate,
-      "projected_s": projected,
-      "plan_s": plan.synthesis_s["gqn"],
-    }
+  out["runs"][-1].update(
+    steps_per_s=rate, projected_s=out["runs"][-1]["seconds"] + (total - k) / rate if rate else None
   )
   if code == 0:
     argv = [py, "-m", "camrep.synthesis.evaluate", "--workdir", wd]
-    sec, code = _run_timed(argv, os.path.join(tmp, "evaluate.log"), left())
-    out["runs"].append(
-      {
-        "run": "camrep.synthesis.evaluate of that run",
-        "command": shlex.join(argv),
-        "exit": code,
-        "seconds": sec,
-        "plan_s": plan.evaluate_s,
-      }
-    )
-  # Two regression runs: the first renders and caches the data (plan: data_s + regression_s).
+    if smoke:
+      argv += ["--what=noise"]
+    run("evaluate", argv, plan.evaluate_s, run="camrep.synthesis.evaluate of that run")
+  # Regression runs: the first renders and caches the data (plan: data_s + regression_s).
   cache = os.path.join(tmp, "cache")
-  for i, lr in enumerate(plan.lrs["gqn"]):
-    wd = os.path.join(tmp, f"regression_{i}")
+  for i, lr in enumerate(plan.lrs["gqn"][: 1 if smoke else None]):
     argv = [py, "-m", "camrep.regression", f"--config=configs/regression.py:{variant}"]
-    argv += [f"--workdir={wd}", "--config.setting=gqn", "--config.representation=quat"]
-    argv += [f"--config.optax.lr={lr:g}", f"--config.data.cache_dir={cache}"]
-    sec, code = _run_timed(argv, os.path.join(tmp, f"regression_{i}.log"), left())
-    out["runs"].append(
-      {
-        "run": f"regression gqn/quat lr {lr:g}" + (" (renders the data)" if i == 0 else ""),
-        "command": shlex.join(argv),
-        "exit": code,
-        "seconds": sec,
-        "plan_s": plan.regression_s["gqn"] + (plan.data_s["gqn"] if i == 0 else 0),
-      }
+    argv += [f"--workdir={os.path.join(tmp, f'regression_{i}')}", "--config.setting=gqn"]
+    argv += ["--config.representation=quat", f"--config.optax.lr={lr:g}"]
+    argv += [f"--config.data.cache_dir={cache}"]
+    name = f"regression gqn/quat lr {lr:g}" + (" (renders the data)" if i == 0 else "")
+    run(
+      f"regression_{i}",
+      argv,
+      plan.regression_s["gqn"] + (plan.data_s["gqn"] if i == 0 else 0),
+      run=name,
     )
-  for r in out["runs"]:
-    if r["exit"] != 0:
-      log = r["run"].split()[0]
-      r["log_tail"] = _tail(tmp, log)
-  out["plan_total_s_jobs4"] = _plan_total()
+  out["plan_total_s_jobs4"] = _plan_total(plan)
+  failed = [r["run"] for r in out["runs"] if r["exit"] != 0]
+  if failed:
+    out["error"] = f"runs failed: {', '.join(failed)}"
   return out
 
 
-def _tail(tmp: str, prefix: str) -> str:
-  logs = sorted(f for f in os.listdir(tmp) if f.startswith(prefix) and f.endswith(".log"))
-  if not logs:
+def _tail(log: str) -> str:
+  if not os.path.exists(log):
     return ""
-  with open(os.path.join(tmp, logs[-1])) as f:
+  with open(log) as f:
     return "".join(f.readlines()[-15:])
 
 
-def _plan_total() -> float | None:
-  """The plan's estimate of the whole :medium comparison with --jobs 4 (seconds), via its
-  --dry_run line."""
-  out = subprocess.run(
-    [sys.executable, "experiments/run_comparison.py", "--size", "medium", "--out",
-     tempfile.mkdtemp(), "--jobs", "4", "--noise_runs", "--dry_run"],
-    cwd=ROOT, capture_output=True, text=True,
-  ).stdout  # fmt: skip
-  import re
+def _plan_total(plan) -> float:
+  """The plan's estimate of the whole comparison at its size with --jobs 4 and the noise runs
+  (seconds), as its --dry_run prints it."""
+  from camrep.comparison import launch as launch_lib
 
-  m = re.search(r"estimated (?:(\d+)h)?(?:(\d+)m)?(\d+)s", out)
-  if not m:
-    return None
-  h, mi, s = (int(x) if x else 0 for x in m.groups())
-  return 3600 * h + 60 * mi + s
+  launch = launch_lib.make_launch(
+    plan,
+    tempfile.mkdtemp(prefix="gpu_report_plan_"),
+    settings=launch_lib.SETTINGS,
+    noise_kinds=("lowdim", "mlp", "convdraw"),
+  )
+  return launch_lib.remaining_s(launch, at_once=4)
 
 
 def run_phase(phase: str, args) -> dict:
@@ -443,6 +453,8 @@ def run_phase(phase: str, args) -> dict:
     return phase_step(args)
   if phase == "profile":
     return phase_profile(args)
+  if phase == "host":
+    return phase_host(args)
   if phase == "medium":
     return phase_medium(args)
   return phase_e2e(args, E2E_CONFIGS[phase])
@@ -465,7 +477,7 @@ def _spread(s: dict, fmt: str, scale: float = 1.0) -> str:
 
 def render_markdown(phases: dict[str, dict]) -> str:
   """The report from the phase results present."""
-  lines = ["# camrep on a GPU (experiments/gpu_report.py)", "", *how_to_run()]
+  lines = ["# camrep on a GPU (python -m camrep.bench.gpu_report)", "", *how_to_run()]
   env = phases.get("env")
   lines += ["## Device and versions", ""]
   if env and "error" not in env:
@@ -478,7 +490,7 @@ def render_markdown(phases: dict[str, dict]) -> str:
     ]
   else:
     lines.append(f"- not measured{': ' + env['error'] if env else ''}")
-  lines += ["", f"Last GPU figures before this report ({H100_LAST}).", ""]
+  lines.append("")
 
   step = phases.get("step")
   lines += ["## Paper-size GQN step alone", ""]
@@ -492,7 +504,7 @@ def render_markdown(phases: dict[str, dict]) -> str:
       "fraction of peak | goal s/step | compile s |",
       "|---|---|---|---|---|---|---|---|---|",
     ]
-    for d in ("float32", "bfloat16"):
+    for d in [d for d in ("float32", "bfloat16") if d in step]:
       r = step[d]
       goal = GOALS[d]
       met = "met" if r["sec"]["median"] <= goal else "not met"
@@ -522,11 +534,25 @@ def render_markdown(phases: dict[str, dict]) -> str:
   else:
     lines += [f"Not measured{': ' + prof['error'] if prof else ''}.", ""]
 
+  host = phases.get("host")
+  lines += ["## The host's time a step (the loop with the step and renderer stubbed)", ""]
+  if host and "error" not in host:
+    met = "met" if host["host_ms_per_step"] <= HOST_GOAL_MS else "not met"
+    lines += [
+      f"`{host['config']}`, {host['layout']} of {host['image_size']} px, {host['steps']} steps "
+      f"on {host['cpu_cores']} CPU cores: {host['steps_per_s']:.1f} steps/s, "
+      f"{host['host_ms_per_step']:.2f} ms a step (goal <= {HOST_GOAL_MS:g} ms: {met}; "
+      f"{1e3 * host['cpu_s_per_step']:.2f} ms of this process's CPU time a step).",
+      "",
+    ]
+  else:
+    lines += [f"Not measured{': ' + host['error'] if host else ''}.", ""]
+
   lines += [
     "## End to end (batches rendered on the device, and a prepared dataset)",
     "",
-    "Steps/s of the train loop as `camrep.synthesis.train` runs it, against the step alone "
-    "(the faster of two timings); ETA of the config's total steps at that rate (goal for GQN: "
+    "Steps/s of the train loop as `camrep.synthesis.train` runs it (metrics read at log steps "
+    "only), against the step alone (the faster of two timings); ETA of the config's total steps at that rate (goal for GQN: "
     "ratio >= 0.9, 1M steps in under 5 hours).",
     "",
     "| config | step alone steps/s | render one call batches/s | prepared batches/s | end to end, "
@@ -562,7 +588,7 @@ def render_markdown(phases: dict[str, dict]) -> str:
   lines += ["## The :medium comparison: measured against the plan", ""]
   if med and "error" not in med:
     lines += [
-      'Plan: `experiments/run_comparison.py` `PLANS["medium"]` (derived, not measured). '
+      "Plan: camrep/comparison/plans.toml, size medium (derived, not measured). "
       f"Its estimate of the whole comparison with --jobs 4: {_fmt_s(med['plan_total_s_jobs4'])}.",
       "",
       "| run | measured | projected full run | plan | measured / plan | exit |",
@@ -619,8 +645,10 @@ def _parse(argv):
   p.add_argument("--out", default=os.environ.get("OUT") or "gpu_report", help="report folder")
   p.add_argument("--merge", nargs="*", default=[], help="folders of earlier calls' phase files")
   p.add_argument("--dry_run", action="store_true", help="print the plan and the commands")
-  p.add_argument("--variant", default="", help="config variant: '' (paper size) or smoke (CPU)")
-  p.add_argument("--budget_s", type=float, default=470, help="seconds for all phases of a call")
+  p.add_argument("--variant", default="", help="config variant: '' (paper size) or smoke (a check)")
+  p.add_argument(
+    "--budget_s", type=float, default=None, help="seconds for all phases (470; smoke 1200)"
+  )
   p.add_argument("--steps", type=int, default=30, help="timed steps per timing")
   p.add_argument("--rounds", type=int, default=3, help="step phase: rounds of (peak, steps)")
   p.add_argument("--allow_cpu", action="store_true", help="run paper-size phases without a GPU")
@@ -630,9 +658,11 @@ def _parse(argv):
   bad = set(phases) - set(PHASES)
   if bad:
     p.error(f"unknown phases {sorted(bad)}; choose from {', '.join(PHASES)} or all")
-  if args.variant not in ("", "smoke"):
+  if args.variant not in ("", SMOKE):
     p.error(f"--variant must be '' or smoke, got {args.variant!r}")
   args.phases = list(phases)
+  if args.budget_s is None:
+    args.budget_s = 1200.0 if args.variant == SMOKE else 470.0
   return args
 
 
@@ -657,39 +687,52 @@ def main(argv=None) -> int:
   os.makedirs(args.out, exist_ok=True)
   if args.child:
     return _child(args)
-  if args.phases and args.variant != "smoke" and not args.allow_cpu:
+  if args.phases and args.variant != SMOKE and not args.allow_cpu:
     import jax
 
     if jax.devices()[0].platform == "cpu":
       print("no GPU here: paper-size phases are for a GPU (--variant smoke checks the code)")
       return 2
   env = {**os.environ, "XLA_PYTHON_CLIENT_PREALLOCATE": "false", "PYTHONUNBUFFERED": "1"}
-  env["PYTHONPATH"] = os.pathsep.join(x for x in (ROOT, env.get("PYTHONPATH", "")) if x)
+  if args.variant == SMOKE:  # a check of the code: compile fast, each program once
+    env.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
+    env.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(args.out, "jax_cache"))
+    env.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
   deadline = time.perf_counter() + args.budget_s
+  failed = []
   for phase in args.phases:
     left = deadline - time.perf_counter()
     path = os.path.join(args.out, f"gpu_report_{phase}.json")
+    if os.path.exists(path):  # an earlier call's result must not stand for this one's
+      os.remove(path)
     if left < 30:
       with open(path, "w") as f:
         json.dump({"error": f"not run: the call's {args.budget_s:.0f} s budget was spent"}, f)
       continue
     print(f"=== phase {phase} ({left:.0f} s left)", flush=True)
-    argv = [sys.executable, os.path.abspath(__file__), "--child", phase, "--out", args.out]
+    argv = [sys.executable, "-m", "camrep.bench.gpu_report", "--child", phase, "--out", args.out]
     argv += ["--variant", args.variant, "--steps", str(args.steps), "--rounds", str(args.rounds)]
     argv += ["--budget_s", str(left)]
     t0 = time.perf_counter()
     try:
-      subprocess.run(argv, env=env, timeout=left, check=False)
+      subprocess.run(argv, env=env, timeout=left, check=False, cwd=ROOT)
     except subprocess.TimeoutExpired:
       with open(path, "w") as f:
         json.dump({"error": f"timed out after {left:.0f} s"}, f)
     if not os.path.exists(path):
       with open(path, "w") as f:
         json.dump({"error": "the phase's process died without a result (memory?)"}, f)
+    with open(path) as f:
+      error = json.load(f).get("error")
+    if error:
+      failed.append(f"{phase} ({error})")
     print(f"=== phase {phase}: {time.perf_counter() - t0:.0f} s", flush=True)
   phases = load_phases([*args.merge, args.out])
   write_report(args.out, phases)
   print(render_markdown(phases))
+  if failed:
+    print(f"error: {len(failed)} phases failed: {'; '.join(failed)}", file=sys.stderr, flush=True)
+    return 1
   return 0
 
 

@@ -64,8 +64,10 @@ batches rendered on demand in one call per batch; "config" is the config's own d
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
-import importlib.util
+import importlib
+import os
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -75,6 +77,8 @@ import grain
 import jax
 import numpy as np
 
+from camrep import configs
+from camrep.bench import host as host_lib
 from camrep.data import pipeline, procedural, sources, storage
 
 WIDTHS = {"paper": 1.0, "quick": 0.125}
@@ -159,12 +163,13 @@ class _Steps:
 
 
 def load_config(spec: str):
-  """`path/to/config.py[:arg]` -> the config file's `get_config(arg)` (as `--config` does)."""
-  path, _, arg = spec.partition(":")
-  module_spec = importlib.util.spec_from_file_location("bench_config", path)
-  module = importlib.util.module_from_spec(module_spec)
-  module_spec.loader.exec_module(module)
-  return module.get_config(arg or None)
+  """`configs/NAME.py[:arg]` or `NAME[:arg]`, NAME an installed config (`camrep.configs.NAMES`)
+  -> its `get_config(arg)`, as `--config` gives it."""
+  file, _, arg = spec.partition(":")
+  name = os.path.splitext(os.path.basename(file))[0]
+  if name not in configs.NAMES:
+    raise ValueError(f"{spec}: name one of the installed configs {', '.join(configs.NAMES)}")
+  return importlib.import_module(f"camrep.configs.{name}").get_config(arg or None)
 
 
 def _rate(run: Callable[[int], object], steps: int) -> float:
@@ -184,10 +189,12 @@ def input_bound(
   prepared_scenes: int = 64,
   pipeline_steps: int | None = None,
   per_scene: bool = True,
+  stub: bool = False,
 ) -> dict[str, float]:
   """Step alone, input pipelines alone and the end-to-end loop for one config (see the module
   docstring). Prints one line per measurement; returns steps/s (or batches/s) by row name.
-  `per_scene=False` leaves out the old per-scene renderer row (a compile and S calls a batch)."""
+  `per_scene=False` leaves out the old per-scene renderer row (a compile and S calls a batch);
+  `stub` times the data paths with a near-free step (`host.stub_step`) instead of the model's."""
   import jax
   import jax.numpy as jnp
 
@@ -209,15 +216,22 @@ def input_bound(
     f"config data path: {'memory' if d.in_memory else 'render'}",
     flush=True,
   )
-  model = components.make_model(config, components.num_train_scenes(own))
-  tx = step_lib.make_optimizers(config)
   init_key, keys = step_lib.root_keys(config)
-  keys3 = ("image", "pose", "scene")
-  b0 = own.batch(0)
-  batch = {k: jnp.asarray(b0[k]) for k in keys3}
-  state = jax.jit(lambda k, b: step_lib.create_train_state(k, model, tx, b))(init_key, batch)
-  state = step_lib.replicate(state, n_dev)
-  p_step = step_lib.make_p_train_step(model, tx, pose_steps=config.optax.pose_steps)
+  # The step alone runs on a batch as the loop's batches come (device arrays laid out for the
+  # pmapped step), so that the loops below reuse its compiled program.
+  config.total_steps = max(int(config.total_steps), steps + 2)  # batches enough for the loops
+  with contextlib.closing(components.device_batches(config, own, 0)) as first:
+    batch = next(first)
+  if stub:
+    p_step, state = host_lib.stub_step(n_dev)
+  else:
+    model = components.make_model(config, components.num_train_scenes(own))
+    tx = step_lib.make_optimizers(config)
+    b0 = own.batch(0)
+    init = {k: jnp.asarray(b0[k]) for k in ("image", "pose", "scene")}
+    state = jax.jit(lambda k, b: step_lib.create_train_state(k, model, tx, b))(init_key, init)
+    state = step_lib.replicate(state, n_dev)
+    p_step = step_lib.make_p_train_step(model, tx, pose_steps=config.optax.pose_steps)
   out: dict[str, float] = {}
 
   def one_step(_):
@@ -235,15 +249,18 @@ def input_bound(
     out[label] = rate
     print(f"{label:>22}: {rate:7.3f} batches/s  {rate * images:8.1f} images/s", flush=True)
 
+  def ready(pipe):  # a batch, waited for where it was made (the renderer may run on the device)
+    return lambda k: jax.block_until_ready(pipe.batch(k)["image"])
+
   pipes = {}
   rows = (("render, per scene", False), ("render, one call", True))
   for label, one_call in rows if per_scene else rows[1:]:
     pipes[label] = pipeline.render_pipeline(family, "train", pcfg, one_call=one_call)
-    show(label, _rate(pipes[label].batch, pipeline_steps))
+    show(label, _rate(ready(pipes[label]), pipeline_steps))
   pipes["render"] = pipes["render, one call"]
   if d.in_memory:
     pipes["memory"] = own
-    show("memory", _rate(own.batch, pipeline_steps))
+    show("memory", _rate(ready(own), pipeline_steps))
   pipes["config"] = own
   tmp = None
   if ("prepared" in e2e or prepared_scenes > 0) and hasattr(family.config, "num_train_scenes"):
@@ -256,22 +273,15 @@ def input_bound(
     storage.prepare(small, tmp.name, progress=False)
     print(f"prepare {n_scenes} scenes of the family: {time.perf_counter() - t0:.1f} s", flush=True)
     pipes["prepared"] = pipeline.tfds_pipeline(tmp.name, small.name, "train", pcfg)
-    show("prepared", _rate(pipes["prepared"].batch, pipeline_steps))
+    show("prepared", _rate(ready(pipes["prepared"]), pipeline_steps))
 
   def end_to_end(pipe) -> float:
     nonlocal state
-    host = pipe.iterator(start_step=0, num_steps=steps + 2)
-    it = pipeline.prefetch_to_device(host, int(d.get("device_prefetch", 2)))
-    for k in range(steps + 2):
-      if k == 2:  # after two warm-up steps (grain threads started, prefetch queue full)
-        t0 = time.perf_counter()
-      b = next(it)
-      state, m = p_step(state, {key: b[key] for key in keys3}, keys)
-      float(np.asarray(m["train/finite"])[0])
-    rate = steps / (time.perf_counter() - t0)
-    if hasattr(host, "close"):
-      host.close()
-    return rate
+    with contextlib.closing(components.device_batches(config, pipe, 0)) as batches:
+      rates, state = host_lib.train_loop(
+        p_step, state, batches, keys, steps=steps, log_every=int(config.log_every_steps)
+      )
+    return rates["steps_per_s"]
 
   for name in e2e:
     out[f"e2e {name}"] = end_to_end(pipes[name])
@@ -292,6 +302,19 @@ def input_bound(
   first = out[f"e2e {e2e[0]}"]
   print(f"input_bound_ratio={first / out['step']:.4f} steps_per_s={first:.4f}", flush=True)
   return out
+
+
+def stubbed(config, *, steps: int) -> dict:
+  """The host's time a step: the config's loop with the step and renderer stubbed
+  (`camrep.bench.host.host_loop`); prints one line."""
+  r = host_lib.host_loop(config, steps=steps)
+  print(
+    f"loop with the step and renderer stubbed ({r['layout']} of {r['image_size']} px): "
+    f"{r['steps_per_s']:.1f} steps/s, host {r['host_ms_per_step']:.2f} ms a step "
+    f"(CPU {1e3 * r['cpu_s_per_step']:.2f} ms of this process)",
+    flush=True,
+  )
+  return r
 
 
 def main() -> None:
@@ -318,11 +341,19 @@ def main() -> None:
     "--e2e", default="render", help="--config: end-to-end data paths (render, config, prepared)"
   )
   parser.add_argument("--prepared_scenes", type=int, default=64, help="--config: 0 to skip")
+  parser.add_argument(
+    "--stubbed",
+    action="store_true",
+    help="--config: only the loop with the step and renderer stubbed (the host's time a step)",
+  )
   args = parser.parse_args()
   if args.config:
     config = load_config(args.config)
     if args.width:
       config.model.width = WIDTHS.get(args.width) or float(args.width)
+    if args.stubbed:
+      stubbed(config, steps=args.bench_steps)
+      return
     input_bound(
       config,
       steps=args.bench_steps,

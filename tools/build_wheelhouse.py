@@ -17,15 +17,15 @@ The lent GPU machines (nvidia-h100-x1, nvidia-h200; /work/.library/device/KINDS.
 
 Commands (repository root):
 
-  .venv/bin/python experiments/build_wheelhouse.py --list    # what it would fetch, no download
-  .venv/bin/python experiments/build_wheelhouse.py           # -> .whl/ (a few MB, ~1 min)
+  .venv/bin/python tools/build_wheelhouse.py --list    # what it would fetch, no download
+  .venv/bin/python tools/build_wheelhouse.py           # -> .whl/ (a few MB, ~1 min)
 
 On the GPU machine (the device tool's `run` with carry=[".whl"]), before camrep is imported:
 
   python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
     --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site:$PWD
 
-`experiments/gpu_report.py --dry_run` prints both, with the report's commands.
+`python -m camrep.bench.gpu_report --dry_run` prints both, with the report's commands.
 """
 
 from __future__ import annotations
@@ -42,6 +42,8 @@ from collections.abc import Iterable
 
 from packaging.markers import default_environment
 from packaging.requirements import Requirement
+
+from camrep.bench import gpu_report
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -175,11 +177,8 @@ def wheel_command(name: str, version: str, out: str) -> list[str]:
 
 
 def install_command(wheelhouse: str = ".whl") -> str:
-  """The GPU machine's command that installs the carried wheels (prefix of every report call)."""
-  return (
-    "python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade "
-    f"--target /tmp/site {wheelhouse}/*.whl && export PYTHONPATH=/tmp/site:$PWD"
-  )
+  """The GPU machine's command that installs the carried wheels (the GPU report's own)."""
+  return gpu_report.install_command(wheelhouse)
 
 
 def ensure_ignored(out: str) -> None:

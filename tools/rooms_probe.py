@@ -1,4 +1,5 @@
-"""Issue 18's probe: does the GQN rooms regressor fit its training rooms, and does it use context?
+"""Probes the rooms regression: does the GQN rooms regressor fit its training rooms, and does it
+use its context views?
 
 Trains the quick gqn regressor (configs/regression.py:quick, quat target) on a rooms set of the
 given look and prints, every 2 x --every steps, the x / y / yaw errors and the spread of the
@@ -7,7 +8,7 @@ views of the training rooms, new rooms, and the first two again with another roo
 (the context ablation). --norm swaps the regressor's AdaIN for a variant (film: gamma x + beta;
 in_noctx / none_noctx: no context at all).
 
-  .venv/bin/python experiments/rooms_probe.py --rooms 400 --test_rooms 32 --steps 1000 \
+  .venv/bin/python tools/rooms_probe.py --rooms 400 --test_rooms 32 --steps 1000 \
       --every 125 --wall tinted --lr 1e-3
 """
 

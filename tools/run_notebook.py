@@ -7,7 +7,7 @@ become "display_data" outputs with their PNG (a stub `IPython.display` is instal
 cells run); an exception becomes an "error" output and stops the run. Refresh the quickstart's
 committed outputs after changing it (about a minute on 2 CPU cores):
 
-  .venv/bin/python experiments/run_notebook.py experiments/quickstart.ipynb --write
+  .venv/bin/python tools/run_notebook.py notebooks/quickstart.ipynb --write
 
 tests/test_notebook.py runs the notebook the same way and checks the committed outputs are of
 the same kinds as a fresh run's.
