@@ -54,7 +54,7 @@ def column_report(runs: str, column: str, error: str, threshold: float) -> str:
   for rep, (sel, e) in mats.items():
     rows.append(
       [
-        C.ROW_LABELS.get(rep, rep),
+        C.row_label(rep, [sel.setting]),
         C.fmt_lr(sel.lr),
         f"{e.mean():.3g}",
         f"{np.median(e, axis=1).mean():.3g}",

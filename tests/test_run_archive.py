@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import signal
+import time
 
 import numpy as np
 import pytest
@@ -86,11 +87,12 @@ def fake_run_job(rc, ran, score=lambda lr: 1.0 + abs(np.log10(lr) + 3)):
     with open(os.path.join(wd, "metrics.jsonl"), "w") as f:
       f.write('{"step": 1, "eval/psnr": 15.0}\n')
     if job.name.startswith("synthesis_"):
-      os.makedirs(os.path.join(wd, "checkpoints", "8"))
-      os.makedirs(os.path.join(wd, "tensorboard"))
+      step = int(_flag(job.argv, "total_steps"))  # complete at its cap
+      os.makedirs(os.path.join(wd, "checkpoints", str(step)), exist_ok=True)
+      os.makedirs(os.path.join(wd, "tensorboard"), exist_ok=True)
       open(os.path.join(wd, "tensorboard", "events.out"), "w").close()
       with open(os.path.join(wd, "final_metrics.json"), "w") as f:
-        json.dump({"complete": True, "step": 8}, f)
+        json.dump({"complete": True, "step": step}, f)
       return True
     lr, seed = float(_flag(job.argv, "optax.lr")), int(_flag(job.argv, "seed"))
     val = score(lr)
@@ -317,3 +319,148 @@ def test_a_launch_of_one_setting_keeps_the_other_columns_of_table1(rc, tmp_path)
   runs = table1.argv[table1.argv.index("--runs") + 1 : table1.argv.index("--out")]
   assert runs == [str(tmp_path / "regression" / s / "*" / "*") for s in ("car", "gqn", "gibson")]
   assert not [j for j in rc.table_jobs(str(tmp_path), "py", ["seven_scenes"]) if j.name == "table1"]
+
+
+# ------------------------------------------------------------------------ a shared folder
+
+
+def test_a_second_launch_on_one_dir_is_refused_naming_the_first(rc, tmp_path, capsys):
+  """One launch per DIR: the second refuses before it writes anything, naming the first's PID,
+  host and start time; a dry run (read only) is not refused."""
+  from camrep.runtime import workdir as workdir_lib
+
+  out = tmp_path / "out"
+  first = workdir_lib.WorkdirLock(str(out.mkdir() or out))
+  first.acquire()
+  try:
+    assert rc.main(_args(out, tmp_path / "archive")) == 2
+    err = capsys.readouterr().err
+    h = first.holder()
+    assert err.startswith("error: --out") and "in use by another launch" in err
+    assert f"PID {h['pid']} on {h['host']}, started {h['started']}" in err
+    assert sorted(os.listdir(out)) == [".camrep.lock"]  # nothing restored or started
+    assert rc.main([*_args(out, tmp_path / "archive"), "--dry_run"]) == 0
+  finally:
+    first.release()
+
+
+def test_an_archive_or_out_that_is_a_file_is_an_error_line(rc, tmp_path, capsys):
+  f = tmp_path / "file"
+  f.write_text("x")
+  for args in (_args(tmp_path / "out", f), _args(f, tmp_path / "archive")):
+    with pytest.raises(SystemExit) as e:
+      rc.main(args)
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "error:" in err and f"{f} is a file, not a directory" in err and "Traceback" not in err
+
+
+def test_a_cut_record_in_the_archive_is_trained_again_not_taken_as_finished(
+  rc, tmp_path, monkeypatch, capsys
+):
+  """A truncated results.json (an archive of whole run files) or run.json in the archive is
+  named and not restored: the run trains again and its archived record is rewritten whole."""
+  ran = []
+  monkeypatch.setattr(launch, "run_job", fake_run_job(rc, ran))
+  archive = tmp_path / "archive"
+  assert rc.execute(rc.make(_args(tmp_path / "first", archive))) == []
+  cut = archive / "regression" / "car" / "quat" / "lr3e-3_seed0" / "run.json"
+  cut.write_text(cut.read_text()[:50])
+  old = archive / "regression" / "car" / "quat" / "lr3e-4_seed0"  # an old-style archived run
+  (old / "run.json").unlink()
+  (old / "results.json").write_text('{"setting": "car", "representation": "qu')
+  ran.clear()
+  assert rc.main(_args(tmp_path / "second", archive)) == 0
+  captured = capsys.readouterr()
+  for path in (cut, old / "results.json"):
+    assert f"the archived run {path.parent} cannot be read ({path}" in captured.out
+  assert sorted(ran) == ["regression_car_quat_lr3e-3_seed0", "regression_car_quat_lr3e-4_seed0"]
+  assert runs.load(str(cut.parent)).results["lr"] == 3e-3  # rewritten whole
+
+
+@pytest.mark.parametrize("damaged", ["results.json", "errors_test.npz"])
+def test_a_damaged_run_in_dir_is_named_set_aside_and_trained_again(
+  rc, tmp_path, monkeypatch, capsys, damaged
+):
+  """A finished-looking run whose results.json is cut or whose errors_test.npz is damaged is not
+  finished: the launch names the file, keeps it as <name>.damaged and trains the run again."""
+  ran = []
+  monkeypatch.setattr(launch, "run_job", fake_run_job(rc, ran))
+  out = tmp_path / "out"
+  args = [a for a in _args(out, tmp_path / "archive") if a != "--archive"][:-1]
+  assert rc.main(args) == 0
+  wd = out / "regression" / "car" / "ours" / "lr1e-3_seed1"
+  path = wd / damaged
+  path.write_bytes(path.read_bytes()[:30])
+  ran.clear()
+  assert rc.main(args) == 0
+  text = capsys.readouterr().out
+  assert ran == ["regression_car_ours_lr1e-3_seed1"]
+  assert f"warning: {path} cannot be read" in text and f"kept as {path}.damaged" in text
+  assert (wd / f"{damaged}.damaged").exists() and runs.damage(str(wd)) is None
+
+
+@pytest.mark.parametrize("resumes", [False, True])
+def test_the_stop_message_says_what_becomes_of_the_runs_in_flight(
+  rc, tmp_path, monkeypatch, capsys, resumes
+):
+  """Stopped mid-launch, the message says that view-synthesis runs resume from their last
+  checkpoint, and that regression runs start over, or resume where the regression stage keeps
+  checkpoints (its config has a checkpoint period)."""
+
+  def run_job(job, logs, *, index, env=None):
+    raise KeyboardInterrupt
+
+  monkeypatch.setattr(launch, "run_job", run_job)
+  monkeypatch.setattr(command, "regression_resumes", lambda: resumes)
+  assert rc.main(_args(tmp_path / "out", tmp_path / "archive")) == 130
+  err = capsys.readouterr().err
+  assert "view-synthesis runs resume from their last checkpoint" in err
+  want = "regression runs resume from their last checkpoint" if resumes else "start over"
+  assert want in err and "resume from their last checkpoints when" not in err
+  assert not (tmp_path / "out" / ".camrep.lock").exists()  # the lock is given back
+
+
+def test_a_stopped_launch_lets_its_run_save_before_it_ends(rc, tmp_path, monkeypatch):
+  """Ctrl-C while a run is in flight: the run gets SIGTERM (a training run saves a checkpoint
+  and exits) and the launcher waits for it, instead of killing it at once."""
+  import sys
+
+  saved = tmp_path / "saved"
+  code = (
+    "import signal, sys, time\n"
+    f"signal.signal(signal.SIGTERM, lambda *a: (open({str(saved)!r}, 'w').close(), sys.exit(0)))\n"
+    "print('ready', flush=True)\n"
+    "time.sleep(30)\n"
+  )
+  job = launch.Job("slow", [sys.executable, "-c", code], "", 1)
+  calls = []
+  real_wait = launch._wait
+
+  def wait(proc, timeout):  # Ctrl-C arrives once the run has set up its handler
+    calls.append(1)
+    if len(calls) == 3:
+      raise KeyboardInterrupt
+    return real_wait(proc, timeout)
+
+  monkeypatch.setattr(launch, "_wait", wait)
+  with pytest.raises(KeyboardInterrupt):
+    launch.run_job(job, str(tmp_path / "logs"), index="1/1")
+  assert saved.exists()
+
+
+def test_a_stop_with_several_jobs_at_once_starts_no_other_job(rc, tmp_path, monkeypatch):
+  started = []
+
+  def run_job(job, logs, *, index, env=None):
+    started.append(job.name)
+    if job.name == "a":
+      raise KeyboardInterrupt
+    time.sleep(0.3)  # a run in flight when the stop comes
+    return True
+
+  monkeypatch.setattr(launch, "run_job", run_job)
+  jobs = [launch.Job(n, ["true"], "", 1) for n in ("a", "b", "c", "d", "e")]
+  with pytest.raises(KeyboardInterrupt):
+    launch.run_jobs(jobs, str(tmp_path / "logs"), at_once=2, label="")
+  assert "a" in started and len(started) <= 2

@@ -105,8 +105,14 @@ def restore(archive: str, out: str, *, warn=print) -> int:
 
 
 def set_aside(damaged: runs.DamagedRun) -> str:
-  """Renames a damaged file to <name>.damaged (kept for a look, read by nothing); returns the
-  new path."""
-  new = damaged.path + ".damaged"
-  shutil.move(damaged.path, new)
-  return new
+  """Renames a damaged file to <name>.damaged (kept for a look, read by nothing); a damaged
+  errors file takes its results.json with it, so the run counts as not finished. Returns the
+  damaged file's new path."""
+  moved = [damaged.path]
+  name = os.path.basename(damaged.path)
+  if name.startswith("errors_") and name.endswith(".npz"):
+    moved.append(os.path.join(os.path.dirname(damaged.path), runs.RESULTS_FILE))
+  for path in moved:
+    if os.path.exists(path):
+      shutil.move(path, path + ".damaged")
+  return damaged.path + ".damaged"

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from camrep.comparison import archive as archive_lib
 from camrep.comparison import launch as launch_lib
 from camrep.comparison import plan as plan_lib
+from camrep.regression import tables
 from camrep.runtime import cli
 from camrep.runtime import progress as progress_lib
 from camrep.runtime import workdir as workdir_lib
@@ -248,10 +249,11 @@ def run(argv: Sequence[str] | None = None) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-  """`run` with a user's mistake on one `error:` line (exit 2)."""
+  """`run` with a user's mistake (or runs that cannot be tabled: two runs of one cell) on one
+  `error:` line (exit 2)."""
   try:
     return run(argv)
-  except cli.UsageError as e:
+  except (cli.UsageError, tables.TableError) as e:
     sys.stdout.flush()
     print(f"error: {e}", file=sys.stderr, flush=True)
     return 2

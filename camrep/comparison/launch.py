@@ -642,6 +642,7 @@ def run_jobs(
   each other); none is started after `deadline` (time.monotonic(); --max_hours), and those are
   not failures (a rerun starts them); `after(job)` is called once a job has succeeded (the
   archive's copy). Returns the names of those that failed."""
+  _STOPPING.clear()  # a stop ends the launch (KeyboardInterrupt): a new batch of jobs starts clear
   set_aside_damaged(jobs)
   todo = [j for j in jobs if not j.done()]
   for j in jobs:
@@ -656,7 +657,11 @@ def run_jobs(
     if deadline is not None and time.monotonic() > deadline:
       print(f"[{label}{i + 1}/{len(todo)}] {job.name}: not started (--max_hours)", flush=True)
       return None
-    ok = run_job(job, logs, index=f"{label}{i + 1}/{len(todo)}", env=env)
+    try:
+      ok = run_job(job, logs, index=f"{label}{i + 1}/{len(todo)}", env=env)
+    except KeyboardInterrupt:  # a stop in any job: none other starts
+      _STOPPING.set()
+      raise
     if ok and after is not None:
       after(job)
     return None if ok else job.name
@@ -759,7 +764,6 @@ def execute(launch: Launch, *, at_once: int = 1, deadline: float | None = None) 
     The names of the jobs that failed.
   """
   L = launch
-  _STOPPING.clear()
   logs = os.path.join(L.out, "logs")
   after = (lambda job: archive_lib.sync(L.out, L.archive)) if L.archive else None
   kw = dict(at_once=at_once, deadline=deadline, after=after)

@@ -28,7 +28,7 @@ import dataclasses
 import math
 import os
 import sys
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -59,6 +59,39 @@ ROW_LABELS = {
   "mlp": "MLP embedding",
   "ours": "ours",
 }
+
+# Row labels of a table whose columns are all of one rotation-only setting (the car's view sphere,
+# and its captures): the encoding applied to that setting's own pose columns (`pose_columns`).
+ORIENTATION_LABELS = {
+  "euler": "Euler angles of ({poses})",
+  "axis_angle": "axis-angle of ({poses})",
+  "sincos": "sin, cos of ({poses})",
+  "quat": "q of ({poses})",
+  "logq": "log q of ({poses})",
+  "rot6d": "6-D Gram-Schmidt of ({poses}) [Zhou 2019; not in the paper]",
+  "svd9d": "9-D SVD of ({poses}) [Levinson 2020; not in the paper]",
+}
+
+
+def pose_columns(setting: str) -> tuple[str, ...]:
+  """The pose columns of a setting's data (its procedural family's, which its real readers and
+  captures share): car ("azimuth", "polar"), rooms and area ("x", "y", "yaw"), ..."""
+  from camrep.data import sources
+
+  return tuple(sources.get(sources.procedural_of(setting)).pose_names)
+
+
+def row_label(rep: str, settings: Iterable[str]) -> str:
+  """A representation's row label in a table of the columns of `settings`: the paper's
+  "(x, y, q)" style where a setting has positions; the encoding of the setting's own pose
+  columns where every column is one rotation-only setting ("q of (azimuth, polar)")."""
+  poses = {pose_columns(s) for s in settings}
+  if len(poses) == 1 and rep in ORIENTATION_LABELS:
+    (cols,) = poses
+    if not {"x", "y", "z"} & set(cols):
+      return ORIENTATION_LABELS[rep].format(poses=", ".join(cols))
+  return ROW_LABELS.get(rep, rep)
+
 
 PAPER_TABLE1: dict[str, dict[str, float]] = {
   "euler": dict(
@@ -353,9 +386,11 @@ def grid_edge(sel: Selection) -> str:
   return ""
 
 
-def selection_table(selections: Mapping[tuple[str, str], Selection]) -> str:
+def selection_table(
+  selections: Mapping[tuple[str, str], Selection], label: Callable[[str], str] | None = None
+) -> str:
   """The learning-rate choice of every group: grid with scores, chosen lr, whether it is at the
-  grid's edge, seeds, sizes."""
+  grid's edge, seeds, sizes; `label(representation)` names its row (default: ROW_LABELS)."""
   rows = []
   for (setting, rep), sel in selections.items():
     grid = ", ".join(
@@ -366,7 +401,7 @@ def selection_table(selections: Mapping[tuple[str, str], Selection]) -> str:
     rows.append(
       [
         setting,
-        ROW_LABELS.get(rep, rep),
+        label(rep) if label else ROW_LABELS.get(rep, rep),
         grid,
         fmt_lr(sel.lr),
         f"**{grid_edge(sel)}**" if grid_edge(sel) else "no",
