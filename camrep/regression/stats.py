@@ -86,17 +86,33 @@ def _draws(rng, n_seeds: int, groups: Sequence[np.ndarray]):
   return seeds, views
 
 
-def _resampled_stats(mats, scenes, reduce, b, seed) -> np.ndarray:
-  """(b, len(mats)) statistics of the matrices under shared seed and view draws."""
+def _resampled_stats(mats, scenes, reduce, b, seed, chunk: int = 250) -> np.ndarray:
+  """(b, len(mats)) statistics of the matrices under shared seed and view draws.
+
+  The draws come one replicate at a time, in `_draws`' order (the intervals depend on it); the
+  statistics of `chunk` replicates are computed at once. Each replicate's views are drawn group
+  by group, keeping each group's count, so its groups are the same blocks of columns in every
+  replicate: per block, `reduce` over the block (the (S, n_g) rows, as `statistic` reduces
+  them), the mean over blocks, then over seeds: the values `statistic` gives, bit for bit.
+  """
   rng = np.random.default_rng(seed)
   n_seeds, n = mats[0].shape
   groups = _groups(scenes, n)
-  sc = None if scenes is None else np.asarray(scenes)
+  draws = [_draws(rng, n_seeds, groups) for _ in range(b)]
+  seeds = np.stack([d[0] for d in draws])  # (b, S)
+  views = np.stack([d[1] for d in draws])  # (b, N), group by group
+  bounds = np.cumsum([0, *(len(g) for g in groups)])
+  fn = {"mean": np.mean, "median": np.median}[reduce]
   out = np.empty((b, len(mats)))
-  for i in range(b):
-    s, v = _draws(rng, n_seeds, groups)
+  for lo in range(0, b, chunk):
+    s, v = seeds[lo : lo + chunk], views[lo : lo + chunk]
     for j, m in enumerate(mats):
-      out[i, j] = statistic(m[np.ix_(s, v)], None if sc is None else sc[v], reduce)
+      m = np.asarray(m, np.float64)
+      sub = m[s[:, :, None], v[:, None, :]]  # (c, S, N)
+      per = np.stack(
+        [fn(sub[:, :, a:z], axis=2) for a, z in zip(bounds[:-1], bounds[1:], strict=True)]
+      )
+      out[lo : lo + chunk, j] = np.mean(np.mean(per, axis=0), axis=1)
   return out
 
 
