@@ -51,8 +51,13 @@ LABELS = {
 def load(workdir: str) -> dict:
   """{label, kind, setting, step, alphas, psnr, ssim, psnr_std, num_images} of one run (its
   workdir, or its compact record)."""
-  run = runs_lib.load(workdir)
-  config, noise = run.config, run.noise
+  if os.path.isfile(os.path.join(workdir, runs_lib.RECORD_FILE)):
+    run = runs_lib.load(workdir)
+    config, noise = run.config, run.noise
+  else:  # a workdir, finished or not
+    config = runs_lib.read_json(os.path.join(workdir, "config.json"))
+    path = os.path.join(workdir, evaluate.EVAL_SUBDIR, "noise.json")
+    noise = runs_lib.read_json(path) if os.path.exists(path) else None
   if noise is None:
     path = os.path.join(workdir, evaluate.EVAL_SUBDIR, "noise.json")
     raise FileNotFoundError(

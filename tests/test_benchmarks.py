@@ -70,3 +70,58 @@ def test_regression_timer_builds_and_times_the_learners_step(tmp_path):
   assert len(times) == 2 and all(t > 0 for t in times)
   default = bts.RegressionTimer("gqn", variant="smoke", cache_dir=str(tmp_path))
   assert default.weight_grad == "by_channels"
+
+
+class _Flag:
+  """A metric that counts how often the host reads it."""
+
+  reads = 0
+
+  def __array__(self, dtype=None, copy=None):
+    _Flag.reads += 1
+    return np.ones((1,), dtype or np.float32)
+
+
+def test_the_timed_loop_reads_the_metrics_only_at_log_steps():
+  """`host.train_loop` runs the loop as camrep.synthesis.train does: no per-step host read, so
+  the device runs ahead; the metrics of the steps since the last read are checked at log steps."""
+  from camrep.bench import host
+
+  _Flag.reads = 0
+  calls = []
+
+  def step(state, batch, key):
+    calls.append(batch)
+    return state + 1, {"train/finite": _Flag()}
+
+  batches = iter(range(100))
+  rates, state = host.train_loop(step, 0, batches, None, steps=10, warmup=2, log_every=4)
+  assert len(calls) == 12 and state == 12
+  assert _Flag.reads == 10  # steps 4, 8 and the last (10) read their pending metrics, once each
+  assert rates["steps_per_s"] > 0 and rates["cpu_s_per_step"] >= 0
+
+
+def test_the_host_loop_stubs_the_renderer_and_the_step():
+  """The loop at a config's layout with the renderer and the step stubbed: no image is
+  rendered, the batches have the layout's shape, and the host's time a step is measured."""
+  from camrep.bench import host
+  from camrep.configs import gqn
+  from camrep.data import pipeline as pipeline_lib
+
+  config = gqn.get_config("smoke")
+  config.data.in_memory = False
+  rendered = []
+  real = pipeline_lib.RenderPipeline.batch
+
+  def batch(self, step):
+    b = real(self, step)
+    rendered.append(int(np.asarray(b["image"]).max()))
+    return b
+
+  pipeline_lib.RenderPipeline.batch = batch
+  try:
+    r = host.host_loop(config, steps=3, warmup=1)
+  finally:
+    pipeline_lib.RenderPipeline.batch = real
+  assert rendered and max(rendered) == 0  # blank images: the stub, not the renderer
+  assert r["layout"] == "1 x 2 scenes x 4 views" and r["host_ms_per_step"] > 0

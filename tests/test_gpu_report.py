@@ -187,3 +187,37 @@ def test_trace_summary_groups_events_by_process(tmp_path):
   assert top["/device:GPU:0"] == [["conv_kernel", 6.0, 2.0], ["gemm", 1.0, 1.0]]
   assert top["/host:CPU"] == [["PjitFunction", 0.25, 0.5]]
   assert gr.summarise_trace(str(tmp_path / "plugins" / "none"), steps=1) == {}
+
+
+def test_a_failed_phase_makes_the_report_exit_1_and_an_old_result_never_stands_in(
+  tmp_path, monkeypatch, capsys
+):
+  """A phase whose child records an error (or dies without a result) fails the call: exit 1 and
+  an `error:` line naming it; a result file left by an earlier call is not taken for its own."""
+  gr = gpu_report
+  (tmp_path / "gpu_report_host.json").write_text(json.dumps({"steps_per_s": 1.0}))  # stale
+
+  def child(argv, **kw):
+    phase = argv[argv.index("--child") + 1]
+    if phase == "env":
+      (tmp_path / "gpu_report_env.json").write_text(json.dumps({"error": "AttributeError: x"}))
+
+  monkeypatch.setattr(gr.subprocess, "run", child)
+  assert gr.main(["--phases", "env,host", "--variant", "smoke", "--out", str(tmp_path)]) == 1
+  err = capsys.readouterr().err
+  assert "error: 2 phases failed: env (AttributeError: x); host (the phase's process died" in err
+  assert "error" in json.loads((tmp_path / "gpu_report_host.json").read_text())
+
+
+def test_every_phase_runs_at_smoke_without_an_error(tmp_path):
+  """`--phases all --variant smoke`: every phase's code runs on the CPU, with the library's
+  smallest configs (one compilation of each program, shared through a compilation cache)."""
+  r = _run(*REPORT, "--phases", "all", "--variant", "smoke", "--out", str(tmp_path), timeout=1500)
+  assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
+  for phase in gpu_report.PHASES:
+    result = json.loads((tmp_path / f"gpu_report_{phase}.json").read_text())
+    assert "error" not in result, (phase, result)
+  host = json.loads((tmp_path / "gpu_report_host.json").read_text())
+  assert host["host_ms_per_step"] > 0 and host["layout"] == "1 x 2 scenes x 4 views"
+  report = (tmp_path / "gpu_report.md").read_text()
+  assert "## The host's time a step" in report and "Not measured" not in report

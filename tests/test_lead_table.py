@@ -1,6 +1,6 @@
 """Tests of experiments/lead_table.py: the one table a reader cites (per column: the paper's
 numbers, camrep's best hand-designed and ours with intervals, the paired ratio and a verdict),
-on fabricated runs laid out as experiments/run_comparison.py writes them."""
+on fabricated runs laid out as `python -m camrep.comparison` writes them."""
 
 from __future__ import annotations
 
@@ -142,7 +142,7 @@ def test_view_failures_counts_gross_failures_and_views_everyone_fails(tmp_path, 
     if r.startswith("| ") and "---" not in r
   }
   assert rows["ours"][0] == "1e-3" and rows["ours"][3] == "1, 1, 1"
-  assert rows["(x, y, q)"][3] == "3, 3, 3"
+  assert rows["q of (azimuth, polar)"][3] == "3, 3, 3"
   assert abs(float(rows["ours"][2]) - 2.0) < 0.3  # the median ignores the failed view
   assert "40 test views" in text and "more than 45 wrong: 0" in text
   assert vf.main(["--runs", root, "--columns", "nothing"]) == 2

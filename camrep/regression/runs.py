@@ -113,7 +113,12 @@ class Run:
     return self._errors
 
 
-def _read_json(path: str) -> Any:
+def read_json(path: str) -> Any:
+  """A JSON file.
+
+  Raises:
+    DamagedRun: it cannot be read (naming it).
+  """
   try:
     with open(path, encoding="utf-8") as f:
       return json.load(f)
@@ -193,22 +198,22 @@ def from_workdir(workdir: str, *, arrays: bool = False) -> Run:
   if kind is None:
     raise FileNotFoundError(f"{workdir} holds no {RESULTS_FILE}, {FINAL_FILE} or {RECORD_FILE}")
   config_path = os.path.join(workdir, CONFIG_FILE)
-  config = _pick(_read_json(config_path)) if os.path.isfile(config_path) else {}
+  config = _pick(read_json(config_path)) if os.path.isfile(config_path) else {}
   results = final = noise = None
   errors, efile = None, ""
   if kind == "regression":
-    results = _read_json(os.path.join(workdir, RESULTS_FILE))
+    results = read_json(os.path.join(workdir, RESULTS_FILE))
     if not isinstance(results, dict) or not {"setting", "representation"} <= set(results):
       raise DamagedRun(os.path.join(workdir, RESULTS_FILE), "is not a run's results")
     efile = errors_file(workdir, results)
     if arrays and os.path.isfile(efile):
       errors = read_errors(efile)
   else:
-    final = _read_json(os.path.join(workdir, FINAL_FILE))
+    final = read_json(os.path.join(workdir, FINAL_FILE))
     if not isinstance(final, dict):
       raise DamagedRun(os.path.join(workdir, FINAL_FILE), "is not a run's final record")
     if os.path.isfile(os.path.join(workdir, NOISE_FILE)):
-      noise = _read_json(os.path.join(workdir, NOISE_FILE))
+      noise = read_json(os.path.join(workdir, NOISE_FILE))
   return Run(workdir, kind, config, results, final, noise, _curves(workdir), errors, efile)
 
 
@@ -227,7 +232,7 @@ def _decode(x: Mapping[str, Any], path: str) -> np.ndarray:
 
 
 def _from_record(path: str) -> Run:
-  r = _read_json(path)
+  r = read_json(path)
   if (
     not isinstance(r, dict)
     or r.get("format") != FORMAT
