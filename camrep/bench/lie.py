@@ -13,8 +13,8 @@ method (float32) and against scipy.linalg.expm in float64, and the relative erro
 against expm's gradient. Ratios are to expm, measured in the same run.
 
 Command:
-  .venv/bin/python experiments/bench_lie.py            # ~1-2 min on 2 CPU cores
-  .venv/bin/python experiments/bench_lie.py --pairs 100 --repeats 1   # smoke
+  .venv/bin/python -m camrep.bench.lie            # ~1-2 min on 2 CPU cores
+  .venv/bin/python -m camrep.bench.lie --pairs 100 --repeats 1   # smoke
 """
 
 from __future__ import annotations
@@ -111,7 +111,7 @@ def run(pairs=4000, n_blocks=6, s=16, dmax=1.0, repeats=7, seed=0):
 def apply_ratio(
   pairs=4000, n_blocks=6, s=16, dmax=1.0, rounds=9, calls=15, seed=0, constants=False
 ):
-  """spectral / taylor2 time on the apply workload, timed interleaved (issue 30).
+  """spectral / taylor2 time on the apply workload, timed interleaved.
 
   Workload: y = exp(B dl_p) v0_p for `pairs` shifts of one generator of `n_blocks` blocks of
   s x s (`lie.apply_exp_blocks`), float32: the forward alone, plus the gradient in B of

@@ -20,30 +20,35 @@ line `workers: N (default for this machine's C usable cores: M)` gives the confi
 
 Command (about 30 s on a 2-core CPU; no accelerator needed):
 
-  .venv/bin/python experiments/bench_pipeline.py [--source rooms|stand_in] [--scenes 64]
+  .venv/bin/python -m camrep.bench.pipeline [--source rooms|stand_in] [--scenes 64]
       [--views 10] [--size 64] [--scenes_per_device 8] [--views_per_scene 9] [--steps 30]
       [--threads 2] [--workers 2]
 
 On a 16-core GPU machine, the paper's batch layout (30 scenes x 9 views) against worker counts:
 
-  python experiments/bench_pipeline.py --scenes 256 --scenes_per_device 30 --views_per_scene 9 \
+  python -m camrep.bench.pipeline --scenes 256 --scenes_per_device 30 --views_per_scene 9 \
       --steps 60 --workers 4,8,14
 
-Is training input-bound? (issue 14, part 5) With `--config=FILE[:VARIANT]` the run instead
+Is training input-bound? With `--config=FILE[:VARIANT]` the run instead
 measures, for that config's GQN-style train step and batch layout:
 
-  step alone      the pmapped train step on one batch reused (steps/s, images/s)
+  step alone      the pmapped train step on one batch reused (steps/s, images/s; the batch laid
+                  out as the loop's, so the loops reuse its compiled program)
   render, per scene / one call
                   the procedural family rendered on demand (`RenderPipeline.batch(k)` in the
-                  caller): the old path (one `render_views` call per scene) and the one-call
-                  path (`family.render_batch`, issue 14 part 1)
+                  caller, each batch's images waited for where they were made): the old path
+                  (one `render_views` call per scene) and the one-call path
+                  (`family.render_batch`)
   memory          the config's in-memory pipeline, when it has one (`data.in_memory`)
   prepared        a prepared-on-disk copy of `--prepared_scenes` of the family's scenes
                   (`storage.prepare` + `tfds_pipeline`, `batch(k)` in the caller)
   end to end      for each data path of `--e2e`: the train loop as `camrep.synthesis.train`
-                  runs it (`pipe.iterator` with the config's reader threads and prefetch, then
-                  `prefetch_to_device`, the step, a read of the step's finite flag), steps/s
-                  and the ratio to the step alone
+                  runs it (`camrep.bench.host.train_loop`: `components.device_batches`, the
+                  step, the metrics read only at log steps), steps/s and the ratio to the step
+                  alone
+
+With `--stubbed` (and `--config`) only the loop with the step and the renderer stubbed runs
+(`camrep.bench.host.host_loop`): the host's time a step at the config's layout.
 
 The step alone is timed again after the end-to-end loops, and the faster of its two runs is the
 reference (the machine's load changes during a run; this gives the lower ratio). The last line
@@ -51,11 +56,11 @@ is `input_bound_ratio=<end-to-end steps/s / step-alone steps/s>
 steps_per_s=<end-to-end steps/s>` for the first path of `--e2e` (default "render": procedural
 batches rendered on demand in one call per batch; "config" is the config's own data path).
 
-  .venv/bin/python experiments/bench_pipeline.py --config=configs/gqn.py:quick \
+  .venv/bin/python -m camrep.bench.pipeline --config=configs/gqn.py:quick \
       --e2e render,config,prepared                                            # ~4 min
-  .venv/bin/python experiments/bench_pipeline.py --config=configs/gqn.py:quick --width=paper \
+  .venv/bin/python -m camrep.bench.pipeline --config=configs/gqn.py:quick --width=paper \
       --bench_steps 3 --e2e render,config --prepared_scenes 0     # paper width, ~6 min
-  python experiments/bench_pipeline.py --config=configs/gqn.py --width=paper --bench_steps 30 \
+  python -m camrep.bench.pipeline --config=configs/gqn.py --width=paper --bench_steps 30 \
       --e2e render,prepared --prepared_scenes 256
       (on a GPU: the paper-size step, 30 scenes x 9 views; on the 2-core CPU its end-to-end loop
       needs more memory than the shared machine had)

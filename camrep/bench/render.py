@@ -1,8 +1,8 @@
 """Benchmarks the procedural renderer: images per second per family and image size.
 
 Command (about 30 s on an idle 2-core CPU; each line compiles once, then times --batches calls):
-  python experiments/bench_render.py
-  python experiments/bench_render.py --families rooms object --sizes 64 128 --batches 5
+  python -m camrep.bench.render
+  python -m camrep.bench.render --families rooms object --sizes 64 128 --batches 5
 
 Each family renders its own first scene (small preset) at its batch size and supersample 1.
 By default: every family at its default image size (rooms 64, others 128) plus rooms at 128.
