@@ -115,3 +115,27 @@ def test_bands_group_view_synthesis_runs_by_pose_input(tmp_path, capsys):
   assert "| step | grid (2 runs) | lowdim (1 runs) | convdraw (1 runs) |" in text
   assert "| 120 | 21 [20, 22] | 18 [18, 18] | 19 [19, 19] |" in text
   capsys.readouterr()
+
+
+def test_a_compact_record_gives_the_same_curves_and_groups(tmp_path):
+  """A finished run's record (run.json: its eval/ curves and config essentials) is read like its
+  workdir: the same tables under --bands."""
+  from camrep.regression import runs
+
+  key = "eval/validation/score"
+  rows = [{"step": 50, "train/loss": 1.0}, {"step": 100, key: 0.5}, {"step": 200, key: 0.25}]
+  wd = _workdir(tmp_path, "full", "ours", rows)
+  (tmp_path / "full" / "results.json").write_text(
+    json.dumps({"setting": "car", "representation": "ours", "lr": 1e-3, "seed": 0})
+  )
+  rec = tmp_path / "rec"
+  runs.write_record(runs.compact(runs.load(wd)), str(rec / runs.RECORD_FILE))
+  md = {}
+  for name, run in (("full", wd), ("rec", str(rec))):
+    md[name] = tmp_path / f"{name}.md"
+    args = ["--bands", "--runs", run, "--metrics", key, "--md", str(md[name])]
+    assert learning_curve.main(args) == 0
+  text = md["rec"].read_text()
+  assert "| 200 | 0.25 [0.25, 0.25] |" in text and "ours (1 runs)" in text
+  assert text.replace(str(rec), "X") == md["full"].read_text().replace(wd, "X")
+  assert learning_curve.curve(str(rec), "train/loss") == {}  # records keep eval/ metrics only
