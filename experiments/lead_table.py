@@ -4,7 +4,7 @@ representation and ours with 95% intervals, their paired ratio and a verdict.
   python experiments/lead_table.py --runs results/converge/regression --out results/lead_table.md
 
 Reads the regression runs under RUNS (RUNS/<column>/<representation>/<lr>_seed<k>/, as
-experiments/run_comparison.py lays them out: columns car, gqn (rooms), gibson (area),
+`python -m camrep.comparison` lays them out: columns car, gqn (rooms), gibson (area),
 seven_scenes and the capture columns car_<NAME>); per column, each representation's learning
 rate is chosen on the validation split (`camrep.regression.tables.select`). One row per table
 column of the paper (car rotation; rooms and area x, y, yaw; 7-Scenes median position and
@@ -101,9 +101,10 @@ def capture_columns(runs: str) -> tuple[Column, ...]:
   )
 
 
-def row(runs: str, column: Column) -> list[str] | None:
+def row(runs: str, column: Column, *, skip_damaged: bool = False) -> list[str] | None:
   """The lead table's row of `column`, or None when RUNS holds none of its runs."""
-  results = C.load_results([os.path.join(runs, column.directory, "*", "*")])
+  pattern = os.path.join(runs, column.directory, "*", "*")
+  results = C.load_results([pattern], skip_damaged=skip_damaged)
   if not results:
     return None
   by_rep = {rep: sel for (_, rep), sel in C.select(results).items()}
@@ -169,9 +170,16 @@ HEADER = (
 )
 
 
-def build(runs: str) -> str:
-  """The Markdown table of every column RUNS holds runs of."""
-  rows = [r for c in COLUMNS + capture_columns(runs) if (r := row(runs, c)) is not None]
+def build(runs: str, *, skip_damaged: bool = False) -> str:
+  """The Markdown table of every column RUNS holds runs of.
+
+  Raises:
+    FileNotFoundError: RUNS holds no regression runs.
+    camrep.regression.tables.TableError: a damaged run (without skip_damaged), or two runs of
+      one cell.
+  """
+  columns = COLUMNS + capture_columns(runs)
+  rows = [r for c in columns if (r := row(runs, c, skip_damaged=skip_damaged)) is not None]
   if not rows:
     raise FileNotFoundError(f"no regression runs with results.json under {runs}")
   return C.markdown_table(HEADER, rows)
@@ -181,10 +189,15 @@ def main(argv: Sequence[str] | None = None) -> int:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument("--runs", required=True, help="RUNS: <column>/<representation>/<run> dirs")
   p.add_argument("--out", default="", help="Markdown file to write (default: print only)")
+  p.add_argument(
+    "--skip_damaged",
+    action="store_true",
+    help="skip runs whose files cannot be read (named on stderr) instead of refusing",
+  )
   args = p.parse_args(argv)
   try:
-    text = build(args.runs)
-  except FileNotFoundError as e:
+    text = build(args.runs, skip_damaged=args.skip_damaged)
+  except (FileNotFoundError, C.TableError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
   print(text)

@@ -5,26 +5,27 @@ evaluation errors every `eval_every_steps` (validation only, or every split with
 `--config.evals.periodic_all_splits=True`), a view-synthesis run logs eval/psnr. Each metric
 given becomes one table (a column per run) and one panel of the figure (PNG and a PDF twin);
 runs with the same label (the same representation and lr: seeds) are drawn as their mean with a
-band from their minimum to their maximum. Issue 16 part 2: the rooms regression's curve for
-"ours" and the quaternion,
+band from their minimum to their maximum. E.g. the rooms regression's curves for "ours" and the
+quaternion,
 
   .venv/bin/python experiments/learning_curve.py --runs /tmp/curve/ours /tmp/curve/quat \\
       --metrics eval/test_scenes/yaw_error_deg_mean,eval/test_scenes/x_error_mean \\
       --png /tmp/curve/rooms.png --md /tmp/curve/rooms.md
 
-With --bands (issue 29: a figure per setting, one line per representation, bands over seeds),
-runs are grouped by representation (their config.json; view-synthesis runs by their pose input,
-rep.kind, e.g. the eval/psnr curves of a converge launch's synthesis seeds): each table cell is "mean [min, max]" over
-the group's runs logged at that step, and the figure draws each group's mean with its min and
-max as a band, e.g. the validation curves
-(`eval/validation/score`, logged by every regression run with eval_every_steps) of a converge
-launch's chosen runs:
+With --bands (a figure per setting, one line per representation, bands over seeds), runs are
+grouped by representation (their config; view-synthesis runs by their pose input, rep.kind, e.g.
+the eval/psnr curves of a converge launch's synthesis seeds): each table cell is "mean [min, max]"
+over the group's runs logged at that step, and the figure draws each group's mean with its min
+and max as a band, e.g. the validation curves (`eval/validation/score`, logged by every
+regression run with eval_every_steps) of a converge launch's chosen runs:
 
   .venv/bin/python experiments/learning_curve.py --bands --metrics eval/validation/score \
       --runs DIR/regression/car/*/lr1e-3_seed* --png /tmp/curve_car.png --md /tmp/curve_car.md
 
-Reads workdirs only (config.json, metrics.jsonl); seconds. `--from_md` redraws the figure from
-tables this script wrote, when the workdirs are gone (how results/quick/curve_rooms.png was redrawn):
+Reads finished or running workdirs (config.json, metrics.jsonl) or a finished run's compact
+record (run.json, which keeps the `eval/` metrics; `camrep.regression.runs`); seconds.
+`--from_md` redraws the figure from tables this script wrote, when the workdirs are gone (how
+results/quick/curve_rooms.png was redrawn):
 
   .venv/bin/python experiments/learning_curve.py --from_md results/quick/curve_rooms.md \\
       --png results/quick/curve_rooms.png
@@ -39,14 +40,27 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from camrep.regression import runs as runs_lib
 from camrep.runtime import plots, writers
 from camrep.runtime import workdir as workdir_lib
+
+
+def _record(workdir: str) -> runs_lib.Run | None:
+  """The run's compact record, when the directory holds one (None: read its files)."""
+  if os.path.isfile(os.path.join(workdir, runs_lib.RECORD_FILE)):
+    return runs_lib.load(workdir)
+  return None
+
+
+def _config(workdir: str) -> dict | None:
+  record = _record(workdir)
+  return record.config if record is not None else workdir_lib.read_stored_config(workdir)
 
 
 def label_of(workdir: str) -> str:
   """A run's label: its regression representation and lr, else its directory name."""
   name = os.path.basename(os.path.normpath(workdir))
-  config = workdir_lib.read_stored_config(workdir)
+  config = _config(workdir)
   if config is None:
     return name
   rep = config.get("representation")
@@ -57,7 +71,11 @@ def label_of(workdir: str) -> str:
 
 
 def curve(workdir: str, metric: str) -> dict[int, float]:
-  """{step: value} of `metric` in the workdir's metrics.jsonl (the last value of each step)."""
+  """{step: value} of `metric` in the workdir's metrics.jsonl (the last value of each step), or
+  in its record."""
+  record = _record(workdir)
+  if record is not None:
+    return dict(record.curves.get(metric, {}))
   out = {}
   for row in writers.read_metrics(workdir):
     if metric in row:
@@ -126,7 +144,7 @@ def from_markdown(text: str) -> tuple[list[str], list[str], list[list[dict[int, 
 def group_of(workdir: str) -> str:
   """A run's group under --bands: its representation (regression); a view-synthesis run's pose
   input (rep.kind: grid, lowdim, mlp; "convdraw" for GQN's generator); else its label."""
-  config = workdir_lib.read_stored_config(workdir) or {}
+  config = _config(workdir) or {}
   if config.get("representation"):
     return config["representation"]
   if config.get("model", {}).get("kind") == "convdraw":
@@ -191,8 +209,8 @@ def main(argv=None) -> int:
     print("error: give one label per run", file=sys.stderr)
     return 2
   for w in args.runs:
-    if not os.path.exists(os.path.join(w, "metrics.jsonl")):
-      print(f"error: {w} has no metrics.jsonl", file=sys.stderr)
+    if not any(os.path.exists(os.path.join(w, f)) for f in ("metrics.jsonl", runs_lib.RECORD_FILE)):
+      print(f"error: {w} has no metrics.jsonl or {runs_lib.RECORD_FILE}", file=sys.stderr)
       return 2
   labels = labels or [label_of(w) for w in args.runs]
   # --bands: runs of one representation are one line (their mean, a band from min to max).

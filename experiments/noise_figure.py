@@ -9,7 +9,7 @@ grid (camrep.synthesis.evaluate.grid_betas), alpha = 0 .. 0.3. A run of configs/
 (GQN's own generator, noised on its 7-D pose vector) is drawn as a fourth kind, "convdraw".
 
 Runs are grouped by pose input (each run's config.json: rep.kind, or model.kind "convdraw");
-runs of one pose input are its seeds (issue 29 part 5: 3 seeds per pose input). Writes the figure
+runs of one pose input are its seeds (3 seeds per pose input at converge size). Writes the figure
 (PSNR and SSIM against alpha, one curve per pose input: the mean over its seeds with a band from
 their minimum to their maximum, the band being the range of 3 seeds rather than an interval a few
 seeds cannot support) as a PNG and a PDF twin, and a Markdown table (one column per pose input,
@@ -19,7 +19,8 @@ each cell "mean [min, max]" over its seeds, a plain value for one run):
       /tmp/cmp/synthesis/gqn_lowdim /tmp/cmp/synthesis/gqn_mlp \\
       --png /tmp/noise_gqn.png --md /tmp/noise_gqn.md
 
-Reads workdirs only (config.json, eval/noise.json); seconds. `--from_md` redraws a figure from a
+Reads workdirs (config.json, eval/noise.json) or finished runs' compact records (run.json,
+`camrep.regression.runs`); seconds. `--from_md` redraws a figure from a
 table this script wrote, when the workdirs are gone (how results/quick/noise_*.png were redrawn):
 
   .venv/bin/python experiments/noise_figure.py --from_md results/quick/noise_gqn.md \\
@@ -29,13 +30,13 @@ table this script wrote, when the workdirs are gone (how results/quick/noise_*.p
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import re
 import sys
 
 import numpy as np
 
+from camrep.regression import runs as runs_lib
 from camrep.runtime import plots
 from camrep.synthesis import evaluate
 
@@ -48,22 +49,27 @@ LABELS = {
 
 
 def load(workdir: str) -> dict:
-  """{label, kind, setting, step, alphas, psnr, ssim, psnr_std, num_images} of one run."""
-  with open(os.path.join(workdir, "config.json"), encoding="utf-8") as f:
-    config = json.load(f)
-  path = os.path.join(workdir, evaluate.EVAL_SUBDIR, "noise.json")
-  if not os.path.exists(path):
+  """{label, kind, setting, step, alphas, psnr, ssim, psnr_std, num_images} of one run (its
+  workdir, or its compact record)."""
+  if os.path.isfile(os.path.join(workdir, runs_lib.RECORD_FILE)):
+    run = runs_lib.load(workdir)
+    config, noise = run.config, run.noise
+  else:  # a workdir, finished or not
+    config = runs_lib.read_json(os.path.join(workdir, "config.json"))
+    path = os.path.join(workdir, evaluate.EVAL_SUBDIR, "noise.json")
+    try:
+      noise = runs_lib.read_json(path) if os.path.exists(path) else None
+    except runs_lib.DamagedRun as e:
+      raise ValueError(
+        f"{path} is not valid JSON ({e.__cause__}), e.g. cut by a full disk: run `python -m "
+        f"camrep.synthesis.evaluate --workdir={workdir} --what=noise` again"
+      ) from None
+  if noise is None:
+    path = os.path.join(workdir, evaluate.EVAL_SUBDIR, "noise.json")
     raise FileNotFoundError(
-      f"{path} does not exist: run `python -m camrep.synthesis.evaluate --workdir={workdir} --what=noise`"
+      f"{path} does not exist: run `python -m camrep.synthesis.evaluate --workdir={workdir} "
+      "--what=noise`"
     )
-  try:
-    with open(path, encoding="utf-8") as f:
-      noise = json.load(f)
-  except json.JSONDecodeError as e:
-    raise ValueError(
-      f"{path} is not valid JSON ({e}), e.g. cut by a full disk: run `python -m "
-      f"camrep.synthesis.evaluate --workdir={workdir} --what=noise` again"
-    ) from None
   kind = config.get("rep", {}).get("kind", "grid")
   if config.get("model", {}).get("kind", "decoder") == "convdraw":  # GQN itself
     kind = "convdraw"
@@ -192,27 +198,27 @@ def main(argv=None) -> int:
     p.error("give --runs and --md, or --from_md")
   if args.from_md:
     with open(args.from_md, encoding="utf-8") as f:
-      runs = from_markdown(f.read(), args.setting)
+      loaded = from_markdown(f.read(), args.setting)
     os.makedirs(os.path.dirname(os.path.abspath(args.png)), exist_ok=True)
-    print("wrote", ", ".join(plots.save(figure(runs, args.column), args.png)))
+    print("wrote", ", ".join(plots.save(figure(loaded, args.column), args.png)))
     return 0
   try:
-    runs = [load(w) for w in args.runs]
+    loaded = [load(w) for w in args.runs]
   except (FileNotFoundError, ValueError) as e:
     print(f"error: {e}", file=sys.stderr)
     return 2
-  if len({r["setting"] for r in runs}) != 1:
+  if len({r["setting"] for r in loaded}) != 1:
     print("error: the runs are of different settings", file=sys.stderr)
     return 2
-  if any(not np.allclose(r["alphas"], runs[0]["alphas"]) for r in runs):
+  if any(not np.allclose(r["alphas"], loaded[0]["alphas"]) for r in loaded):
     print("error: the runs' noise levels differ", file=sys.stderr)
     return 2
   for path in (args.png, args.md):
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-  table = markdown(runs)
+  table = markdown(loaded)
   with open(args.md, "w", encoding="utf-8") as f:
     f.write(table)
-  figures = plots.save(figure(runs, args.column), args.png)
+  figures = plots.save(figure(loaded, args.column), args.png)
   print(table)
   print(f"wrote {', '.join(figures)} and {args.md}")
   return 0

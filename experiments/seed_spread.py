@@ -1,5 +1,5 @@
-"""Where the spread of "ours" over seeds comes from (issue 29 part 3): the view-synthesis seed and
-the regression seed, crossed.
+"""Where the spread of "ours" over seeds comes from: the view-synthesis seed and the regression
+seed, crossed.
 
 "ours" has two stages, each with its own seed: the view-synthesis run that learns the pose system
 (`--config.seed=j`, DIR/synthesis/<column>_seed<j>) and the regression run on its frozen system
@@ -7,12 +7,14 @@ the regression seed, crossed.
 every synthesis seed,
 
   python -m camrep.regression --config=configs/regression.py:car,quick \\
-      --config.representation=ours --config.seed=K --config.synthesis_workdir=DIR/synthesis/car_seedJ \\
-      --config.optax.lr=LR --workdir=DIR/crossed/car/lrLR_seedK_synJ ...
+      --config.representation=ours --config.seed=K --config.optax.lr=LR \\
+      --config.synthesis_workdir=DIR/synthesis/car_seedJ \\
+      --workdir=DIR/crossed/car/lrLR_seedK_synJ ...
 
-(`experiments/run_comparison.py --size converge --crossed car` plans them), separates the two.
-This script reads such runs (results.json, config.json, errors_<test split>.npz; each run's
-synthesis seed is its synthesis workdir's config.json "seed") and writes a Markdown table:
+(`python -m camrep.comparison --size converge --crossed car` plans them), separates the two.
+This script reads such runs (results.json, config.json, errors_<test split>.npz, or their compact
+records run.json; each run's synthesis seed is its synthesis workdir's config.json "seed", else the
+_seed<k> of its name) and writes a Markdown table:
 
 - the test error (the setting's statistic of `--error` over the test views: the mean; 7-Scenes:
   per-scene medians averaged over scenes) of every (synthesis seed, regression seed) cell, with
@@ -99,8 +101,7 @@ def load_runs(patterns: Sequence[str], error: str = "") -> list[dict[str, Any]]:
       raise ValueError(f"{wd} is a {r.get('representation')!r} run, not 'ours'")
     syn = r.get("representation_params", {}).get("workdir")
     if not syn:
-      config = workdir_lib.read_stored_config(wd) or {}
-      syn = config.get("synthesis_workdir")
+      syn = r["_run"].config.get("synthesis_workdir")
     if not syn:
       raise ValueError(f"{wd}: results.json names no synthesis workdir")
     err = error or DEFAULT_ERROR[r["setting"]]

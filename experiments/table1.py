@@ -2,10 +2,11 @@
 
 Columns come from procedural families or from prepared real datasets (SRN cars, GQN, Gibson), as
 the runs' results.json record it; the data of each column is stated under the table. Reads the
-results.json files of `camrep.regression` runs (nothing else), groups them by
-(setting, representation), picks each group's learning rate on the validation errors
-(`camrep.regression.tables`: mean of error / paper-ours-error over the setting's columns, averaged over
-the seeds every lr has), and writes a Markdown file with
+results of `camrep.regression` runs (results.json and errors_<split>.npz, or their compact
+records run.json; nothing else), groups them by (setting, representation), picks each group's
+learning rate on the validation errors (`camrep.regression.tables`: mean of error /
+paper-ours-error over the setting's columns, averaged over the seeds every lr has), and writes a
+Markdown file with
 
   1. the measured table in the paper's layout: car mean rotation error (deg); rooms (GQN) mean
      |x|, |y| errors (scene units) and yaw error (deg); area (Gibson) mean |x|, |y| (m) and yaw
@@ -32,7 +33,7 @@ import os
 import sys
 from collections.abc import Sequence
 
-from camrep.regression import stats
+from camrep.regression import runs, stats
 from camrep.regression import tables as C
 
 SETTINGS = ("car", "gqn", "gibson")
@@ -56,11 +57,11 @@ def procedural_note(selections) -> str:
   return " Procedural columns: " + ", ".join(PROCEDURAL_COLUMNS[s] for s in procedural) + "."
 
 
-def comparison_cells(selections) -> list[str]:
+def comparison_cells(selections, columns) -> list[str]:
   """Per Table 1 column: ours against the column's best hand-designed representation (lowest
   mean test error at its chosen lr), paired on seeds and views (`stats.compare_runs`)."""
   cells = []
-  for _, _, setting, error in C.TABLE1_COLUMNS:
+  for _, _, setting, error in columns:
     ours = selections.get((setting, "ours"))
     means = {
       rep: C.seed_stats(sel.runs, error)[0] for (s, rep), sel in selections.items() if s == setting
@@ -77,14 +78,18 @@ def comparison_cells(selections) -> list[str]:
 def build(results: Sequence[dict]) -> str:
   """The Markdown document of Table 1 from results.json contents."""
   selections = {k: v for k, v in C.select(results).items() if k[0] in SETTINGS}
-  header = ["representation"] + [h for _, h, _, _ in C.TABLE1_COLUMNS]
+  # Only the columns with runs, each row labelled in those columns' pose terms.
+  shown = {k[0] for k in selections}
+  columns = [c for c in C.TABLE1_COLUMNS if c[2] in shown] or list(C.TABLE1_COLUMNS)
+  settings = sorted({c[2] for c in columns})
+  header = ["representation"] + [h for _, h, _, _ in columns]
   rows, paper_rows = [], []
   reps = [r for r in C.TABLE1_ROWS if any(k[1] == r for k in selections)]
   reps += sorted({k[1] for k in selections} - set(reps))
   intervals = 0
   for rep in reps:
-    row = [C.ROW_LABELS.get(rep, rep)]
-    for _, _, setting, error in C.TABLE1_COLUMNS:
+    row = [C.row_label(rep, settings)]
+    for _, _, setting, error in columns:
       sel = selections.get((setting, rep))
       iv = stats.cell_interval(sel.runs, error) if sel else None
       if iv is not None:
@@ -94,13 +99,13 @@ def build(results: Sequence[dict]) -> str:
         row.append(C.fmt_mean_std(*C.seed_stats(sel.runs, error)[:2]) if sel else "–")
     rows.append(row)
   if intervals:
-    rows.append(["ours / best hand-designed", *comparison_cells(selections)])
+    rows.append(["ours / best hand-designed", *comparison_cells(selections, columns)])
   for rep in C.TABLE1_ROWS:
     if rep not in C.PAPER_TABLE1:  # rot6d, svd9d: newer than the paper
       continue
     paper = C.PAPER_TABLE1[rep]
-    cells = [f"{paper[k]:g}" if k in paper else "–" for k, _, _, _ in C.TABLE1_COLUMNS]
-    paper_rows.append([C.ROW_LABELS[rep], *cells])
+    cells = [f"{paper[k]:g}" if k in paper else "–" for k, _, _, _ in columns]
+    paper_rows.append([C.row_label(rep, settings), *cells])
   seeds = sorted({len(s.runs) for s in selections.values()})
   variants = sorted({str(r.get("variant", "?")) for s in selections.values() for r in s.runs})
   runs = [r for s in selections.values() for r in s.runs]
@@ -135,7 +140,7 @@ def build(results: Sequence[dict]) -> str:
     "## Paper's Table 1 (for reference: real ShapeNet cars, GQN rooms and Gibson, paper-size "
     "training; not the data above)",
     "",
-    C.markdown_table(["representation"] + [h for _, h, _, _ in C.TABLE1_COLUMNS], paper_rows),
+    C.markdown_table(header, paper_rows),
     "",
     "MLP embedding: the supplement's car result. Baselines in the paper have one extra dense "
     "layer to equalise parameter counts (here too: `hparams.<setting>.baselines` in "
@@ -146,31 +151,40 @@ def build(results: Sequence[dict]) -> str:
     "Score = mean over the setting's columns of (validation error / the paper's error of "
     "ours), lower is better, averaged over the listed seeds.",
     "",
-    C.selection_table(selections),
+    C.selection_table(selections, lambda rep: C.row_label(rep, settings)),
     "",
   ]
   return "\n".join(text)
 
 
 def unfinished(patterns: Sequence[str]) -> list[str]:
-  """The run directories the patterns match that hold no results.json (the regression driver
-  writes it atomically, last: a killed or running run has none)."""
+  """The run directories the patterns match that hold no finished run (no results.json, which
+  the regression driver writes atomically, last, and no record run.json)."""
   dirs = {p for pattern in patterns for p in glob.glob(pattern) if os.path.isdir(p)}
-  return sorted(d for d in dirs if not os.path.isfile(os.path.join(d, C.RESULTS_FILE)))
+  return sorted(d for d in dirs if not runs.is_finished(d))
 
 
 def main(argv: Sequence[str] | None = None) -> int:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument("--runs", nargs="+", required=True, help="glob(s) of run dirs / results.json")
   p.add_argument("--out", required=True, help="Markdown file to write")
+  p.add_argument(
+    "--skip_damaged",
+    action="store_true",
+    help="skip runs whose files cannot be read (named on stderr) instead of refusing",
+  )
   args = p.parse_args(argv)
-  results = C.load_results(args.runs)
-  for run in unfinished(args.runs):
-    print(f"skipped {run}: no {C.RESULTS_FILE} (unfinished run)", file=sys.stderr)
-  if not results:
-    print(f"error: no results.json matches {args.runs}", file=sys.stderr)
+  try:
+    results = C.load_results(args.runs, skip_damaged=args.skip_damaged)
+    for run in unfinished(args.runs):
+      print(f"skipped {run}: no {C.RESULTS_FILE} (unfinished run)", file=sys.stderr)
+    if not results:
+      print(f"error: no results.json matches {args.runs}", file=sys.stderr)
+      return 2
+    text = build(results)
+  except C.TableError as e:
+    print(f"error: {e}", file=sys.stderr)
     return 2
-  text = build(results)
   os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
   with open(args.out, "w", encoding="utf-8") as f:
     f.write(text)

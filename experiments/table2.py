@@ -205,12 +205,22 @@ def main(argv: Sequence[str] | None = None) -> int:
   p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   p.add_argument("--runs", nargs="+", required=True, help="glob(s) of run dirs / results.json")
   p.add_argument("--out", required=True, help="Markdown file to write")
+  p.add_argument(
+    "--skip_damaged",
+    action="store_true",
+    help="skip runs whose files cannot be read (named on stderr) instead of refusing",
+  )
   args = p.parse_args(argv)
-  results = [r for r in C.load_results(args.runs) if r.get("setting") == "seven_scenes"]
-  if not results:
-    print(f"error: no seven_scenes results.json matches {args.runs}", file=sys.stderr)
+  try:
+    loaded = C.load_results(args.runs, skip_damaged=args.skip_damaged)
+    results = [r for r in loaded if r.get("setting") == "seven_scenes"]
+    if not results:
+      print(f"error: no seven_scenes results.json matches {args.runs}", file=sys.stderr)
+      return 2
+    text = build(results)
+  except C.TableError as e:
+    print(f"error: {e}", file=sys.stderr)
     return 2
-  text = build(results)
   os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
   with open(args.out, "w", encoding="utf-8") as f:
     f.write(text)

@@ -4,7 +4,7 @@
       --columns car_chair,car_ethiopianHead,car_moldGoldCape --out results/converge/view_failures.md
 
 Reads the regression runs under RUNS/<column>/<representation>/<lr>_seed<k>/ (as
-experiments/run_comparison.py lays them out), takes each representation at the learning rate
+`python -m camrep.comparison` lays them out), takes each representation at the learning rate
 chosen on the validation split (`camrep.regression.tables.select`, as the tables do) and prints,
 per column, one row per representation:
 
@@ -54,7 +54,7 @@ def column_report(runs: str, column: str, error: str, threshold: float) -> str:
   for rep, (sel, e) in mats.items():
     rows.append(
       [
-        C.ROW_LABELS.get(rep, rep),
+        C.row_label(rep, [sel.setting]),
         C.fmt_lr(sel.lr),
         f"{e.mean():.3g}",
         f"{np.median(e, axis=1).mean():.3g}",

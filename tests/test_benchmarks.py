@@ -1,11 +1,12 @@
-"""The measuring logic of the benchmark scripts (experiments/bench_*.py), on tiny or fake work."""
+"""The measuring logic of the benchmark scripts (`camrep.bench`), on tiny or fake work."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from tests.utils import load_experiment
+from camrep.bench import lie as bench_lie
+from camrep.bench import train_step as bench_train_step
 
 
 class _FakeTimer:
@@ -21,7 +22,7 @@ class _FakeTimer:
 
 
 def test_interleaved_divides_each_round_by_its_own_peak(monkeypatch):
-  bts = load_experiment("bench_train_step")
+  bts = bench_train_step
   order = []
   peaks = iter([100.0, 50.0, 20.0])
 
@@ -48,7 +49,6 @@ def test_interleaved_divides_each_round_by_its_own_peak(monkeypatch):
 
 
 def test_lie_apply_ratio_is_measured_per_round():
-  bench_lie = load_experiment("bench_lie")
   r = bench_lie.apply_ratio(pairs=16, n_blocks=2, s=4, rounds=2, calls=1)
   assert len(r["ratios"]) == len(r["taylor2"]) == len(r["spectral"]) == 2
   np.testing.assert_allclose(r["ratios"], np.array(r["spectral"]) / np.array(r["taylor2"]))
@@ -59,7 +59,7 @@ def test_lie_apply_ratio_is_measured_per_round():
 def test_regression_timer_builds_and_times_the_learners_step(tmp_path):
   """`RegressionTimer` builds the driver's training batch and step of a setting (GQN, :smoke) with
   the regressor's conv gradients replaced as asked, and times it."""
-  bts = load_experiment("bench_train_step")
+  bts = bench_train_step
   timer = bts.RegressionTimer(
     "gqn", variant="smoke", cache_dir=str(tmp_path), weight_grad="matmul", log=lambda *_: None
   )
@@ -70,3 +70,58 @@ def test_regression_timer_builds_and_times_the_learners_step(tmp_path):
   assert len(times) == 2 and all(t > 0 for t in times)
   default = bts.RegressionTimer("gqn", variant="smoke", cache_dir=str(tmp_path))
   assert default.weight_grad == "by_channels"
+
+
+class _Flag:
+  """A metric that counts how often the host reads it."""
+
+  reads = 0
+
+  def __array__(self, dtype=None, copy=None):
+    _Flag.reads += 1
+    return np.ones((1,), dtype or np.float32)
+
+
+def test_the_timed_loop_reads_the_metrics_only_at_log_steps():
+  """`host.train_loop` runs the loop as camrep.synthesis.train does: no per-step host read, so
+  the device runs ahead; the metrics of the steps since the last read are checked at log steps."""
+  from camrep.bench import host
+
+  _Flag.reads = 0
+  calls = []
+
+  def step(state, batch, key):
+    calls.append(batch)
+    return state + 1, {"train/finite": _Flag()}
+
+  batches = iter(range(100))
+  rates, state = host.train_loop(step, 0, batches, None, steps=10, warmup=2, log_every=4)
+  assert len(calls) == 12 and state == 12
+  assert _Flag.reads == 10  # steps 4, 8 and the last (10) read their pending metrics, once each
+  assert rates["steps_per_s"] > 0 and rates["cpu_s_per_step"] >= 0
+
+
+def test_the_host_loop_stubs_the_renderer_and_the_step():
+  """The loop at a config's layout with the renderer and the step stubbed: no image is
+  rendered, the batches have the layout's shape, and the host's time a step is measured."""
+  from camrep.bench import host
+  from camrep.configs import gqn
+  from camrep.data import pipeline as pipeline_lib
+
+  config = gqn.get_config("smoke")
+  config.data.in_memory = False
+  rendered = []
+  real = pipeline_lib.RenderPipeline.batch
+
+  def batch(self, step):
+    b = real(self, step)
+    rendered.append(int(np.asarray(b["image"]).max()))
+    return b
+
+  pipeline_lib.RenderPipeline.batch = batch
+  try:
+    r = host.host_loop(config, steps=3, warmup=1)
+  finally:
+    pipeline_lib.RenderPipeline.batch = real
+  assert rendered and max(rendered) == 0  # blank images: the stub, not the renderer
+  assert r["layout"] == "1 x 2 scenes x 4 views" and r["host_ms_per_step"] > 0

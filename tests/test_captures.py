@@ -34,7 +34,7 @@ from camrep.data.captures.cameras import (
 )
 from camrep.data.captures.collection import CaptureSource
 from camrep.data.errors import DataError
-from tests.utils import load_experiment
+from experiments import table1
 
 pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
@@ -824,7 +824,6 @@ def test_shared_capture_end_to_end(tmp_path):
     )
     with np.load(tmp_path / f"reg_{rep}" / "errors_test.npz") as z:
       assert set(z["scene_name"].tolist()) == {"ethiopianHead"} and len(z["scene_name"]) == 9
-  table1 = load_experiment("table1")
   text = table1.build([json.loads((tmp_path / f"reg_{x}" / "results.json").read_text())
                        for x in ("ours", "quat")])  # fmt: skip
   assert "Table 1: pose regression on real data" in text and "Procedural columns" not in text

@@ -22,7 +22,7 @@ from camrep.synthesis import components, heldout, restore, train
 from camrep.synthesis import evaluate as ev
 from camrep.synthesis import gram as gram_lib
 from camrep.synthesis import noise as noise_lib
-from tests.utils import load_experiment
+from experiments import noise_figure
 
 pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
@@ -215,7 +215,7 @@ def test_other_pose_inputs_train_and_take_noise(kind, tmp_path):
 
 def test_noise_figure_script(tmp_path):
   """experiments/noise_figure.py reads workdirs only and writes the figure and table."""
-  nf = load_experiment("noise_figure")
+  nf = noise_figure
   alphas = [0.0, 0.15, 0.3]
   runs = []
   for kind, psnr in (("grid", [20.0, 19.5, 19.0]), ("lowdim", [20.5, 17.0, 14.0])):
@@ -253,7 +253,7 @@ def test_noise_figure_groups_seeds_by_pose_input_with_a_band(tmp_path):
   """Issue 29 part 5: runs are grouped by their config's pose input (not their order or
   directory), each group drawn as its mean with a min-max band and tabled as "mean [min, max]";
   the table redraws the same band."""
-  nf = load_experiment("noise_figure")
+  nf = noise_figure
   alphas = [0.0, 0.3]
   runs = []
   for name, config, psnr in (

@@ -539,13 +539,12 @@ def test_data_dir_and_cache_dir_naming_a_file(tmp_path, capsys):
 
 
 def test_a_cut_noise_json_is_one_error(tmp_path, capsys):
-  from tests.utils import load_experiment
+  from experiments import noise_figure
 
   wd = tmp_path / "w"
   (wd / ev.EVAL_SUBDIR).mkdir(parents=True)
   (wd / "config.json").write_text("{}")
   (wd / ev.EVAL_SUBDIR / "noise.json").write_text('{"setting": "gqn", "alphas": [0.0, 0.')
-  noise_figure = load_experiment("noise_figure")
   argv = ["--runs", str(wd), "--png", str(tmp_path / "n.png"), "--md", str(tmp_path / "n.md")]
   assert noise_figure.main(argv) == 2
   _assert_one_error(capsys.readouterr().err, "noise.json is not valid JSON", "--what=noise")

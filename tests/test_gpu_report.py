@@ -1,7 +1,9 @@
-"""experiments/gpu_report.py (its plan and report) and experiments/build_wheelhouse.py (its list).
+"""The GPU report (`python -m camrep.bench.gpu_report`: its plan, phases and report) and
+tools/build_wheelhouse.py (its list).
 
-Nothing here needs a GPU or downloads anything: the dry run, the wheelhouse's listing, the
-dependency walk on fake metadata, and the Markdown report rendered from made-up phase results.
+Nothing here needs a GPU or downloads anything: the dry run, every phase at --variant smoke on
+the CPU, the wheelhouse's listing, the dependency walk on fake metadata, and the Markdown report
+rendered from made-up phase results.
 """
 
 from __future__ import annotations
@@ -14,31 +16,35 @@ import sys
 
 import pytest
 
-from tests.utils import load_experiment
+from camrep.bench import gpu_report
+from tools import build_wheelhouse
 
 pytestmark = pytest.mark.slow
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def _run(*argv: str) -> subprocess.CompletedProcess:
-  env = {**os.environ, "PYTHONPATH": ROOT}
+def _run(*argv: str, timeout: float = 120) -> subprocess.CompletedProcess:
+  env = dict(os.environ)
   env.pop("OUT", None)
   return subprocess.run(
-    [sys.executable, *argv], cwd=ROOT, env=env, capture_output=True, text=True, timeout=120
+    [sys.executable, *argv], cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
   )
 
 
+REPORT = ("-m", "camrep.bench.gpu_report")
+
+
 def test_dry_run_prints_the_plan_and_the_two_commands():
-  r = _run("experiments/gpu_report.py", "--dry_run")
+  r = _run(*REPORT, "--dry_run")
   assert r.returncode == 0, r.stderr
   out = r.stdout
-  gr = load_experiment("gpu_report")
+  gr = gpu_report
   # The two commands: the wheelhouse on the CPU, the report call on the GPU (wheels installed
   # first, camrep from the working tree, results into the device tool's $OUT).
-  assert "experiments/build_wheelhouse.py" in out
+  assert "tools/build_wheelhouse.py" in out
   assert "pip install" in out and "--no-index" in out and ".whl/*.whl" in out
-  assert "experiments/gpu_report.py --phases PHASES --out $OUT" in out
+  assert "python3 -m camrep.bench.gpu_report --phases PHASES --out $OUT" in out
   # Every phase is in exactly one call, and every call is listed.
   called = [p for phases, _ in gr.CALLS for p in phases.split(",")]
   assert sorted(called) == sorted(gr.PHASES)
@@ -50,14 +56,14 @@ def test_dry_run_prints_the_plan_and_the_two_commands():
 
 
 def test_unknown_phase_and_cpu_without_smoke_are_refused(tmp_path):
-  r = _run("experiments/gpu_report.py", "--phases", "stepp", "--out", str(tmp_path))
+  r = _run(*REPORT, "--phases", "stepp", "--out", str(tmp_path))
   assert r.returncode == 2 and "unknown phases" in r.stderr
-  r = _run("experiments/gpu_report.py", "--phases", "env", "--out", str(tmp_path))
+  r = _run(*REPORT, "--phases", "env", "--out", str(tmp_path))
   assert r.returncode == 2 and "no GPU here" in r.stdout
 
 
 def test_env_phase_runs_on_the_cpu_and_writes_the_report(tmp_path):
-  r = _run("experiments/gpu_report.py", "--phases", "env", "--allow_cpu", "--out", str(tmp_path))
+  r = _run(*REPORT, "--phases", "env", "--allow_cpu", "--out", str(tmp_path))
   assert r.returncode == 0, r.stdout + r.stderr
   env = json.loads((tmp_path / "gpu_report_env.json").read_text())
   assert env["platform"] == "cpu" and env["versions"]["jax"]
@@ -71,7 +77,7 @@ def _spread(x):
 
 
 def test_report_from_phase_results(tmp_path):
-  gr = load_experiment("gpu_report")
+  gr = gpu_report
   step = {
     "width": 1.0,
     "scenes": 30,
@@ -123,7 +129,7 @@ def test_report_from_phase_results(tmp_path):
 
 
 def test_wheelhouse_lists_the_missing_dependencies_pinned_here():
-  r = _run("experiments/build_wheelhouse.py", "--list")
+  r = _run("tools/build_wheelhouse.py", "--list")
   assert r.returncode == 0, r.stderr
   listed = dict(line.strip().split("==") for line in r.stdout.splitlines() if "==" in line)
   # protobuf is on the image too, but carried: tfds' generated code needs the tested runtime.
@@ -135,7 +141,7 @@ def test_wheelhouse_lists_the_missing_dependencies_pinned_here():
 
 
 def test_wheelhouse_walk_skips_the_image_and_other_pythons():
-  bw = load_experiment("build_wheelhouse")
+  bw = build_wheelhouse
   versions = {"a": "1.0", "b": "2.0", "c": "3.0", "d": "4.0", "img": "9.9", "hidden": "0.1"}
   requires = {
     "a": ["b>=1", "c; python_version < '3.12'", "d; extra == 'test'", "img"],
@@ -158,14 +164,14 @@ def test_wheelhouse_walk_skips_the_image_and_other_pythons():
 
 @pytest.mark.parametrize("bad", ["--variant=paper"])
 def test_bad_variant_is_refused(bad):
-  r = _run("experiments/gpu_report.py", "--phases", "env", bad)
+  r = _run(*REPORT, "--phases", "env", bad)
   assert r.returncode == 2 and "--variant" in r.stderr
 
 
 def test_trace_summary_groups_events_by_process(tmp_path):
   import gzip
 
-  gr = load_experiment("gpu_report")
+  gr = gpu_report
   events = [
     {"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/device:GPU:0"}},
     {"ph": "M", "name": "process_name", "pid": 2, "args": {"name": "/host:CPU"}},
@@ -181,3 +187,37 @@ def test_trace_summary_groups_events_by_process(tmp_path):
   assert top["/device:GPU:0"] == [["conv_kernel", 6.0, 2.0], ["gemm", 1.0, 1.0]]
   assert top["/host:CPU"] == [["PjitFunction", 0.25, 0.5]]
   assert gr.summarise_trace(str(tmp_path / "plugins" / "none"), steps=1) == {}
+
+
+def test_a_failed_phase_makes_the_report_exit_1_and_an_old_result_never_stands_in(
+  tmp_path, monkeypatch, capsys
+):
+  """A phase whose child records an error (or dies without a result) fails the call: exit 1 and
+  an `error:` line naming it; a result file left by an earlier call is not taken for its own."""
+  gr = gpu_report
+  (tmp_path / "gpu_report_host.json").write_text(json.dumps({"steps_per_s": 1.0}))  # stale
+
+  def child(argv, **kw):
+    phase = argv[argv.index("--child") + 1]
+    if phase == "env":
+      (tmp_path / "gpu_report_env.json").write_text(json.dumps({"error": "AttributeError: x"}))
+
+  monkeypatch.setattr(gr.subprocess, "run", child)
+  assert gr.main(["--phases", "env,host", "--variant", "smoke", "--out", str(tmp_path)]) == 1
+  err = capsys.readouterr().err
+  assert "error: 2 phases failed: env (AttributeError: x); host (the phase's process died" in err
+  assert "error" in json.loads((tmp_path / "gpu_report_host.json").read_text())
+
+
+def test_every_phase_runs_at_smoke_without_an_error(tmp_path):
+  """`--phases all --variant smoke`: every phase's code runs on the CPU, with the library's
+  smallest configs (one compilation of each program, shared through a compilation cache)."""
+  r = _run(*REPORT, "--phases", "all", "--variant", "smoke", "--out", str(tmp_path), timeout=1500)
+  assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-4000:]
+  for phase in gpu_report.PHASES:
+    result = json.loads((tmp_path / f"gpu_report_{phase}.json").read_text())
+    assert "error" not in result, (phase, result)
+  host = json.loads((tmp_path / "gpu_report_host.json").read_text())
+  assert host["host_ms_per_step"] > 0 and host["layout"] == "1 x 2 scenes x 4 views"
+  report = (tmp_path / "gpu_report.md").read_text()
+  assert "## The host's time a step" in report and "Not measured" not in report

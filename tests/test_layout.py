@@ -12,7 +12,8 @@ Layers, lowest first (a module may import its own layer and those below):
   5  camrep.models                             Flax modules
   6  camrep.synthesis                          view-synthesis training and evaluation
   7  camrep.regression                         pose regression and its tables
-  8  camrep.main                               the entry point
+  8  camrep.main, camrep.comparison,           the entry points: training, the comparison
+     camrep.bench                              launcher, the benchmarks and the GPU report
 """
 
 from __future__ import annotations
@@ -41,6 +42,8 @@ LAYERS = {
   "camrep.synthesis": 6,
   "camrep.regression": 7,
   "camrep.main": 8,
+  "camrep.comparison": 8,
+  "camrep.bench": 8,
 }
 # Near-twins that name a real pair, not a muddle.
 NOT_TWINS = {frozenset({"decoder", "encoder"})}
@@ -106,15 +109,29 @@ def test_the_layer_check_sees_function_level_imports(tmp_path):
   assert _layer(found[0]) > _layer("camrep.pose")  # what test_imports_run_downwards refuses
 
 
-def test_nothing_outside_experiments_imports_experiments():
-  for path in [*MODULES, *(ROOT / "tests").rglob("*.py"), *(ROOT / "configs").rglob("*.py")]:
+def test_the_package_and_configs_import_neither_experiments_nor_tools():
+  """experiments/ (the readers) and tools/ sit on top of camrep: the package never needs them."""
+  for path in [*MODULES, *(ROOT / "configs").rglob("*.py")]:
     for node in ast.walk(ast.parse(path.read_text())):
       names = []
       if isinstance(node, ast.ImportFrom) and node.module:
         names = [node.module]
       elif isinstance(node, ast.Import):
         names = [a.name for a in node.names]
-      assert not any(n == "experiments" or n.startswith("experiments.") for n in names), path
+      for top in ("experiments", "tools"):
+        assert not any(n == top or n.startswith(top + ".") for n in names), path
+
+
+def test_nothing_edits_sys_path_or_loads_a_module_by_its_file():
+  """Modules are imported by name (camrep is installed; experiments and tools are packages of
+  the checkout): no `sys.path` edit and no loading from a file path anywhere in the tree."""
+  banned = ("sys.path.insert", "sys.path.append", "spec_from_file_location", "load_module(")
+  dirs = ("camrep", "configs", "experiments", "tools", "tests")
+  for path in sorted(p for d in dirs for p in (ROOT / d).rglob("*.py")):
+    if path == pathlib.Path(__file__):  # names them
+      continue
+    found = [b for b in banned if b in path.read_text()]
+    assert not found, f"{path.relative_to(ROOT)}: {found}"
 
 
 @pytest.mark.parametrize("path", MODULES, ids=lambda p: str(p.relative_to(ROOT)))

@@ -1,6 +1,6 @@
 """Tests of experiments/lead_table.py: the one table a reader cites (per column: the paper's
 numbers, camrep's best hand-designed and ours with intervals, the paired ratio and a verdict),
-on fabricated runs laid out as experiments/run_comparison.py writes them."""
+on fabricated runs laid out as `python -m camrep.comparison` writes them."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import os
 
 import numpy as np
 
-from tests.utils import load_experiment
+from experiments import lead_table, view_failures
 
 N_VIEWS = 40
 
@@ -36,7 +36,7 @@ def _errors(scale, seed):
 
 
 def test_lead_table_rows_intervals_and_verdicts(tmp_path):
-  lt = load_experiment("lead_table")
+  lt = lead_table
   root = str(tmp_path / "regression")
   for seed in range(3):
     for lr, worse in ((1e-3, 1.5), (3e-3, 1.0), (1e-2, 2.0)):  # inside the grid: no edge
@@ -74,7 +74,7 @@ def test_lead_table_rows_intervals_and_verdicts(tmp_path):
 
 
 def test_lead_table_7scenes_medians_by_scene_and_an_empty_dir(tmp_path, capsys):
-  lt = load_experiment("lead_table")
+  lt = lead_table
   root = str(tmp_path / "regression")
   scenes = np.repeat(np.arange(4), N_VIEWS // 4).astype(np.int32)
   for seed in range(3):
@@ -95,7 +95,7 @@ def test_lead_table_7scenes_medians_by_scene_and_an_empty_dir(tmp_path, capsys):
 
 
 def test_lead_table_paper_cells_come_from_the_paper_tables():
-  lt = load_experiment("lead_table")
+  lt = lead_table
   cols = {c.label: c for c in lt.COLUMNS}
   assert cols["rooms yaw (deg)"].paper_best == ("quat", 5.34)
   assert cols["area x (m)"].paper_best == ("logq", 0.028)
@@ -106,7 +106,7 @@ def test_lead_table_capture_median_row_is_robust_to_one_outlier_view(tmp_path):
   """A capture's median row: one test view that ours gets 150 degrees wrong puts its mean above
   the baseline's (a tie: the bootstrap leaves that view out of some draws) while every other view
   is twice as good; the median row says better, and picks its best representation by the median."""
-  lt = load_experiment("lead_table")
+  lt = lead_table
   root = str(tmp_path / "regression")
   for seed in range(3):
     ours = 0.5 * _errors(4.0, seed)
@@ -124,7 +124,7 @@ def test_lead_table_capture_median_row_is_robust_to_one_outlier_view(tmp_path):
 def test_view_failures_counts_gross_failures_and_views_everyone_fails(tmp_path, capsys):
   """experiments/view_failures.py: per representation at its chosen lr, the mean, the median
   and the views each run gets more than the threshold wrong; the views every run fails."""
-  vf = load_experiment("view_failures")
+  vf = view_failures
   root = str(tmp_path / "regression")
   for seed in range(3):
     ours, quat = 0.5 * _errors(4.0, seed), _errors(4.0, seed)
@@ -142,7 +142,7 @@ def test_view_failures_counts_gross_failures_and_views_everyone_fails(tmp_path, 
     if r.startswith("| ") and "---" not in r
   }
   assert rows["ours"][0] == "1e-3" and rows["ours"][3] == "1, 1, 1"
-  assert rows["(x, y, q)"][3] == "3, 3, 3"
+  assert rows["q of (azimuth, polar)"][3] == "3, 3, 3"
   assert abs(float(rows["ours"][2]) - 2.0) < 0.3  # the median ignores the failed view
   assert "40 test views" in text and "more than 45 wrong: 0" in text
   assert vf.main(["--runs", root, "--columns", "nothing"]) == 2

@@ -7,7 +7,7 @@ import json
 import cv2
 import numpy as np
 
-from tests.utils import load_experiment
+from experiments import learning_curve
 
 
 def _workdir(tmp_path, name, representation, rows):
@@ -20,7 +20,7 @@ def _workdir(tmp_path, name, representation, rows):
 
 
 def test_tables_and_figure_from_metrics(tmp_path, capsys):
-  lc = load_experiment("learning_curve")
+  lc = learning_curve
   key = "eval/test_scenes/yaw_error_deg_mean"
   a = _workdir(
     tmp_path,
@@ -49,7 +49,7 @@ def test_tables_and_figure_from_metrics(tmp_path, capsys):
 
 
 def test_runs_with_one_label_are_seeds_of_one_curve(tmp_path):
-  lc = load_experiment("learning_curve")
+  lc = learning_curve
   key = "eval/psnr"
   a = _workdir(tmp_path, "s0", "ours", [{"step": 1, key: 10.0}, {"step": 2, key: 12.0}])
   b = _workdir(tmp_path, "s1", "ours", [{"step": 1, key: 14.0}, {"step": 2, key: 16.0}])
@@ -62,7 +62,7 @@ def test_runs_with_one_label_are_seeds_of_one_curve(tmp_path):
 
 
 def test_refusals(tmp_path, capsys):
-  lc = load_experiment("learning_curve")
+  lc = learning_curve
   a = _workdir(tmp_path, "a", "ours", [{"step": 1, "eval/psnr": 20.0}])
   assert lc.main(["--runs", a, "--metrics", "eval/ssim"]) == 2
   assert "eval/ssim is not logged" in capsys.readouterr().err
@@ -74,7 +74,7 @@ def test_refusals(tmp_path, capsys):
 
 
 def test_bands_over_seeds_per_representation(tmp_path, capsys):
-  lc = load_experiment("learning_curve")
+  lc = learning_curve
   key = "eval/validation/score"
   runs = [
     _workdir(tmp_path, f"{rep}{seed}", rep, [{"step": 100, key: v}, {"step": 200, key: v / 2}])
@@ -94,7 +94,7 @@ def test_bands_over_seeds_per_representation(tmp_path, capsys):
 def test_bands_group_view_synthesis_runs_by_pose_input(tmp_path, capsys):
   """Synthesis workdirs (no representation) are grouped by rep.kind; GQN's ConvDRAW (whose
   rep.kind is lowdim) by its model.kind, not with the low-dim decoder."""
-  lc = load_experiment("learning_curve")
+  lc = learning_curve
   runs = []
   for name, rep, model, psnr in (
     ("car_seed0", "grid", "decoder", 20.0),
@@ -115,3 +115,27 @@ def test_bands_group_view_synthesis_runs_by_pose_input(tmp_path, capsys):
   assert "| step | grid (2 runs) | lowdim (1 runs) | convdraw (1 runs) |" in text
   assert "| 120 | 21 [20, 22] | 18 [18, 18] | 19 [19, 19] |" in text
   capsys.readouterr()
+
+
+def test_a_compact_record_gives_the_same_curves_and_groups(tmp_path):
+  """A finished run's record (run.json: its eval/ curves and config essentials) is read like its
+  workdir: the same tables under --bands."""
+  from camrep.regression import runs
+
+  key = "eval/validation/score"
+  rows = [{"step": 50, "train/loss": 1.0}, {"step": 100, key: 0.5}, {"step": 200, key: 0.25}]
+  wd = _workdir(tmp_path, "full", "ours", rows)
+  (tmp_path / "full" / "results.json").write_text(
+    json.dumps({"setting": "car", "representation": "ours", "lr": 1e-3, "seed": 0})
+  )
+  rec = tmp_path / "rec"
+  runs.write_record(runs.compact(runs.load(wd)), str(rec / runs.RECORD_FILE))
+  md = {}
+  for name, run in (("full", wd), ("rec", str(rec))):
+    md[name] = tmp_path / f"{name}.md"
+    args = ["--bands", "--runs", run, "--metrics", key, "--md", str(md[name])]
+    assert learning_curve.main(args) == 0
+  text = md["rec"].read_text()
+  assert "| 200 | 0.25 [0.25, 0.25] |" in text and "ours (1 runs)" in text
+  assert text.replace(str(rec), "X") == md["full"].read_text().replace(wd, "X")
+  assert learning_curve.curve(str(rec), "train/loss") == {}  # records keep eval/ metrics only

@@ -1,5 +1,5 @@
-"""experiments/quickstart.ipynb: well formed, committed with its outputs, and those outputs are
-not stale in kind: a fresh run (experiments/run_notebook.py, no Jupyter needed) must produce the
+"""notebooks/quickstart.ipynb: well formed, committed with its outputs, and those outputs are
+not stale in kind: a fresh run (tools/run_notebook.py, no Jupyter needed) must produce the
 same kinds of output per code cell (text, images) and no exception. Pixels, timings and printed
 numbers may differ; the numbers the notebook is about are checked on the fresh run's namespace.
 """
@@ -15,15 +15,14 @@ import jax
 import numpy as np
 import pytest
 
-from tests.utils import load_experiment
+from tools import run_notebook
 
 pytestmark = pytest.mark.slow
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-NOTEBOOK = ROOT / "experiments" / "quickstart.ipynb"
+NOTEBOOK = ROOT / "notebooks" / "quickstart.ipynb"
 # Committed with its outputs (PNG images in base64): small enough to review on the web page.
 MAX_BYTES = 200 * 1024
-run_notebook = load_experiment("run_notebook")
 
 
 def _load() -> dict:
@@ -87,7 +86,7 @@ def test_install_cell_comes_first_and_finds_its_source(tmp_path, monkeypatch):
   # Where it would install from: the variable, else the clone around the working directory.
   with pytest.raises(RuntimeError, match="CAMREP_SOURCE"):
     ns["camrep_source"]()
-  monkeypatch.chdir(ROOT / "experiments")
+  monkeypatch.chdir(ROOT / "notebooks")
   assert ns["camrep_source"]() == str(ROOT)
   monkeypatch.setenv("CAMREP_SOURCE", "git+https://example.org/camrep")
   assert ns["camrep_source"]() == "git+https://example.org/camrep"
@@ -102,7 +101,7 @@ def test_quickstart_runs_and_its_outputs_are_not_stale(tmp_path):
     jax.config.update("jax_disable_most_optimizations", old_flag)
   assert run_notebook.output_kinds(fresh) == run_notebook.output_kinds(committed), (
     "the committed outputs are stale: refresh them with "
-    "`python experiments/run_notebook.py experiments/quickstart.ipynb --write`"
+    "`python tools/run_notebook.py notebooks/quickstart.ipynb --write`"
   )
 
   # Section 1: the fitted rotation law holds better than at initialisation, decoding inverts

@@ -7,7 +7,7 @@ prepared with `camrep.data.prepare` into a module-scoped directory. "ours" regre
 system of a 1-step view-synthesis run on the same prepared data (evaluation off, to stay fast).
 Also: the refusals (source vs setting, missing dir, absent / empty split, a synthesis run on other
 data or with another pose system), the ResNet-34 ImageNet weights (a synthetic torchvision-named
-.npz), and `experiments/run_comparison.py --dry_run --data`.
+.npz), and `python -m camrep.comparison --dry_run --data`.
 """
 
 from __future__ import annotations
@@ -34,8 +34,8 @@ from camrep.regression import driver as R
 from camrep.regression import views as views_lib
 from camrep.runtime import runconfig
 from camrep.synthesis import train as synthesis_train
+from experiments import table1, table2
 from tests import readers_fixtures as fx
-from tests.utils import load_experiment
 
 pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
@@ -435,7 +435,7 @@ def test_tables_state_the_data_of_each_column():
     _fake("gibson", "euler", 0, area, gg),
     _fake("gibson", "euler", 1, gib, gg),
   ]
-  text = load_experiment("table1").build(results)
+  text = table1.build(results)
   assert "# Table 1: pose regression on mixed data" in text
   assert (
     "- car: prepared `srn_cars` (source srn_cars) at /d/srn_cars/1.0.0, test split `test` "
@@ -447,13 +447,13 @@ def test_tables_state_the_data_of_each_column():
   )
   # Two looks of one family are two datasets: pooling them is flagged.
   tinted = {**rooms, "family_overrides": {**rooms["family_overrides"], "wall_style": "tinted"}}
-  text = load_experiment("table1").build(results + [_fake("gqn", "euler", 1, tinted, gg)])
+  text = table1.build(results + [_fake("gqn", "euler", 1, tinted, gg)])
   assert "- rooms: MIXED DATA" in text and "wall_style=tinted" in text
   assert "- area: MIXED DATA" in text
   seven = {"source": "seven_scenes", "dataset_path": "/d/7s/1.0.0", "test_split": "test",
            "num_test_views": 6, "scene_names": {"0": "stairs"}}  # fmt: skip
   errs = ("position_error", "rotation_error_deg")
-  text = load_experiment("table2").build([_fake("seven_scenes", "quat", 0, seven, errs)])
+  text = table2.build([_fake("seven_scenes", "quat", 0, seven, errs)])
   assert text.startswith("# Table 2: 6-DOF regression on 7-Scenes (prepared real images)")
   assert "- all columns: prepared `seven_scenes` (source seven_scenes) at /d/7s/1.0.0" in text
   assert "- ResNet initialisation: none (from scratch)" in text
@@ -468,7 +468,8 @@ def test_run_comparison_dry_run_with_data(tmp_path):
   out = subprocess.run(
     [
       sys.executable,
-      "experiments/run_comparison.py",
+      "-m",
+      "camrep.comparison",
       "--size",
       "quick",
       "--settings",
@@ -483,7 +484,6 @@ def test_run_comparison_dry_run_with_data(tmp_path):
     cwd=ROOT,
     capture_output=True,
     text=True,
-    env={**os.environ, "PYTHONPATH": str(ROOT)},
     check=True,
   )
   text = out.stdout
@@ -494,10 +494,9 @@ def test_run_comparison_dry_run_with_data(tmp_path):
   )
   assert "experiments/table2.py" in text
   bad = subprocess.run(
-    [sys.executable, "experiments/run_comparison.py", "--out", str(tmp_path), "--data", "x=y"],
+    [sys.executable, "-m", "camrep.comparison", "--out", str(tmp_path), "--data", "x=y"],
     cwd=ROOT,
     capture_output=True,
     text=True,
-    env={**os.environ, "PYTHONPATH": str(ROOT)},
   )
   assert bad.returncode == 2 and "--data expects SETTING=DIR" in bad.stderr

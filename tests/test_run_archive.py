@@ -1,9 +1,10 @@
-"""Tests of experiments/run_comparison.py's archive (`--archive DIR`) and its seed-by-seed order.
+"""The comparison launcher's archive (`--archive DIR`), its seed-by-seed order, and its safety on
+a shared folder (one launch per DIR, damaged records, stops).
 
 A converge launch is hours of 2-core CPU time, longer than a machine is kept: the archive holds
-each finished run's records (no checkpoints) in the repository, and a launch on a new machine
-restores them and trains only what is missing. The runs here are fabricated by a stand-in for
-`run_job` (no JAX): it writes the files a real run writes and the launcher reads.
+each finished run's compact record (no checkpoints) in the repository, and a launch on a new
+machine restores them and trains only what is missing. The runs here are fabricated by a stand-in
+for `run_job` (no JAX): it writes the files a real run writes and the launcher reads.
 """
 
 from __future__ import annotations
@@ -11,16 +12,38 @@ from __future__ import annotations
 import json
 import os
 import signal
+import time
 
 import numpy as np
 import pytest
 
-from tests.utils import load_experiment
+from camrep.comparison import archive as archive_lib
+from camrep.comparison import command, launch
+from camrep.regression import runs
+
+
+class _Launcher:
+  """The launcher's modules under the names these tests use."""
+
+  def __init__(self):
+    self.launch, self.command = launch, command
+
+  def __getattr__(self, name):
+    return getattr(launch, name)
+
+  def main(self, argv):
+    return command.main(argv)
+
+  def parse(self, argv):
+    return command.parse_args(argv)
+
+  def make(self, argv):
+    return command.make_launch(command.parse_args(argv))
 
 
 @pytest.fixture
 def rc():
-  return load_experiment("run_comparison")
+  return _Launcher()
 
 
 def _args(out, archive, *extra):
@@ -54,27 +77,28 @@ def fake_run_job(rc, ran, score=lambda lr: 1.0 + abs(np.log10(lr) + 3)):
   extension)."""
 
   def run_job(job, logs, *, index, env=None):
-    if not job.done_file:  # tables and curves: scripts over the runs, not runs
+    if job.kind in ("table", "evaluate"):  # tables and curves: scripts over the runs, not runs
       return True
     ran.append(job.name)
-    wd = os.path.dirname(job.done_file)
+    wd = job.workdir
     os.makedirs(wd, exist_ok=True)
     with open(os.path.join(wd, "config.json"), "w") as f:
       json.dump({"argv": job.argv}, f)
     with open(os.path.join(wd, "metrics.jsonl"), "w") as f:
       f.write('{"step": 1, "eval/psnr": 15.0}\n')
     if job.name.startswith("synthesis_"):
-      os.makedirs(os.path.join(wd, "checkpoints", "8"))
-      os.makedirs(os.path.join(wd, "tensorboard"))
+      step = int(_flag(job.argv, "total_steps"))  # complete at its cap
+      os.makedirs(os.path.join(wd, "checkpoints", str(step)), exist_ok=True)
+      os.makedirs(os.path.join(wd, "tensorboard"), exist_ok=True)
       open(os.path.join(wd, "tensorboard", "events.out"), "w").close()
-      with open(job.done_file, "w") as f:
-        json.dump({"complete": True, "step": 8}, f)
+      with open(os.path.join(wd, "final_metrics.json"), "w") as f:
+        json.dump({"complete": True, "step": step}, f)
       return True
     lr, seed = float(_flag(job.argv, "optax.lr")), int(_flag(job.argv, "seed"))
     val = score(lr)
     r = dict(setting="car", representation=_flag(job.argv, "representation"), lr=lr, seed=seed)
     r.update(steps=10, variant="quick", validation=_summary(val), test=_summary(2 * val))
-    with open(job.done_file, "w") as f:
+    with open(os.path.join(wd, "results.json"), "w") as f:
       json.dump(r, f)
     np.savez(os.path.join(wd, "errors_test.npz"), rotation_error_deg=np.full(4, val))
     return True
@@ -86,13 +110,13 @@ def test_a_launch_goes_seed_by_seed_and_archives_each_run(rc, tmp_path, monkeypa
   """Seed k's synthesis runs come just before its regressions, and every finished run's records
   (never checkpoints or TensorBoard files) are in the archive as soon as it ends."""
   ran = []
-  monkeypatch.setattr(rc, "run_job", fake_run_job(rc, ran))
+  monkeypatch.setattr(launch, "run_job", fake_run_job(rc, ran))
   out, archive = tmp_path / "out", tmp_path / "archive"
-  launch = rc.make_launch(rc._parse_args(_args(out, archive)))
+  the_launch = rc.make(_args(out, archive))
   copies = []
-  real_sync = rc.sync_archive
-  monkeypatch.setattr(rc, "sync_archive", lambda o, a: copies.append(len(ran)) or real_sync(o, a))
-  assert rc.execute(launch) == []
+  real_sync = archive_lib.sync
+  monkeypatch.setattr(archive_lib, "sync", lambda o, a: copies.append(len(ran)) or real_sync(o, a))
+  assert rc.execute(the_launch) == []
   syn = [n for n in ran if n.startswith("synthesis_")]
   assert syn == ["synthesis_car_seed0", "synthesis_car_seed1", "synthesis_car_seed2"]
   pos = {n: i for i, n in enumerate(ran)}
@@ -107,10 +131,13 @@ def test_a_launch_goes_seed_by_seed_and_archives_each_run(rc, tmp_path, monkeypa
   kept = sorted(
     os.path.relpath(os.path.join(d, f), archive) for d, _, fs in os.walk(archive) for f in fs
   )
-  assert "synthesis/car_seed1/final_metrics.json" in kept
-  assert "regression/car/ours/lr1e-3_seed2/errors_test.npz" in kept
-  assert not [p for p in kept if "checkpoints" in p or "tensorboard" in p]
-  assert rc.sync_archive(str(out), str(archive)) == 0  # nothing changed: nothing written
+  assert "synthesis/car_seed1/run.json" in kept
+  assert "regression/car/ours/lr1e-3_seed2/run.json" in kept
+  assert all(os.path.basename(p) == "run.json" for p in kept)  # one compact record per run
+  record = runs.load(str(archive / "regression" / "car" / "ours" / "lr1e-3_seed2"))
+  np.testing.assert_array_equal(record.view_errors()["rotation_error_deg"], np.full(4, 1.0))
+  assert record.curves == {"eval/psnr": {1: 15.0}}
+  assert archive_lib.sync(str(out), str(archive)) == 0  # nothing changed: nothing written
 
 
 def test_a_new_machine_restores_the_archive_and_trains_only_what_is_missing(
@@ -120,9 +147,9 @@ def test_a_new_machine_restores_the_archive_and_trains_only_what_is_missing(
   view-synthesis run whose record came from the archive is trained again only while a run that
   reads its checkpoints is missing, and a partial run in DIR resumes from its own checkpoints."""
   ran = []
-  monkeypatch.setattr(rc, "run_job", fake_run_job(rc, ran))
+  monkeypatch.setattr(launch, "run_job", fake_run_job(rc, ran))
   first, archive = tmp_path / "first", tmp_path / "archive"
-  assert rc.execute(rc.make_launch(rc._parse_args(_args(first, archive)))) == []
+  assert rc.execute(rc.make(_args(first, archive))) == []
   # Lose seed 2's phase-2 ours run: it must be trained again, and so must its pose system.
   lost = archive / "regression" / "car" / "ours" / "lr1e-3_seed2"
   for f in os.listdir(lost):
@@ -142,7 +169,7 @@ def test_a_new_machine_restores_the_archive_and_trains_only_what_is_missing(
   assert "restored" in text and "archived, nothing left needs it" in text
   assert "synthesis_car_seed0: archived" in text
   assert (out / "synthesis" / "car_seed1" / "checkpoints" / "4").is_dir()
-  assert (archive / "regression" / "car" / "ours" / "lr1e-3_seed2" / "results.json").exists()
+  assert (archive / "regression" / "car" / "ours" / "lr1e-3_seed2" / "run.json").exists()
   # The archived synthesis record of seed 0 came back without checkpoints and stays so.
   assert rc.archived_only(str(out / "synthesis" / "car_seed0"))
   assert rc.has_checkpoint(str(out / "synthesis" / "car_seed2"))
@@ -161,37 +188,40 @@ def test_a_raised_cap_resumes_a_synthesis_run_that_reached_the_old_one(rc, tmp_p
   wd = tmp_path / "syn"
   wd.mkdir()
   argv = ["python", "-m", "camrep.main", "--config.total_steps=4800"]
+  job = rc.Job("synthesis_x", argv, str(wd), 1, "synthesis")
 
   def final(step, stopped_early):
     with open(wd / "final_metrics.json", "w") as f:
       json.dump({"complete": True, "step": step, "stopping": {"stopped_early": stopped_early}}, f)
 
   final(2400, False)  # reached the old cap of 2,400
-  assert not rc.synthesis_done(str(wd), argv)
-  assert rc.synthesis_done(str(wd), argv[:3])  # no cap on the command line: complete is done
+  assert not job.done()
+  assert rc.synthesis_done(rc.read_final(str(wd)), argv[:3])  # no cap asked: complete is done
   final(4800, False)
-  assert rc.synthesis_done(str(wd), argv)
+  assert job.done()
   final(1200, True)  # stopped by its plateau rule before the cap
-  assert rc.synthesis_done(str(wd), argv)
+  assert job.done()
   os.remove(wd / "final_metrics.json")
-  assert not rc.synthesis_done(str(wd), argv)
+  assert not job.done()
 
 
 def test_a_synthesis_run_that_trains_on_loses_its_old_evaluation(rc, tmp_path, monkeypatch):
   """A run resumed past its old cap is evaluated again: its old eval/noise.json is removed
   before it trains (the evaluation job is then not done and runs after it)."""
   ran = []
-  monkeypatch.setattr(rc, "run_job", lambda job, logs, **kw: ran.append(job.name) or True)
-  launch = rc.make_launch(rc._parse_args(_args(tmp_path / "out", tmp_path / "archive")[:-2]))
-  launch.figures = rc.figure_jobs(launch.out, launch.plan, launch.synth, launch.python)
+  monkeypatch.setattr(launch, "run_job", lambda job, logs, **kw: ran.append(job.name) or True)
+  the_launch = rc.make(_args(tmp_path / "out", tmp_path / "archive")[:-2])
+  the_launch.figures = rc.figure_jobs(
+    the_launch.out, the_launch.plan, the_launch.synth, the_launch.python
+  )
   wd = tmp_path / "out" / "synthesis" / "car_seed0"
   os.makedirs(wd / "eval")
   os.makedirs(wd / "checkpoints" / "2400")
   with open(wd / "final_metrics.json", "w") as f:
     json.dump({"complete": True, "step": 2400, "stopping": {"stopped_early": False}}, f)
   open(wd / "eval" / "noise.json", "w").close()
-  jobs = rc.synthesis_of_seed(launch, 0)
-  assert rc.run_synthesis(launch, jobs, str(tmp_path / "logs"), dict(at_once=1)) == []
+  jobs = rc.synthesis_of_seed(the_launch, 0)
+  assert rc.run_synthesis(the_launch, jobs, str(tmp_path / "logs"), dict(at_once=1)) == []
   assert not (wd / "eval" / "noise.json").exists()
   assert ran == ["synthesis_car_seed0", "evaluate_car_seed0"]
 
@@ -204,23 +234,23 @@ def test_a_convdraw_run_of_another_length_is_trained_again_from_scratch(
   steps): the launcher removes it, says so, and trains it again; a plateau run at an old cap
   resumes instead (`--config.allow_changes` names total_steps)."""
   ran = []
-  monkeypatch.setattr(rc, "run_job", lambda job, logs, **kw: ran.append(job.name) or True)
+  monkeypatch.setattr(launch, "run_job", lambda job, logs, **kw: ran.append(job.name) or True)
   args = _args(tmp_path / "out", tmp_path / "archive")[:-2]
   args[args.index("car")] = "gqn"
-  launch = rc.make_launch(rc._parse_args([*args, "--noise_runs", "--noise_kinds", "convdraw"]))
-  job = next(j for j in launch.synth if j.name == "synthesis_gqn_convdraw_seed0")
-  assert _flag(job.argv, "total_steps") == str(rc.CONVERGE_CONVDRAW_STEPS) == "8000"
+  the_launch = rc.make([*args, "--noise_runs", "--noise_kinds", "convdraw"])
+  job = next(j for j in the_launch.synth if j.name == "synthesis_gqn_convdraw_seed0")
+  assert _flag(job.argv, "total_steps") == str(the_launch.plan.convdraw_steps) == "8000"
   assert _flag(job.argv, "loss.sigma_anneal_steps") == "800"
   assert _flag(job.argv, "optax.anneal_steps") == "6400"
   assert _flag(job.argv, "loss.kl_anneal_steps") == "4000"
   assert not rc.resumable(job.argv) and "--config.stop.window=0.25" not in job.argv
-  plateau = next(j for j in launch.synth if j.name == "synthesis_gqn_seed0")
+  plateau = next(j for j in the_launch.synth if j.name == "synthesis_gqn_seed0")
   assert rc.resumable(plateau.argv)
   wd = tmp_path / "out" / "synthesis" / "gqn_convdraw_seed0"
   os.makedirs(wd / "checkpoints" / "2000")
   with open(wd / "final_metrics.json", "w") as f:
     json.dump({"complete": True, "step": 2000}, f)
-  assert rc.run_synthesis(launch, [job], str(tmp_path / "logs"), dict(at_once=1)) == []
+  assert rc.run_synthesis(the_launch, [job], str(tmp_path / "logs"), dict(at_once=1)) == []
   assert ran == ["synthesis_gqn_convdraw_seed0"] and not wd.exists()  # removed, then trained
   assert "complete at step 2000, not at the 8000 steps asked" in capsys.readouterr().out
 
@@ -243,12 +273,12 @@ def test_an_interrupted_launch_says_how_to_resume_instead_of_a_traceback(
       raise KeyboardInterrupt
     return fake(job, logs, index=index, env=env)
 
-  monkeypatch.setattr(rc, "run_job", run_job)
+  monkeypatch.setattr(launch, "run_job", run_job)
   out, archive = tmp_path / "out", tmp_path / "archive"
   assert rc.main(_args(out, archive)) == 130
   err = capsys.readouterr().err
   assert "interrupted after" in err and f"archived in {archive}" in err and "Traceback" not in err
-  assert (archive / "synthesis" / "car_seed0" / "final_metrics.json").exists()
+  assert (archive / "synthesis" / "car_seed0" / "run.json").exists()
   assert signal.getsignal(signal.SIGTERM) == before
 
 
@@ -259,7 +289,7 @@ def test_extend_grid_sets_how_far_phase_1_follows_a_choice_at_the_edge(
   """A choice that stays at the grid's top gets the plan's 2 extensions, or `--extend_grid N`;
   a rerun with a larger N resumes: only the new lr for seed 0, then the later seeds at it."""
   ran = []
-  monkeypatch.setattr(rc, "run_job", fake_run_job(rc, ran, score=lambda lr: 1.0 / lr))
+  monkeypatch.setattr(launch, "run_job", fake_run_job(rc, ran, score=lambda lr: 1.0 / lr))
   out, archive = tmp_path / "out", tmp_path / "archive"
   flags = [] if extend is None else ["--extend_grid", str(extend)]
   assert rc.main(_args(out, archive, "--representations", "quat", *flags)) == 0
@@ -279,7 +309,7 @@ def test_extend_grid_sets_how_far_phase_1_follows_a_choice_at_the_edge(
       "regression_car_quat_lr1e-1_seed2",
     ]
   with pytest.raises(SystemExit):
-    rc.make_launch(rc._parse_args(["--size", "quick", "--out", str(out), "--extend_grid", "1"]))
+    rc.parse(["--size", "quick", "--out", str(out), "--extend_grid", "1"])
 
 
 def test_a_launch_of_one_setting_keeps_the_other_columns_of_table1(rc, tmp_path):
@@ -289,3 +319,148 @@ def test_a_launch_of_one_setting_keeps_the_other_columns_of_table1(rc, tmp_path)
   runs = table1.argv[table1.argv.index("--runs") + 1 : table1.argv.index("--out")]
   assert runs == [str(tmp_path / "regression" / s / "*" / "*") for s in ("car", "gqn", "gibson")]
   assert not [j for j in rc.table_jobs(str(tmp_path), "py", ["seven_scenes"]) if j.name == "table1"]
+
+
+# ------------------------------------------------------------------------ a shared folder
+
+
+def test_a_second_launch_on_one_dir_is_refused_naming_the_first(rc, tmp_path, capsys):
+  """One launch per DIR: the second refuses before it writes anything, naming the first's PID,
+  host and start time; a dry run (read only) is not refused."""
+  from camrep.runtime import workdir as workdir_lib
+
+  out = tmp_path / "out"
+  first = workdir_lib.WorkdirLock(str(out.mkdir() or out))
+  first.acquire()
+  try:
+    assert rc.main(_args(out, tmp_path / "archive")) == 2
+    err = capsys.readouterr().err
+    h = first.holder()
+    assert err.startswith("error: --out") and "in use by another launch" in err
+    assert f"PID {h['pid']} on {h['host']}, started {h['started']}" in err
+    assert sorted(os.listdir(out)) == [".camrep.lock"]  # nothing restored or started
+    assert rc.main([*_args(out, tmp_path / "archive"), "--dry_run"]) == 0
+  finally:
+    first.release()
+
+
+def test_an_archive_or_out_that_is_a_file_is_an_error_line(rc, tmp_path, capsys):
+  f = tmp_path / "file"
+  f.write_text("x")
+  for args in (_args(tmp_path / "out", f), _args(f, tmp_path / "archive")):
+    with pytest.raises(SystemExit) as e:
+      rc.main(args)
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "error:" in err and f"{f} is a file, not a directory" in err and "Traceback" not in err
+
+
+def test_a_cut_record_in_the_archive_is_trained_again_not_taken_as_finished(
+  rc, tmp_path, monkeypatch, capsys
+):
+  """A truncated results.json (an archive of whole run files) or run.json in the archive is
+  named and not restored: the run trains again and its archived record is rewritten whole."""
+  ran = []
+  monkeypatch.setattr(launch, "run_job", fake_run_job(rc, ran))
+  archive = tmp_path / "archive"
+  assert rc.execute(rc.make(_args(tmp_path / "first", archive))) == []
+  cut = archive / "regression" / "car" / "quat" / "lr3e-3_seed0" / "run.json"
+  cut.write_text(cut.read_text()[:50])
+  old = archive / "regression" / "car" / "quat" / "lr3e-4_seed0"  # an old-style archived run
+  (old / "run.json").unlink()
+  (old / "results.json").write_text('{"setting": "car", "representation": "qu')
+  ran.clear()
+  assert rc.main(_args(tmp_path / "second", archive)) == 0
+  captured = capsys.readouterr()
+  for path in (cut, old / "results.json"):
+    assert f"the archived run {path.parent} cannot be read ({path}" in captured.out
+  assert sorted(ran) == ["regression_car_quat_lr3e-3_seed0", "regression_car_quat_lr3e-4_seed0"]
+  assert runs.load(str(cut.parent)).results["lr"] == 3e-3  # rewritten whole
+
+
+@pytest.mark.parametrize("damaged", ["results.json", "errors_test.npz"])
+def test_a_damaged_run_in_dir_is_named_set_aside_and_trained_again(
+  rc, tmp_path, monkeypatch, capsys, damaged
+):
+  """A finished-looking run whose results.json is cut or whose errors_test.npz is damaged is not
+  finished: the launch names the file, keeps it as <name>.damaged and trains the run again."""
+  ran = []
+  monkeypatch.setattr(launch, "run_job", fake_run_job(rc, ran))
+  out = tmp_path / "out"
+  args = [a for a in _args(out, tmp_path / "archive") if a != "--archive"][:-1]
+  assert rc.main(args) == 0
+  wd = out / "regression" / "car" / "ours" / "lr1e-3_seed1"
+  path = wd / damaged
+  path.write_bytes(path.read_bytes()[:30])
+  ran.clear()
+  assert rc.main(args) == 0
+  text = capsys.readouterr().out
+  assert ran == ["regression_car_ours_lr1e-3_seed1"]
+  assert f"warning: {path} cannot be read" in text and f"kept as {path}.damaged" in text
+  assert (wd / f"{damaged}.damaged").exists() and runs.damage(str(wd)) is None
+
+
+@pytest.mark.parametrize("resumes", [False, True])
+def test_the_stop_message_says_what_becomes_of_the_runs_in_flight(
+  rc, tmp_path, monkeypatch, capsys, resumes
+):
+  """Stopped mid-launch, the message says that view-synthesis runs resume from their last
+  checkpoint, and that regression runs start over, or resume where the regression stage keeps
+  checkpoints (its config has a checkpoint period)."""
+
+  def run_job(job, logs, *, index, env=None):
+    raise KeyboardInterrupt
+
+  monkeypatch.setattr(launch, "run_job", run_job)
+  monkeypatch.setattr(command, "regression_resumes", lambda: resumes)
+  assert rc.main(_args(tmp_path / "out", tmp_path / "archive")) == 130
+  err = capsys.readouterr().err
+  assert "view-synthesis runs resume from their last checkpoint" in err
+  want = "regression runs resume from their last checkpoint" if resumes else "start over"
+  assert want in err and "resume from their last checkpoints when" not in err
+  assert not (tmp_path / "out" / ".camrep.lock").exists()  # the lock is given back
+
+
+def test_a_stopped_launch_lets_its_run_save_before_it_ends(rc, tmp_path, monkeypatch):
+  """Ctrl-C while a run is in flight: the run gets SIGTERM (a training run saves a checkpoint
+  and exits) and the launcher waits for it, instead of killing it at once."""
+  import sys
+
+  saved = tmp_path / "saved"
+  code = (
+    "import signal, sys, time\n"
+    f"signal.signal(signal.SIGTERM, lambda *a: (open({str(saved)!r}, 'w').close(), sys.exit(0)))\n"
+    "print('ready', flush=True)\n"
+    "time.sleep(30)\n"
+  )
+  job = launch.Job("slow", [sys.executable, "-c", code], "", 1)
+  calls = []
+  real_wait = launch._wait
+
+  def wait(proc, timeout):  # Ctrl-C arrives once the run has set up its handler
+    calls.append(1)
+    if len(calls) == 3:
+      raise KeyboardInterrupt
+    return real_wait(proc, timeout)
+
+  monkeypatch.setattr(launch, "_wait", wait)
+  with pytest.raises(KeyboardInterrupt):
+    launch.run_job(job, str(tmp_path / "logs"), index="1/1")
+  assert saved.exists()
+
+
+def test_a_stop_with_several_jobs_at_once_starts_no_other_job(rc, tmp_path, monkeypatch):
+  started = []
+
+  def run_job(job, logs, *, index, env=None):
+    started.append(job.name)
+    if job.name == "a":
+      raise KeyboardInterrupt
+    time.sleep(0.3)  # a run in flight when the stop comes
+    return True
+
+  monkeypatch.setattr(launch, "run_job", run_job)
+  jobs = [launch.Job(n, ["true"], "", 1) for n in ("a", "b", "c", "d", "e")]
+  with pytest.raises(KeyboardInterrupt):
+    launch.run_jobs(jobs, str(tmp_path / "logs"), at_once=2, label="")
+  assert "a" in started and len(started) <= 2

@@ -12,7 +12,7 @@ import pytest
 
 from camrep.configs import shapenet_car
 from camrep.synthesis import train
-from tests.utils import load_experiment
+from experiments import seed_spread
 
 A = {0: 0.0, 1: 1.0, 2: 2.0}  # synthesis-seed effects
 B = {0: 0.0, 1: 0.5, 2: -0.5}  # regression-seed effects
@@ -46,7 +46,7 @@ def _runs(tmp_path, cells, lr=1e-3, representation="ours"):
 
 
 def test_variance_split_of_a_crossed_table(tmp_path, capsys):
-  ss = load_experiment("seed_spread")
+  ss = seed_spread
   full = [(j, k) for j in range(3) for k in range(3)]
   _runs(tmp_path, full)
   runs = ss.load_runs([str(tmp_path / "crossed" / "*")])
@@ -88,7 +88,7 @@ def test_variance_split_of_a_crossed_table(tmp_path, capsys):
 
 
 def test_refusals(tmp_path, capsys):
-  ss = load_experiment("seed_spread")
+  ss = seed_spread
   _runs(tmp_path, [(0, 0), (0, 1), (1, 0)])  # (1, 1) missing
   md = str(tmp_path / "x.md")
   assert ss.main(["--runs", str(tmp_path / "crossed" / "*"), "--md", md]) == 2
@@ -119,7 +119,7 @@ def test_decoding_error_of_a_pose_system(tmp_path):
   from camrep.regression import pose_system, scoring
   from camrep.regression import targets as T
 
-  ss = load_experiment("seed_spread")
+  ss = seed_spread
   config = shapenet_car.get_config("smoke")
   config.total_steps, config.evals.num_scenes = 1, 1
   wd = str(tmp_path / "car")

@@ -12,12 +12,13 @@ import shutil
 
 import pytest
 
+from camrep.comparison import launch
 from camrep.configs import gqn
 from camrep.runtime import runconfig, session, writers
 from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import step as step_lib
 from camrep.synthesis import train
-from tests.utils import load_experiment
+from experiments import table1
 
 pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
@@ -122,21 +123,19 @@ def test_a_cut_history_line_is_survived_and_not_glued_onto(run):
 
 
 def test_run_comparison_and_table1_tell_unfinished_runs(run, tmp_path, capsys):
-  rc = load_experiment("run_comparison")
-  job = rc.Job("synthesis_gqn", ["true"], os.path.join(run, session.FINAL_FILE), 1)
+  job = launch.Job("synthesis_gqn", ["true"], run, 1, "synthesis")
   assert job.done()
-  assert rc.run_jobs([job], str(tmp_path / "logs"), at_once=1, label="") == []
+  assert launch.run_jobs([job], str(tmp_path / "logs"), at_once=1, label="") == []
   assert "[skipped] synthesis_gqn: done" in capsys.readouterr().out
   final = session.read_final(run)
-  with open(job.done_file, "w") as f:
+  with open(os.path.join(run, session.FINAL_FILE), "w") as f:
     json.dump({**final, "complete": False}, f)  # what an extension killed mid-way leaves
   assert not job.done()
-  with open(job.done_file, "w") as f:
+  with open(os.path.join(run, session.FINAL_FILE), "w") as f:
     json.dump({k: v for k, v in final.items() if k != "complete"}, f)  # an older record
   assert not job.done()
   runs = tmp_path / "regression"
   (runs / "car" / "quat" / "lr0.001_seed0").mkdir(parents=True)
-  table1 = load_experiment("table1")
   assert table1.unfinished([str(runs / "*" / "*" / "*")]) == [
     str(runs / "car" / "quat" / "lr0.001_seed0")
   ]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from camrep.regression import stats, tables
-from tests.utils import load_experiment
+from experiments import table1, table2
 
 
 def _errors(seed, shape=(3, 200), scale=1.0):
@@ -91,7 +91,7 @@ def test_table1_intervals_and_verdicts_from_run_directories(tmp_path):
     _write_run(root, "quat", seed, base)
     _write_run(root, "sincos", seed, 1.3 * base)
     _write_run(root, "ours", seed, 0.5 * base)
-  C = load_experiment("table1")
+  C = table1
   results = C.C.load_results([os.path.join(root, "*", "*", "*")])
   sel = C.C.select(results)
   comp = stats.compare_runs(sel["car", "ours"].runs, sel["car", "quat"].runs, "rotation_error_deg")
@@ -132,7 +132,7 @@ def test_table2_average_intervals_and_verdicts(tmp_path):
       r["data"] = {"test_split": "test", "scene_names": {"0": "chess", "1": "stairs"}}
       with open(os.path.join(wd, "results.json"), "w") as f:
         json.dump(r, f)
-  text = load_experiment("table2").build(tables.load_results([os.path.join(root, "*", "*", "*")]))
+  text = table2.build(tables.load_results([os.path.join(root, "*", "*", "*")]))
   row = next(x for x in text.splitlines() if x.startswith("| ours / best hand-designed"))
   # ours halves quat's position errors view by view and equals its rotation errors.
   assert "position 0.50 [0.50, 0.50] better (vs quat)" in row

@@ -1,4 +1,4 @@
-"""experiments/sweep.py: runs config variants of camrep.main and tabulates their PSNR gains."""
+"""tools/sweep.py: runs config variants of camrep.main and tabulates their PSNR gains."""
 
 from __future__ import annotations
 
@@ -7,13 +7,13 @@ import json
 
 import pytest
 
-from tests.utils import load_experiment
+from tools import sweep
 
 pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 
 def test_parse_variant():
-  sw = load_experiment("sweep")
+  sw = sweep
   assert sw.parse_variant("base=") == ("base", [])
   assert sw.parse_variant("lr=--config.optax.lr_model=2e-3 --config.seed=1") == (
     "lr",
@@ -26,7 +26,7 @@ def test_parse_variant():
 
 def test_sweep_runs_variants_and_reports_failures(tmp_path, monkeypatch):
   monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")  # the runs compile in seconds
-  sw = load_experiment("sweep")
+  sw = sweep
   out = tmp_path / "sweep"
   rc = sw.main(
     [

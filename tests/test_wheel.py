@@ -124,9 +124,9 @@ def test_wheel_installs_and_trains_a_config_by_name(installed):
 def test_the_notebook_runs_on_the_installed_package(installed):
   python, away = installed
   notebook = away / "quickstart.ipynb"
-  shutil.copy(ROOT / "experiments" / "quickstart.ipynb", notebook)
+  shutil.copy(ROOT / "notebooks" / "quickstart.ipynb", notebook)
   r = subprocess.run(
-    [python, str(ROOT / "experiments" / "run_notebook.py"), str(notebook), "--write"],
+    [python, str(ROOT / "tools" / "run_notebook.py"), str(notebook), "--write"],
     cwd=away,
     env=_env(),
     capture_output=True,

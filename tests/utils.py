@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import importlib.util
 import os
-import sys
 import zlib
 
 import jax
@@ -94,7 +92,6 @@ def general_lie_test(f):
 
 def snapshot(workdir) -> dict[str, bytes]:
   """Every file of a directory tree, relative path -> bytes (directories as "name/" -> b"")."""
-  import os
 
   out = {}
   for root, dirs, files in os.walk(workdir):
@@ -105,17 +102,6 @@ def snapshot(workdir) -> dict[str, bytes]:
       with open(p, "rb") as fh:
         out[os.path.relpath(p, workdir)] = fh.read()
   return out
-
-
-def load_experiment(name: str):
-  """The module of experiments/<name>.py (experiments/ is not a package), registered in
-  sys.modules under `name` (its dataclasses look their module up)."""
-  path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "experiments")
-  spec = importlib.util.spec_from_file_location(name, os.path.join(path, f"{name}.py"))
-  module = importlib.util.module_from_spec(spec)
-  sys.modules[name] = module
-  spec.loader.exec_module(module)
-  return module
 
 
 def regression_hparams(setting: str, representation: str):

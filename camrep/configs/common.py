@@ -20,7 +20,7 @@ def parse_arg(arg: str | None, variants: tuple[str, ...] = VARIANTS) -> str:
   """Returns the variant named by `--config=path.py:VARIANT` ("" for the paper-size config).
 
   Variants: "" (paper size), "quick" (minutes on 2 CPU cores), "medium" (one GPU, minutes per
-  run: `experiments/run_comparison.py --size medium`), "smoke" (seconds, for tests).
+  run: `python -m camrep.comparison --size medium`), "smoke" (seconds, for tests).
   """
   arg = (arg or "").strip()
   if arg not in variants:

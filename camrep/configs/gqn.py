@@ -10,8 +10,10 @@ pairs, 6 blocks of 16, 21 x 21 position grid (0.1), 10-degree yaw grid, 144 dire
 Data: procedural rooms rendered per batch.
 
   python -m camrep.main --config=configs/gqn.py --workdir=/tmp/gqn
-    paper size: ~4 days on one Titan RTX in the paper; measured on one H100: 3.5 steps/s, ETA
-    ~80 h (a GPU job; on 2 CPU cores it starts and prints an ETA, far too slow to finish).
+    paper size: ~4 days on one Titan RTX in the paper; measured for 200 s on one H200 (JAX
+    0.11.2): 14-15 steps/s, ETA ~19 h for the 1M steps, the loop host-bound at 0.2x the step
+    alone (`python -m camrep.bench.gpu_report` measures both). A GPU job: on 2 CPU cores it starts
+    and prints an ETA, far too slow to finish.
     Expected: the paper's Table 1 pose-regression errors from this pose system (x, y 0.053,
     yaw 4.07 degrees); the paper gives no GQN PSNR in its text.
     On a GPU, `--config.model.dtype=bfloat16` computes the encoder and decoder in bfloat16

@@ -39,7 +39,7 @@ def quick_schedules(total_steps: int) -> dict[str, int]:
   """The quick run's schedules as fractions of its length (GQN's schedules compressed into a
   short run): the pixel std annealed over the first 10%, the learning rate over 80%, the KL
   weight over the first half. {flat config field: steps}; a run of another length (e.g. the
-  converge comparison's 4x, experiments/run_comparison.py) sets them all from its own length."""
+  converge comparison's 4x, `python -m camrep.comparison`) sets them all from its own length."""
   return {
     "loss.sigma_anneal_steps": total_steps // 10,
     "optax.anneal_steps": (8 * total_steps) // 10,

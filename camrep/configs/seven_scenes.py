@@ -8,9 +8,9 @@ plus image pairs, 4 blocks of 8, 0.1 m and 10-degree grids over a 4 x 1.5 x 3 m 
 periodic; phi in [0, pi]).
 
   python -m camrep.main --config=configs/seven_scenes.py --workdir=/tmp/7s
-    paper size: ~1 day on one Titan RTX; measured on one H100: 6.8 steps/s, ETA 4 h 05 min,
-    ~29 GiB of GPU memory (a GPU job: on a 24 GiB CPU machine the first step runs out of
-    memory). Expected Table 2 medians ~0.21 m, 7.92 degrees.
+    paper size: ~1 day on one Titan RTX; ~29 GiB of GPU memory on one H100 (a GPU job: on a
+    24 GiB CPU machine the first step runs out of memory; its speed is the GPU report's
+    seven_scenes phase). Expected Table 2 medians ~0.21 m, 7.92 degrees.
   python -m camrep.main --config=configs/seven_scenes.py:quick --workdir=/tmp/7s_quick
     64 px, the small scene6dof preset, eighth width, 600 steps: 2.2 min on a 2-core CPU.
     Expected: held-out-view PSNR 14.73 dB against 13.89 dB for the mean of up to 16 training views

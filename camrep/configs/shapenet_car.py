@@ -7,8 +7,9 @@ decoder step, lr 1e-4 / 1e-4, lambda_1 0.05, lambda_2 50, 100 extra pairs plus t
 pairs (0.5 / 0.5), 6 blocks of 16, 10-degree grids.
 
   python -m camrep.main --config=configs/shapenet_car.py --workdir=/tmp/car
-    paper size: ~1-4 days on one Titan RTX per the authors; measured on one H100: 4.8 steps/s,
-    ETA 9 h 18 min. Expected car pose-regression error 2.85 degrees (Table 1).
+    paper size: ~1-4 days on one Titan RTX per the authors; measured for 200 s on one H200 (JAX
+    0.11.2): 14-15 steps/s (host-bound, as gqn.py). Expected car pose-regression error 2.85
+    degrees (Table 1).
   python -m camrep.main --config=configs/shapenet_car.py:quick --workdir=/tmp/car_quick
     64 px, 64 cars in memory, eighth width, 600 steps: 4.6 min on a 2-core CPU. Expected:
     held-out-view PSNR 18.07 dB against 13.13 dB for the mean of up to 16 training views

@@ -23,7 +23,7 @@ Which weight gradient is used is decided when the step is traced:
     faster: the pose-regression step at the quick width (eighth width, 8-32 channels) ran 2.3x
     faster with it, while at paper width (128-256 channels) the matmuls stay 1.4x faster
     (BUILD_NOTES "The regression step's speed"). The regression learner traces its step so;
-  "matmul" / "xla": forced, e.g. by `experiments/bench_train_step.py` to compare the two.
+  "matmul" / "xla": forced, e.g. by `python -m camrep.bench.train_step` to compare the two.
 Set it with `weight_grad("xla")` as a context manager around tracing, or `set_weight_grad`.
 Layouts other than NHWC / HWIO, dilations and feature groups fall back to XLA's conv.
 

@@ -1,5 +1,5 @@
 """Intervals over seeds and test views, and the paired comparison of two representations
-(results that carry a conclusion). Pure NumPy, for `experiments/table1.py` / `table2.py`.
+(results that carry a conclusion). Pure NumPy, for the table readers (experiments/table1.py, ...).
 
 A table cell is the errors of one representation in one column: a (S, N) matrix E of per-view
 test errors, S seeds (runs at the chosen learning rate) by N test views (the same views in every
@@ -31,6 +31,8 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+
+from camrep.regression import runs as runs_lib
 
 B = 2000  # bootstrap replicates
 SEED = 0  # of the bootstrap's random generator: tables are reproducible
@@ -84,17 +86,33 @@ def _draws(rng, n_seeds: int, groups: Sequence[np.ndarray]):
   return seeds, views
 
 
-def _resampled_stats(mats, scenes, reduce, b, seed) -> np.ndarray:
-  """(b, len(mats)) statistics of the matrices under shared seed and view draws."""
+def _resampled_stats(mats, scenes, reduce, b, seed, chunk: int = 250) -> np.ndarray:
+  """(b, len(mats)) statistics of the matrices under shared seed and view draws.
+
+  The draws come one replicate at a time, in `_draws`' order (the intervals depend on it); the
+  statistics of `chunk` replicates are computed at once. Each replicate's views are drawn group
+  by group, keeping each group's count, so its groups are the same blocks of columns in every
+  replicate: per block, `reduce` over the block (the (S, n_g) rows, as `statistic` reduces
+  them), the mean over blocks, then over seeds: the values `statistic` gives, bit for bit.
+  """
   rng = np.random.default_rng(seed)
   n_seeds, n = mats[0].shape
   groups = _groups(scenes, n)
-  sc = None if scenes is None else np.asarray(scenes)
+  draws = [_draws(rng, n_seeds, groups) for _ in range(b)]
+  seeds = np.stack([d[0] for d in draws])  # (b, S)
+  views = np.stack([d[1] for d in draws])  # (b, N), group by group
+  bounds = np.cumsum([0, *(len(g) for g in groups)])
+  fn = {"mean": np.mean, "median": np.median}[reduce]
   out = np.empty((b, len(mats)))
-  for i in range(b):
-    s, v = _draws(rng, n_seeds, groups)
+  for lo in range(0, b, chunk):
+    s, v = seeds[lo : lo + chunk], views[lo : lo + chunk]
     for j, m in enumerate(mats):
-      out[i, j] = statistic(m[np.ix_(s, v)], None if sc is None else sc[v], reduce)
+      m = np.asarray(m, np.float64)
+      sub = m[s[:, :, None], v[:, None, :]]  # (c, S, N)
+      per = np.stack(
+        [fn(sub[:, :, a:z], axis=2) for a, z in zip(bounds[:-1], bounds[1:], strict=True)]
+      )
+      out[lo : lo + chunk, j] = np.mean(np.mean(per, axis=0), axis=1)
   return out
 
 
@@ -154,25 +172,26 @@ def paired_ratio(
 
 
 def errors_file(run: Mapping[str, Any]) -> str:
-  """The errors_<test split>.npz beside a loaded run's results.json ("" if it has no path)."""
+  """Where a loaded run's per-view errors come from: the errors_<test split>.npz beside its
+  results.json, or its run.json ("" if it has no path)."""
   path = run.get("_path", "")
-  if not path:
-    return ""
-  split = run.get("data", {}).get("test_split", "test")
-  return os.path.join(os.path.dirname(path), f"errors_{split}.npz")
+  if not path or path.endswith(runs_lib.RECORD_FILE):
+    return path
+  return runs_lib.errors_file(os.path.dirname(path), run)
 
 
 def view_errors(run: Mapping[str, Any], error: str) -> dict[str, np.ndarray] | None:
-  """{"errors": (N,), "scene": (N,), "pose": (N, P)} of one run's test split, or None when its
-  errors file is missing or lacks `error`."""
-  path = errors_file(run)
-  if not path or not os.path.isfile(path):
+  """{"errors": (N,), "scene": (N,), "pose": (N, P)} of one run's test split, or None when it
+  has no per-view errors or none named `error`."""
+  if "_run" in run:
+    z = run["_run"].view_errors()
+  else:
+    path = errors_file(run)
+    z = runs_lib.read_errors(path) if path.endswith(".npz") and os.path.isfile(path) else None
+  if z is None or error not in z:
     return None
-  with np.load(path) as z:
-    if error not in z:
-      return None
-    out = {"errors": np.asarray(z[error], np.float64), "scene": np.asarray(z["scene"])}
-    out["pose"] = np.asarray(z["pose"]) if "pose" in z else None
+  out = {"errors": np.asarray(z[error], np.float64), "scene": np.asarray(z["scene"])}
+  out["pose"] = np.asarray(z["pose"]) if "pose" in z else None
   return out
 
 

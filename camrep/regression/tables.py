@@ -1,11 +1,12 @@
 """From regression results (results.json of `camrep.regression` runs) to the paper's Tables 1 and 2.
 
-Python and NumPy (the settings' selection scores from `camrep.settings`), shared by
-`experiments/table1.py`, `experiments/table2.py` and `experiments/run_comparison.py`:
+Python and NumPy (the settings' selection scores from `camrep.settings`), shared by the table
+readers in experiments/ and the comparison launcher (`camrep.comparison`):
 
-  load_results(patterns)      results.json files (or run directories) matching glob patterns
+  load_results(patterns)      finished runs (workdirs or run.json records) matching glob patterns
   validation_score(s, summ)   the scalar that picks the learning rate (lower is better)
-  select(results)             per (setting, representation): the chosen lr and its runs
+  select(results)             per (setting, representation): the chosen lr and its runs (two runs
+                              of one cell are refused: `DuplicateRuns`)
   grid_edge(selection)        whether the chosen lr is the lowest / highest of its grid
   seed_stats(runs, ...)       mean, sample std and count over seeds of one test statistic
   data_label(run)             which data a run used: procedural family or prepared dataset + split
@@ -24,19 +25,19 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import glob
-import json
 import math
 import os
-from collections.abc import Iterable, Mapping, Sequence
+import sys
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
 from camrep import settings
 from camrep.data import records
+from camrep.regression import runs as runs_lib
 
-RESULTS_FILE = "results.json"
+RESULTS_FILE = runs_lib.RESULTS_FILE
 
 # (column key, header, setting, error name): the paper's Table 1 columns (mean test errors).
 TABLE1_COLUMNS = (
@@ -60,6 +61,37 @@ ROW_LABELS = {
   "mlp": "MLP embedding",
   "ours": "ours",
 }
+
+# Row labels of a table whose columns are all of one rotation-only setting (the car's view sphere,
+# and its captures): the encoding applied to that setting's own pose columns (`pose_columns`).
+ORIENTATION_LABELS = {
+  "euler": "Euler angles of ({poses})",
+  "axis_angle": "axis-angle of ({poses})",
+  "sincos": "sin, cos of ({poses})",
+  "quat": "q of ({poses})",
+  "logq": "log q of ({poses})",
+  "rot6d": "6-D Gram-Schmidt of ({poses}) [Zhou 2019; not in the paper]",
+  "svd9d": "9-D SVD of ({poses}) [Levinson 2020; not in the paper]",
+}
+
+
+def pose_columns(setting: str) -> tuple[str, ...]:
+  """The pose columns of a setting (`Setting.pose_columns`, which its procedural family, real
+  readers and captures share): car ("azimuth", "polar"), rooms and area ("x", "y", "yaw"), ..."""
+  return settings.get(setting).pose_columns
+
+
+def row_label(rep: str, settings: Iterable[str]) -> str:
+  """A representation's row label in a table of the columns of `settings`: the paper's
+  "(x, y, q)" style where a setting has positions; the encoding of the setting's own pose
+  columns where every column is one rotation-only setting ("q of (azimuth, polar)")."""
+  poses = {pose_columns(s) for s in settings}
+  if len(poses) == 1 and rep in ORIENTATION_LABELS:
+    (cols,) = poses
+    if not {"x", "y", "z"} & set(cols):
+      return ORIENTATION_LABELS[rep].format(poses=", ".join(cols))
+  return ROW_LABELS.get(rep, rep)
+
 
 PAPER_TABLE1: dict[str, dict[str, float]] = {
   "euler": dict(
@@ -103,24 +135,62 @@ of the real 7-Scenes data."""
 TABLE2_ROWS = ("ours", "quat", "logq", "rot6d", "svd9d")
 
 
-def load_results(patterns: Iterable[str]) -> list[dict[str, Any]]:
-  """results.json files matching glob patterns (a run directory stands for its results.json).
+class TableError(ValueError):
+  """Runs a table cannot be made from; the message names them."""
 
-  Directories without results.json (unfinished runs) are skipped. Each result gets "_path".
+
+class DamagedRuns(TableError):
+  """Finished-looking runs whose files cannot be read (a cut results.json, a damaged errors
+  file); the message names each."""
+
+
+class DuplicateRuns(TableError):
+  """Two runs of one cell (setting, representation, lr and seed); the message names both."""
+
+
+def load_results(
+  patterns: Iterable[str], *, skip_damaged: bool = False, warn=None
+) -> list[dict[str, Any]]:
+  """The results of the regression runs that glob `patterns` match: run directories (their
+  results.json, or their compact record run.json, `camrep.regression.runs`) or such files.
+
+  Directories without a finished run (unfinished runs) and view-synthesis runs are skipped. Each
+  result gets "_path" (its results.json or run.json) and "_run" (the `runs.Run`, whose per-view
+  errors are read here: a damaged errors file is found now, not halfway through a table).
+
+  Args:
+    patterns: glob patterns.
+    skip_damaged: skip runs that cannot be read, calling `warn(message)` for each (default:
+      print to stderr), instead of raising.
+    warn: see skip_damaged.
+
+  Raises:
+    DamagedRuns: a matched run cannot be read (without skip_damaged); every such run is named.
   """
-  paths = set()
-  for pattern in patterns:
-    for p in glob.glob(pattern):
-      if os.path.isdir(p):
-        p = os.path.join(p, RESULTS_FILE)
-      if os.path.basename(p) == RESULTS_FILE and os.path.isfile(p):
-        paths.add(os.path.abspath(p))
-  out = []
-  for p in sorted(paths):
-    with open(p, encoding="utf-8") as f:
-      r = json.load(f)
-    r["_path"] = p
+  out, damaged = [], []
+  for d in runs_lib.expand(patterns):
+    if not runs_lib.is_finished(d):
+      continue
+    try:
+      run = runs_lib.load(d, arrays=True)
+    except runs_lib.DamagedRun as e:
+      damaged.append(str(e))
+      continue
+    if run.kind != "regression":
+      continue
+    r = dict(run.results)
+    record = run.path.endswith(runs_lib.RECORD_FILE)
+    r["_path"] = run.path if record else os.path.join(d, RESULTS_FILE)
+    r["_run"] = run
     out.append(r)
+  out.sort(key=lambda r: r["_path"])
+  if damaged and not skip_damaged:
+    raise DamagedRuns(
+      "damaged runs (a cut or unreadable file; remove or restore them, or pass --skip_damaged): "
+      + "; ".join(damaged)
+    )
+  for message in damaged:
+    (warn or (lambda m: print(f"warning: skipped {m}", file=sys.stderr, flush=True)))(message)
   return out
 
 
@@ -160,13 +230,23 @@ class Selection:
 def select(results: Sequence[Mapping[str, Any]]) -> dict[tuple[str, str], Selection]:
   """Groups results by (setting, representation) and picks each group's learning rate.
 
-  A repeated (setting, representation, lr, seed) keeps the last file in path order.
+  Raises:
+    DuplicateRuns: two runs of one (setting, representation, lr, seed) cell, e.g. two workdirs
+      of one seed, or a capture column pooled with its setting's own runs.
   """
   groups: dict[tuple[str, str], dict[float, dict[int, Any]]] = collections.defaultdict(
     lambda: collections.defaultdict(dict)
   )
   for r in results:
-    groups[r["setting"], r["representation"]][float(r["lr"])][int(r["seed"])] = r
+    cell = groups[r["setting"], r["representation"]][float(r["lr"])]
+    seed = int(r["seed"])
+    if seed in cell:
+      raise DuplicateRuns(
+        f"two runs of {r['setting']}/{r['representation']} at lr {r['lr']:g}, seed {seed}: "
+        f"{cell[seed].get('_path', '?')} and {r.get('_path', '?')}; give the runs of one "
+        "launch or column only"
+      )
+    cell[seed] = r
   out = {}
   for (setting, rep), by_lr in sorted(groups.items()):
     common = set.intersection(*(set(s) for s in by_lr.values()))
@@ -294,9 +374,11 @@ def grid_edge(sel: Selection) -> str:
   return ""
 
 
-def selection_table(selections: Mapping[tuple[str, str], Selection]) -> str:
+def selection_table(
+  selections: Mapping[tuple[str, str], Selection], label: Callable[[str], str] | None = None
+) -> str:
   """The learning-rate choice of every group: grid with scores, chosen lr, whether it is at the
-  grid's edge, seeds, sizes."""
+  grid's edge, seeds, sizes; `label(representation)` names its row (default: ROW_LABELS)."""
   rows = []
   for (setting, rep), sel in selections.items():
     grid = ", ".join(
@@ -307,7 +389,7 @@ def selection_table(selections: Mapping[tuple[str, str], Selection]) -> str:
     rows.append(
       [
         setting,
-        ROW_LABELS.get(rep, rep),
+        label(rep) if label else ROW_LABELS.get(rep, rep),
         grid,
         fmt_lr(sel.lr),
         f"**{grid_edge(sel)}**" if grid_edge(sel) else "no",

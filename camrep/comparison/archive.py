@@ -1,0 +1,118 @@
+"""A launch's archive (`--archive DIR`, e.g. results/converge): one compact record per finished run.
+
+A converge launch takes more hours than a machine is kept. The archive holds, for every finished
+run of a launch's DIR, its record `run.json` (`camrep.regression.runs`: what the tables and
+figures read; never checkpoints), at the run's place (synthesis/<name>, regression/<column>/
+<representation>/<lr>_seed<k>, crossed/<column>/<run>), and the launch's tables and figures. A
+launch copies each run's record in as soon as the run ends (`sync`), and starts by restoring the
+records DIR holds into its own DIR (`restore`): a launch cut short resumes on another machine,
+losing only the runs in flight. An archive of whole run files (config.json, results.json,
+errors_*.npz, ... as launches kept them before) is restored alike; `tools/compact_results.py`
+turns one into records.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import shutil
+
+from camrep.regression import runs
+
+# Run workdirs inside a launch's DIR, and the launch's own tables and figures.
+RUN_PATTERNS = ("synthesis/*", "regression/*/*/*", "crossed/*/*")
+TOP_PATTERNS = ("*.md", "*.png", "*.pdf")
+
+
+def run_dirs(root: str) -> list[str]:
+  """The run directories under a launch's DIR or an archive (relative paths, sorted)."""
+  out = []
+  for pattern in RUN_PATTERNS:
+    out += [
+      os.path.relpath(d, root)
+      for d in sorted(glob.glob(os.path.join(root, pattern)))
+      if os.path.isdir(d)
+    ]
+  return out
+
+
+def _copy_if_changed(src: str, dst: str) -> bool:
+  """Copies src to dst (a temporary file, then a rename) unless dst has the same bytes."""
+  with open(src, "rb") as f:
+    data = f.read()
+  if os.path.exists(dst):
+    with open(dst, "rb") as f:
+      if f.read() == data:
+        return False
+  os.makedirs(os.path.dirname(dst), exist_ok=True)
+  tmp = f"{dst}.tmp{os.getpid()}"
+  with open(tmp, "wb") as f:
+    f.write(data)
+  os.replace(tmp, dst)
+  return True
+
+
+def sync(out: str, archive: str) -> int:
+  """Writes into `archive` the record of every finished, readable run of `out` and the launch's
+  tables and figures, where missing or changed; returns how many files it wrote. A run that
+  cannot be read is left out (it is trained again)."""
+  n = 0
+  for rel in run_dirs(out):
+    wd = os.path.join(out, rel)
+    if not runs.is_finished(wd) or not _complete(wd):
+      continue
+    try:
+      record = runs.compact(runs.load(wd, arrays=True))
+    except runs.DamagedRun:
+      continue
+    n += runs.write_record(record, os.path.join(archive, rel, runs.RECORD_FILE))
+  for pattern in TOP_PATTERNS:
+    for path in sorted(glob.glob(os.path.join(out, pattern))):
+      n += _copy_if_changed(path, os.path.join(archive, os.path.basename(path)))
+  return n
+
+
+def _complete(workdir: str) -> bool:
+  """A regression run with its results, or a view-synthesis run whose final record says it
+  completed (one stopped or killed mid-way is not archived)."""
+  try:
+    run = runs.load(workdir)
+  except (FileNotFoundError, runs.DamagedRun):
+    return False
+  return run.kind == "regression" or (run.final or {}).get("complete") is True
+
+
+def restore(archive: str, out: str, *, warn=print) -> int:
+  """Writes into `out` the record of every archived run that `out` does not hold finished (a
+  view-synthesis run only where `out` has no workdir of that name: a partial run there resumes
+  from its own checkpoints); returns how many runs it restored. An archived run that cannot be
+  read is named (`warn`) and not restored: the launch trains it again."""
+  n = 0
+  for rel in run_dirs(archive):
+    src, dst = os.path.join(archive, rel), os.path.join(out, rel)
+    if not runs.is_finished(src) or runs.is_finished(dst):
+      continue
+    if rel.startswith("synthesis") and os.path.exists(dst):
+      continue
+    try:
+      record = runs.compact(runs.load(src, arrays=True))
+    except runs.DamagedRun as e:
+      warn(f"warning: the archived run {src} cannot be read ({e}); it is trained again")
+      continue
+    runs.write_record(record, os.path.join(dst, runs.RECORD_FILE))
+    n += 1
+  return n
+
+
+def set_aside(damaged: runs.DamagedRun) -> str:
+  """Renames a damaged file to <name>.damaged (kept for a look, read by nothing); a damaged
+  errors file takes its results.json with it, so the run counts as not finished. Returns the
+  damaged file's new path."""
+  moved = [damaged.path]
+  name = os.path.basename(damaged.path)
+  if name.startswith("errors_") and name.endswith(".npz"):
+    moved.append(os.path.join(os.path.dirname(damaged.path), runs.RESULTS_FILE))
+  for path in moved:
+    if os.path.exists(path):
+      shutil.move(path, path + ".damaged")
+  return damaged.path + ".damaged"

@@ -1,0 +1,889 @@
+"""The comparison's jobs and their execution: what runs, in which order, and what is done.
+
+Every run is a subprocess (`python -m camrep.main`, `python -m camrep.regression`, the table and
+figure readers in experiments/) started in the checkout's root with its output in
+DIR/logs/<name>.log; a job is done when its run's record says so (`camrep.regression.runs`),
+so a launch that stops resumes where it stopped. Order (`execute`): seed by seed, so that a cut
+loses little: seed 0's view-synthesis runs and their evaluations, phase 1 (seed 0 at every lr,
+extended while a choice sits at its grid's edge), then for each later seed its view-synthesis
+runs and its phase-2 runs at the chosen lr; then crossed runs, tables, curves and figures.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import glob
+import math
+import os
+import pathlib
+import shlex
+import shutil
+import signal
+import subprocess
+import threading
+import time
+from collections.abc import Callable, Sequence
+
+from camrep.comparison import archive as archive_lib
+from camrep.comparison import plan as plan_lib
+from camrep.regression import runs
+from camrep.regression import tables as C
+from camrep.runtime import progress as progress_lib
+
+ROOT = str(pathlib.Path(__file__).resolve().parents[2])
+SETTINGS = plan_lib.SETTINGS
+# Seconds a stopped run (Ctrl-C, SIGTERM) gets to save its checkpoint before it is killed.
+STOP_GRACE_S = 60.0
+_STOPPING = threading.Event()
+
+
+@dataclasses.dataclass
+class Job:
+  """One subprocess: a name (its log file), argv, the workdir whose record marks it done (""
+  for tables and figures, which always run), what kind of job it is, and an estimate."""
+
+  name: str
+  argv: list[str]
+  workdir: str
+  estimate_s: float
+  kind: str = "table"  # "synthesis", "regression", "evaluate" or "table"
+
+  def done(self) -> bool:
+    """Whether the job's run is finished and readable: a regression run's results; a view-
+    synthesis run complete at the step cap its command gives (or stopped earlier by its plateau
+    rule); an evaluation's noise curve."""
+    if not self.workdir or self.kind == "table" or damage(self.workdir) is not None:
+      return False
+    if self.kind == "regression":
+      return runs.is_finished(self.workdir)
+    final = read_final(self.workdir)
+    if self.kind == "synthesis":
+      return synthesis_done(final, self.argv)
+    return _noise(self.workdir) is not None
+
+  def command(self) -> str:
+    return shlex.join(self.argv)
+
+
+_DAMAGE: dict[str, tuple[tuple, runs.DamagedRun | None]] = {}
+
+
+def _signature(workdir: str) -> tuple:
+  """The names, sizes and times of a workdir's files: what `damage` is cached on."""
+  out = []
+  for d in (workdir, os.path.join(workdir, "eval")):
+    if os.path.isdir(d):
+      for e in sorted(os.scandir(d), key=lambda e: e.name):
+        if e.is_file():
+          st = e.stat()
+          out.append((d, e.name, st.st_size, st.st_mtime_ns))
+  return tuple(out)
+
+
+def damage(workdir: str) -> runs.DamagedRun | None:
+  """`runs.damage` of a workdir, cached while its files are unchanged."""
+  sig = _signature(workdir)
+  hit = _DAMAGE.get(workdir)
+  if hit is None or hit[0] != sig:
+    hit = _DAMAGE[workdir] = (sig, runs.damage(workdir))
+  return hit[1]
+
+
+def read_final(workdir: str) -> dict:
+  """A view-synthesis run's final record ({} without one or when it cannot be read)."""
+  try:
+    run = runs.load(workdir)
+  except (FileNotFoundError, runs.DamagedRun):
+    return {}
+  return run.final or {}
+
+
+def _noise(workdir: str) -> dict | None:
+  try:
+    return runs.load(workdir).noise
+  except (FileNotFoundError, runs.DamagedRun):
+    return None
+
+
+def synthesis_done(final: dict, argv: Sequence[str]) -> bool:
+  """A view-synthesis run is done when complete at the step cap its command gives
+  (`--config.total_steps`), or stopped earlier by its plateau rule: a raised cap resumes a run
+  that reached the old one."""
+  if final.get("complete") is not True:
+    return False
+  cap = flag_value(argv, "--config.total_steps")
+  stopped = bool((final.get("stopping") or {}).get("stopped_early"))
+  return cap is None or stopped or final.get("step") == int(cap)
+
+
+def flag_value(argv: Sequence[str], flag: str) -> str | None:
+  """The value of the last `flag=VALUE` in argv, or None."""
+  values = [a.split("=", 1)[1] for a in argv if a.startswith(flag + "=")]
+  return values[-1] if values else None
+
+
+def resumable(argv: Sequence[str]) -> bool:
+  """Whether a view-synthesis command may resume a run trained to another length: its
+  `--config.allow_changes` names total_steps (the plateau runs), which ConvDRAW's does not."""
+  return "total_steps" in (flag_value(argv, "--config.allow_changes") or "").split(",")
+
+
+def has_checkpoint(workdir: str) -> bool:
+  """Whether a view-synthesis workdir holds a checkpoint (a step directory)."""
+  ckpt = os.path.join(workdir, "checkpoints")
+  return os.path.isdir(ckpt) and any(n.isdigit() for n in os.listdir(ckpt))
+
+
+def archived_only(workdir: str) -> bool:
+  """A view-synthesis run restored from an archive: complete, without checkpoints."""
+  return read_final(workdir).get("complete") is True and not has_checkpoint(workdir)
+
+
+def setting_of(column: str) -> str:
+  """The setting of a table column: the setting itself, or "car" for a capture column
+  "car_<NAME>" (`--data car_NAME=SOURCE:DIR`)."""
+  return column if column in SETTINGS else column.split("_", 1)[0]
+
+
+def lr_tag(lr: float) -> str:
+  return f"lr{lr:.0e}".replace("e-0", "e-")
+
+
+def capture_of(name: str, data: dict | None) -> str | None:
+  """The capture column a view-synthesis name belongs to ("car_chair" or "car_chair_mlp" ->
+  "car_chair"; the longest capture column it starts with), or None for a setting's own."""
+  caps = [c for c, d in (data or {}).items() if isinstance(d, tuple)]
+  hits = [c for c in caps if name == c or name.startswith(f"{c}_")]
+  return max(hits, key=len) if hits else None
+
+
+def data_flags(column: str, data: dict | None) -> list[str]:
+  """The config flags that point a run of a setting (or capture column) at its prepared real
+  data (none without); a capture column's value is (source, dir), prepared with --preset small."""
+  if not data or column not in data:
+    return []
+  if isinstance(data[column], tuple):
+    source, path = data[column]
+    return [f"--config.data.source={source}", f"--config.data.dir={path}"]
+  return [
+    f"--config.data.source={plan_lib.real_source(column)}",
+    f"--config.data.dir={data[column]}",
+    "--config.data.preset=default",
+  ]
+
+
+@dataclasses.dataclass
+class Launch:
+  """Every job of one comparison: synthesis and phase-1 regression jobs, phase-2 (column,
+  representation, seed) triples whose lr phase 1 chooses, tables and figures."""
+
+  plan: plan_lib.Plan
+  out: str
+  python: str
+  settings: list[str]
+  synth: list[Job]
+  first: list[Job]
+  later: list[tuple[str, str, int]]
+  tables: list[Job]
+  figures: list[Job]
+  data: dict = dataclasses.field(default_factory=dict)
+  crossed: str = ""  # --crossed: the column whose ours seeds are crossed
+  archive: str = ""  # --archive: where each finished run's record is kept
+
+
+def synthesis_jobs(
+  out: str, plan: plan_lib.Plan, names: Sequence[str], py: str, data: dict | None = None
+) -> list[Job]:
+  """View-synthesis runs "<setting>[_<kind>][_seed<k>]" (the learned system, or another pose
+  input `--config.rep.kind=<kind>`; a capture column's "car_<NAME>[_mlp]"), into
+  DIR/synthesis/<name>, on the prepared real data `data` names."""
+  jobs = []
+  for full in names:
+    name, _, seed = full.partition("_seed")
+    setting = next(x for x in SETTINGS if name == x or name.startswith(f"{x}_"))
+    kind = name[len(setting) + 1 :]
+    cap = capture_of(name, data)
+    if cap is not None:  # a capture column: the car setting on the capture, one instance a step
+      kind = name[len(cap) + 1 :]  # "" (the learned system) or "mlp"
+    wd = os.path.join(out, "synthesis", full)
+    config = (
+      "configs/gqn_convdraw.py"  # GQN's own generator, fed GQN's 7-D pose vector
+      if kind == "convdraw"
+      else plan_lib.settings()[setting]["synthesis_config"]
+    )
+    argv = [py, "-m", "camrep.main", f"--config={config}{plan.suffix}", f"--workdir={wd}"]
+    if kind and kind != "convdraw":
+      argv.append(f"--config.rep.kind={kind}")
+    argv += data_flags(cap or setting, data)
+    if cap is not None:
+      argv.append("--config.data.scenes_per_device=1")
+    if seed:
+      argv.append(f"--config.seed={seed}")
+    argv += plan_lib.synthesis_flags(plan, setting, kind)
+    est = plan.synthesis_s.get(f"{setting}_{kind}", plan.synthesis_s[setting])
+    if cap is not None:
+      est = plan.synthesis_s.get("capture", est)
+    jobs.append(Job(f"synthesis_{full}", argv, wd, est, "synthesis"))
+  return jobs
+
+
+def regression_job(
+  out: str,
+  plan: plan_lib.Plan,
+  column: str,
+  rep: str,
+  lr: float | None,
+  seed: int,
+  py: str,
+  data: dict | None = None,
+) -> Job:
+  """One regression run's job (lr None: a placeholder "<LR>", for --dry_run's phase 2), on the
+  column's prepared real data when `data` names it."""
+  tag = "lr<LR>" if lr is None else lr_tag(lr)
+  setting = setting_of(column)
+  wd = os.path.join(out, "regression", column, rep, f"{tag}_seed{seed}")
+  argv = [
+    py,
+    "-m",
+    "camrep.regression",
+    f"--config=configs/regression.py:{setting}{plan.suffix.replace(':', ',')}",
+    f"--workdir={wd}",
+    f"--config.representation={rep}",
+    f"--config.seed={seed}",
+    f"--config.optax.lr={'<LR>' if lr is None else format(lr, 'g')}",
+    f"--config.data.cache_dir={os.path.join(out, 'cache')}",
+    *data_flags(column, data),
+    *plan_lib.regression_flags(plan, setting),
+  ]
+  syn = os.path.join(out, "synthesis", column)
+  pair = f"_seed{seed}" if plan.paired_synthesis else ""
+  if rep == "ours":
+    argv.append(f"--config.synthesis_workdir={syn}{pair}")
+  elif rep == "mlp":
+    argv.append(f"--config.synthesis_workdir={syn}_mlp{pair}")
+  name = f"regression_{column}_{rep}_{tag}_seed{seed}"
+  return Job(name, argv, wd, plan.regression_s[setting], "regression")
+
+
+def crossed_job(
+  launch: Launch, column: str, lr: float | None, seed: int, synthesis_seed: int
+) -> Job:
+  """A crossed "ours" run (`--crossed`): regression seed `seed` on the pose system of synthesis
+  seed `synthesis_seed`, into DIR/crossed/<column>/<lr>_seed<k>_syn<j> (outside regression/, so
+  the tables never pool it with the paired runs)."""
+  L = launch
+  job = regression_job(L.out, L.plan, column, "ours", lr, seed, L.python, L.data)
+  tag = "lr<LR>" if lr is None else lr_tag(lr)
+  wd = os.path.join(L.out, "crossed", column, f"{tag}_seed{seed}_syn{synthesis_seed}")
+  syn = os.path.join(L.out, "synthesis", f"{column}_seed{synthesis_seed}")
+  swap = {
+    "--workdir=": f"--workdir={wd}",
+    "--config.synthesis_workdir=": f"--config.synthesis_workdir={syn}",
+  }
+  argv = [next((v for k, v in swap.items() if a.startswith(k)), a) for a in job.argv]
+  name = f"crossed_{column}_{tag}_seed{seed}_syn{synthesis_seed}"
+  return Job(name, argv, wd, job.estimate_s, "regression")
+
+
+def crossed_jobs(launch: Launch, lr: float | None) -> list[Job]:
+  """Every (regression seed k, synthesis seed j != k) run of the `--crossed` column at `lr`
+  (None: the placeholder of --dry_run); the paired runs (j = k) are the launch's own."""
+  seeds = launch.plan.seeds
+  if not launch.crossed:
+    return []
+  return [crossed_job(launch, launch.crossed, lr, k, j) for k in seeds for j in seeds if j != k]
+
+
+def seed_spread_job(launch: Launch, lr: float) -> Job:
+  """experiments/seed_spread.py over the crossed runs and the paired ones at `lr`, with the
+  decoding error of each pose system, into DIR/seed_spread_<column>.md."""
+  L, col = launch, launch.crossed
+  runs_ = [
+    os.path.join(L.out, "crossed", col, f"{lr_tag(lr)}_seed*_syn*"),
+    os.path.join(L.out, "regression", col, "ours", f"{lr_tag(lr)}_seed*"),
+  ]
+  argv = [L.python, "experiments/seed_spread.py", "--decode", "--runs", *runs_]
+  return Job(
+    f"seed_spread_{col}", [*argv, "--md", os.path.join(L.out, f"seed_spread_{col}.md")], "", 60
+  )
+
+
+def chosen_lr(out: str, column: str, rep: str, plan: plan_lib.Plan) -> float | None:
+  """The lr that the phase-1 (seed 0) validation errors choose, or None without results."""
+  pattern = os.path.join(out, "regression", column, rep, f"*_seed{plan.seeds[0]}")
+  grid = plan.lrs[setting_of(column)]
+  results = [r for r in _results([pattern]) if plan.extend_grid or float(r["lr"]) in grid]
+  sel = C.select(results).get((setting_of(column), rep))
+  return None if sel is None else sel.lr
+
+
+def _results(patterns: Sequence[str]) -> list[dict]:
+  """The readable results matching `patterns` (a damaged run is not finished: it trains again)."""
+  return C.load_results(patterns, skip_damaged=True, warn=lambda m: None)
+
+
+def extension_lr(out: str, column: str, rep: str, plan: plan_lib.Plan) -> float | None:
+  """Phase 1 of a plan with `extend_grid`: the next lr (x3 beyond the edge) to try with seed 0
+  when the lr chosen so far is the lowest or highest of those run, within `extend_grid` lrs
+  beyond the plan's grid; None when the choice is inside or the extension is used up."""
+  pattern = os.path.join(out, "regression", column, rep, f"*_seed{plan.seeds[0]}")
+  sel = C.select(_results([pattern])).get((setting_of(column), rep))
+  if sel is None or not plan.extend_grid:
+    return None
+  extra = [lr for lr in sel.scores if lr not in plan.lrs[setting_of(column)]]
+  edge = C.grid_edge(sel)
+  if len(extra) >= plan.extend_grid or edge not in ("lowest", "highest"):
+    return None
+  return half_decade(sel.lr, up=edge == "highest")
+
+
+def half_decade(lr: float, *, up: bool) -> float:
+  """The next value of the 1, 3, 10, ... grid above (or below) `lr`: 1e-3 -> 3e-3 -> 1e-2."""
+  x = math.log10(lr) + (0.5 if up else -0.5)
+  k = math.floor(x)
+  frac = x - k
+  mantissa, k = (1, k) if frac < 0.24 else (3, k) if frac < 0.74 else (1, k + 1)
+  return float(f"{mantissa}e{k}")
+
+
+def table_jobs(out: str, py: str, settings: Sequence[str]) -> list[Job]:
+  """table1 / table2 of the settings (each read from its own regression/<setting> runs, so that
+  capture columns are not pooled with the car's); one table1_<column>.md per capture column.
+  table1.md holds every Table 1 column DIR has runs of, not only this launch's settings: a launch
+  of one setting (a chunk, an extension) rewrites it without dropping the others' columns."""
+  jobs = []
+  t1 = ("car", "gqn", "gibson")
+  if any(s in settings for s in t1):
+    runs_ = [os.path.join(out, "regression", s, "*", "*") for s in t1]
+    argv = [py, "experiments/table1.py", "--runs", *runs_, "--out", os.path.join(out, "table1.md")]
+    jobs.append(Job("table1", argv, "", 3))
+  if "seven_scenes" in settings:
+    runs_ = [os.path.join(out, "regression", "seven_scenes", "*", "*")]
+    argv = [py, "experiments/table2.py", "--runs", *runs_, "--out", os.path.join(out, "table2.md")]
+    jobs.append(Job("table2", argv, "", 3))
+  for col in [c for c in settings if c not in SETTINGS]:
+    runs_ = os.path.join(out, "regression", col, "*", "*")
+    md = os.path.join(out, f"table1_{col}.md")
+    jobs.append(
+      Job(f"table1_{col}", [py, "experiments/table1.py", "--runs", runs_, "--out", md], "", 3)
+    )
+  lead = [py, "experiments/lead_table.py", "--runs", os.path.join(out, "regression")]
+  jobs.append(Job("lead_table", [*lead, "--out", os.path.join(out, "lead_table.md")], "", 3))
+  return jobs
+
+
+def figure_jobs(
+  out: str, plan: plan_lib.Plan, synth: Sequence[Job], py: str, data: dict | None = None
+) -> list[Job]:
+  """Noise robustness and Gram maps of every synthesis run (`camrep.synthesis.evaluate`), then one
+  noise figure per setting or capture column with several pose inputs
+  (experiments/noise_figure.py)."""
+  jobs = []
+  names = [j.name.removeprefix("synthesis_") for j in synth]
+  for name in names:
+    wd = os.path.join(out, "synthesis", name)
+    argv = [py, "-m", "camrep.synthesis.evaluate", "--workdir", wd]
+    jobs.append(Job(f"evaluate_{name}", argv, wd, plan.evaluate_s, "evaluate"))
+  captures = [c for c, d in (data or {}).items() if isinstance(d, tuple)]
+  for column in [*SETTINGS, *captures]:
+    # The column's pose inputs (with seeds at converge size: every seed's run, for bands).
+    inputs = {column + k for k in ("", "_mlp", "_lowdim", "_convdraw")}
+    group = [n for n in names if n.partition("_seed")[0] in inputs]
+    kinds = {n.partition("_seed")[0] for n in group}
+    if column not in kinds or len(kinds) < 2:
+      continue
+    argv = [py, "experiments/noise_figure.py", "--runs"]
+    argv += [os.path.join(out, "synthesis", n) for n in group]
+    if column in captures:  # "car_chair" -> "chair, car setting"
+      base = setting_of(column)
+      argv += ["--column", f"{column.removeprefix(base + '_')}, {base} setting"]
+    argv += ["--png", os.path.join(out, f"noise_{column}.png")]
+    argv += ["--md", os.path.join(out, f"noise_{column}.md")]
+    jobs.append(Job(f"noise_figure_{column}", argv, "", 10))
+  return jobs
+
+
+def _group(job: Job) -> tuple[str, str]:
+  """(column, representation) of a regression job, from its workdir."""
+  parts = job.workdir.split(os.sep)
+  return parts[-3], parts[-2]
+
+
+def curve_title(column: str) -> str:
+  """The title of a column's validation curves: what the score is, how the bands are made."""
+  score = C.validation_score_text(setting_of(column))
+  return (
+    f"{column}: validation score = {score} (lower is better)\n"
+    "each representation at its chosen lr; line = mean of seeds, band = min to max"
+  )
+
+
+def synthesis_column(name: str, data: dict | None = None) -> str:
+  """The column of a view-synthesis run's name ("car_mlp_seed1" -> "car"; a capture column's
+  "car_chair_seed0" -> "car_chair")."""
+  base = name.partition("_seed")[0]
+  return capture_of(base, data) or next(
+    x for x in SETTINGS if base == x or base.startswith(f"{x}_")
+  )
+
+
+def curve_jobs(launch: Launch) -> list[Job]:
+  """With a stopping rule: per column, the validation curves of every representation's runs at
+  its chosen lr, bands over seeds (experiments/learning_curve.py --bands) into
+  DIR/curve_<column>.{png,md}; and per column the held-out PSNR curves of its view-synthesis
+  runs, one line per pose input with a band over seeds, into DIR/curve_synthesis_<column>."""
+  L = launch
+  jobs = []
+  if L.plan.synthesis_caps:
+    by_column: dict[str, list[str]] = {}
+    for j in L.synth:
+      if os.path.isdir(j.workdir):
+        col = synthesis_column(j.name.removeprefix("synthesis_"), L.data)
+        by_column.setdefault(col, []).append(j.workdir)
+    for col, wds in sorted(by_column.items()):
+      title = f"{col}: held-out PSNR (dB) of the view-synthesis runs; mean of seeds, band min-max"
+      argv = [L.python, "experiments/learning_curve.py", "--bands", "--metrics", "eval/psnr"]
+      argv += ["--runs", *wds, "--title", title]
+      argv += ["--png", os.path.join(L.out, f"curve_synthesis_{col}.png")]
+      argv += ["--md", os.path.join(L.out, f"curve_synthesis_{col}.md")]
+      jobs.append(Job(f"curve_synthesis_{col}", argv, "", 5))
+  if not L.plan.stop:
+    return jobs
+  groups = [_group(j) for j in L.first]
+  for col in sorted({c for c, _ in groups}):
+    wds = []
+    for rep in sorted({r for c, r in groups if c == col}):
+      lr = chosen_lr(L.out, col, rep, L.plan)
+      if lr is not None:
+        pattern = os.path.join(L.out, "regression", col, rep, f"{lr_tag(lr)}_seed*")
+        wds += sorted(d for d in glob.glob(pattern) if os.path.isdir(d))
+    if not wds:
+      continue
+    argv = [L.python, "experiments/learning_curve.py", "--bands", "--metrics"]
+    argv += ["eval/validation/score", "--runs", *wds, "--title", curve_title(col)]
+    argv += ["--png", os.path.join(L.out, f"curve_{col}.png")]
+    argv += ["--md", os.path.join(L.out, f"curve_{col}.md")]
+    jobs.append(Job(f"curve_{col}", argv, "", 5))
+  return jobs
+
+
+def make_launch(
+  plan: plan_lib.Plan,
+  out: str,
+  *,
+  settings: Sequence[str],
+  representations: Sequence[str] = (),
+  data: dict | None = None,
+  python: str = "python",
+  full_grid: bool = False,
+  skip_figures: bool = False,
+  noise_kinds: Sequence[str] = (),
+  crossed: str = "",
+  archive: str = "",
+) -> Launch:
+  """Every job of a launch (see the package docstring for what each argument asks)."""
+  data = dict(data or {})
+  captures = [c for c in data if c not in SETTINGS]
+  columns = list(settings) + [c for c in captures if setting_of(c) in settings]
+  reps = {
+    c: tuple(
+      r
+      for r in plan_lib.settings()[setting_of(c)]["representations"]
+      if not representations or r in representations
+    )
+    for c in columns
+  }
+  out = os.path.abspath(out)
+  names = [c for c in columns if "ours" in reps[c]]
+  # The MLP embedding's own synthesis runs, for the car and each capture column.
+  names += [f"{c}_mlp" for c in columns if setting_of(c) == "car" and "mlp" in reps[c]]
+  if noise_kinds and "gqn" in columns:
+    kinds = [k for k in noise_kinds if k != "convdraw" or plan.has_convdraw()]
+    names += [n for n in ["gqn", *(f"gqn_{k}" for k in kinds)] if n not in names]
+  if plan.paired_synthesis:  # one synthesis run per seed, paired with the regression seed
+    names = [f"{n}_seed{k}" for n in names for k in plan.seeds]
+  data = {c: d for c, d in data.items() if c in columns}
+  synth = synthesis_jobs(out, plan, names, python, data)
+  first, later = [], []
+  for c in columns:
+    for rep in reps[c]:
+      for seed in plan.seeds if full_grid else plan.seeds[:1]:
+        first += [
+          regression_job(out, plan, c, rep, lr, seed, python, data)
+          for lr in plan.lrs[setting_of(c)]
+        ]
+      if not full_grid:
+        later += [(c, rep, seed) for seed in plan.seeds[1:]]
+  tables = table_jobs(out, python, columns)
+  figures = [] if skip_figures else figure_jobs(out, plan, synth, python, data)
+  if crossed and "ours" not in reps.get(crossed, ()):
+    raise ValueError(f"--crossed {crossed}: the launch runs no ours there (--representations)")
+  return Launch(
+    plan, out, python, columns, synth, first, later, tables, figures, data, crossed,
+    os.path.abspath(archive) if archive else "",
+  )  # fmt: skip
+
+
+def phase2_jobs(launch: Launch) -> list[tuple[tuple[str, str, int], Job]]:
+  """Each phase-2 (column, rep, seed) with its job: at the lr seed 0's validation errors choose
+  so far, or the <LR> placeholder while phase 1 has no results."""
+  L = launch
+  return [
+    (
+      (c, rep, seed),
+      regression_job(
+        L.out, L.plan, c, rep, chosen_lr(L.out, c, rep, L.plan), seed, L.python, L.data
+      ),
+    )
+    for c, rep, seed in L.later
+  ]
+
+
+def extension_jobs(launch: Launch) -> list[Job]:
+  """Phase 1's next grid extension: one seed-0 run per (column, representation) whose chosen lr
+  sits at its grid's edge (`extension_lr`)."""
+  L = launch
+  groups = sorted({(c, rep) for c, rep, _ in L.later} | {_group(j) for j in L.first})
+  jobs = []
+  for col, rep in groups:
+    lr = extension_lr(L.out, col, rep, L.plan)
+    if lr is not None:
+      jobs.append(regression_job(L.out, L.plan, col, rep, lr, L.plan.seeds[0], L.python, L.data))
+  return jobs
+
+
+# --------------------------------------------------------------------------------------------
+# Running the jobs.
+
+
+def run_job(job: Job, logs: str, *, index: str, env: dict[str, str] | None = None) -> bool:
+  """Runs a job (stdout and stderr to logs/<name>.log, environment `env` or this one's); True on
+  success. Stopped (Ctrl-C, SIGTERM, or another job's stop), it sends the run SIGTERM, which
+  makes a training run save a checkpoint and exit, waits up to STOP_GRACE_S for it (a second
+  Ctrl-C kills it at once) and raises KeyboardInterrupt."""
+  os.makedirs(logs, exist_ok=True)
+  log_path = os.path.join(logs, f"{job.name}.log")
+  print(
+    f"[{index}] {job.name} (est. {progress_lib.format_duration(job.estimate_s)}) ...", flush=True
+  )
+  t0 = time.perf_counter()
+  with open(log_path, "w", encoding="utf-8") as log:
+    log.write(f"$ {job.command()}\n")
+    log.flush()
+    proc = subprocess.Popen(job.argv, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, env=env)
+    try:
+      while (rc := _wait(proc, 0.5)) is None:
+        if _STOPPING.is_set():
+          raise KeyboardInterrupt
+    except KeyboardInterrupt:
+      _STOPPING.set()
+      _stop(proc)
+      raise
+  took = progress_lib.format_duration(time.perf_counter() - t0)
+  if rc == 0:
+    print(f"    done in {took}", flush=True)
+    return True
+  with open(log_path, encoding="utf-8") as f:
+    tail = f.read().splitlines()[-8:]
+  print(f"    FAILED (exit {rc}) after {took}; {log_path}:", flush=True)
+  for line in tail:
+    print(f"      {line}", flush=True)
+  return False
+
+
+def _wait(proc: subprocess.Popen, timeout: float) -> int | None:
+  try:
+    return proc.wait(timeout)
+  except subprocess.TimeoutExpired:
+    return None
+
+
+def _stop(proc: subprocess.Popen) -> None:
+  """SIGTERM, then up to STOP_GRACE_S for the run to save and exit, then SIGKILL."""
+  if proc.poll() is not None:
+    return
+  proc.send_signal(signal.SIGTERM)
+  try:
+    proc.wait(STOP_GRACE_S)
+  except (subprocess.TimeoutExpired, KeyboardInterrupt):
+    proc.kill()
+    proc.wait()
+
+
+def job_env(jobs: int) -> dict[str, str] | None:
+  """The subprocesses' environment: with `jobs` > 1 at once, each JAX process may take 0.9 / jobs
+  of a GPU's memory (XLA_PYTHON_CLIENT_MEM_FRACTION, unless set); None: this one's."""
+  if jobs <= 1 or "XLA_PYTHON_CLIENT_MEM_FRACTION" in os.environ:
+    return None
+  return {**os.environ, "XLA_PYTHON_CLIENT_MEM_FRACTION": f"{0.9 / jobs:.3f}"}
+
+
+def set_aside_damaged(jobs: Sequence[Job]) -> None:
+  """Renames the unreadable file of each job's damaged run (`archive.set_aside`), with a warning
+  naming it: the run is not finished, and trains again."""
+  for j in jobs:
+    if j.workdir and (d := damage(j.workdir)) is not None:
+      new = archive_lib.set_aside(d)
+      print(f"warning: {d}; the run is trained again (the file is kept as {new})", flush=True)
+
+
+def run_jobs(
+  jobs: Sequence[Job],
+  logs: str,
+  *,
+  at_once: int,
+  label: str,
+  deadline: float | None = None,
+  after: Callable[[Job], None] | None = None,
+) -> list[str]:
+  """Runs the jobs that are not done, `at_once` subprocesses at a time (they must not depend on
+  each other); none is started after `deadline` (time.monotonic(); --max_hours), and those are
+  not failures (a rerun starts them); `after(job)` is called once a job has succeeded (the
+  archive's copy). Returns the names of those that failed."""
+  _STOPPING.clear()  # a stop ends the launch (KeyboardInterrupt): a new batch of jobs starts clear
+  set_aside_damaged(jobs)
+  todo = [j for j in jobs if not j.done()]
+  for j in jobs:
+    if j not in todo:
+      print(f"[{label}skipped] {j.name}: done ({j.workdir})", flush=True)
+  env = job_env(at_once)
+
+  def one(i_job: tuple[int, Job]) -> str | None:
+    i, job = i_job
+    if _STOPPING.is_set():
+      return None
+    if deadline is not None and time.monotonic() > deadline:
+      print(f"[{label}{i + 1}/{len(todo)}] {job.name}: not started (--max_hours)", flush=True)
+      return None
+    try:
+      ok = run_job(job, logs, index=f"{label}{i + 1}/{len(todo)}", env=env)
+    except KeyboardInterrupt:  # a stop in any job: none other starts
+      _STOPPING.set()
+      raise
+    if ok and after is not None:
+      after(job)
+    return None if ok else job.name
+
+  if at_once <= 1:
+    results = [one(x) for x in enumerate(todo)]
+  else:
+    with concurrent.futures.ThreadPoolExecutor(max_workers=at_once) as pool:
+      futures = [pool.submit(one, x) for x in enumerate(todo)]
+      try:
+        results = [f.result() for f in futures]
+      except KeyboardInterrupt:  # the running jobs stop (run_job), no other one starts
+        _STOPPING.set()
+        for f in futures:
+          f.cancel()
+        concurrent.futures.wait(futures)
+        raise
+  if _STOPPING.is_set():
+    raise KeyboardInterrupt
+  return [name for name in results if name]
+
+
+def synthesis_of_seed(launch: Launch, seed: int) -> list[Job]:
+  """The view-synthesis jobs trained before seed `seed`'s regressions: those named
+  "<name>_seed<seed>" with one synthesis run per seed, else all of them with the first seed."""
+  L = launch
+  if not L.plan.paired_synthesis:
+    return list(L.synth) if seed == L.plan.seeds[0] else []
+  return [j for j in L.synth if j.name.endswith(f"_seed{seed}")]
+
+
+def pending_synthesis(launch: Launch) -> set[str]:
+  """The view-synthesis workdirs that a job not yet done reads (its pose system, noise
+  evaluation, crossed runs); a phase-2 run whose lr phase 1 has not chosen yet counts."""
+  L = launch
+  jobs = list(L.first) + extension_jobs(L) + [job for _, job in phase2_jobs(L)]
+  if L.crossed:
+    jobs += crossed_jobs(L, chosen_lr(L.out, L.crossed, "ours", L.plan))
+  need = set()
+  for j in jobs:
+    if not j.done():
+      need |= {v for a in j.argv if (v := flag_value([a], "--config.synthesis_workdir"))}
+  for j in L.figures:
+    if j.kind == "evaluate" and not j.done():
+      need.add(j.workdir)
+  return need
+
+
+def run_synthesis(launch: Launch, jobs: Sequence[Job], logs: str, kw: dict) -> list[str]:
+  """Trains the view-synthesis `jobs` that are not done, then their noise / Gram evaluations.
+
+  A run whose record came from the archive (complete, without checkpoints) is trained again
+  (from scratch: the same numbers on the same kind of CPU) only while a job that reads its
+  checkpoints is not done (`pending_synthesis`), else skipped."""
+  L = launch
+  pending = pending_synthesis(L)
+  todo = []
+  for j in jobs:
+    if not archived_only(j.workdir):
+      todo.append(j)
+    elif j.workdir in pending:
+      print(
+        f"[synthesis] {j.name}: its record is from the archive and a run still needs its "
+        "checkpoints; training it again",
+        flush=True,
+      )
+      shutil.rmtree(j.workdir)
+      todo.append(j)
+    else:
+      print(f"[synthesis: skipped] {j.name}: archived, nothing left needs it", flush=True)
+  for j in todo:
+    final = read_final(j.workdir)
+    if final.get("complete") is True and not j.done() and not resumable(j.argv):
+      # Complete at another length, and its schedules are fractions of its length (ConvDRAW):
+      # training on would not give the run the command asks for.
+      print(
+        f"[synthesis] {j.name}: complete at step {final.get('step')}, not at the "
+        f"{flag_value(j.argv, '--config.total_steps')} steps asked, and its schedules follow "
+        "its length; training it again from scratch",
+        flush=True,
+      )
+      shutil.rmtree(j.workdir)
+  for j in todo:  # a run that trains on (a raised cap) makes its old evaluation stale
+    stale = os.path.join(j.workdir, runs.NOISE_FILE)
+    if not j.done() and os.path.exists(stale):
+      os.remove(stale)
+  failed = run_jobs(todo, logs, label="synthesis: ", **kw)
+  names = {j.name.removeprefix("synthesis_") for j in jobs}
+  evaluations = [j for j in L.figures if j.name.removeprefix("evaluate_") in names]
+  failed += run_jobs(evaluations, logs, label="evaluate: ", **kw)
+  return failed
+
+
+def execute(launch: Launch, *, at_once: int = 1, deadline: float | None = None) -> list[str]:
+  """Runs what is not done yet, in the order of the module docstring, `at_once` subprocesses at
+  a time within each step; no run is started after `deadline` (time.monotonic()). With an
+  archive, each finished run's record is copied into it as soon as the run ends.
+
+  Returns:
+    The names of the jobs that failed.
+  """
+  L = launch
+  logs = os.path.join(L.out, "logs")
+  after = (lambda job: archive_lib.sync(L.out, L.archive)) if L.archive else None
+  kw = dict(at_once=at_once, deadline=deadline, after=after)
+  seeds = L.plan.seeds
+  failed = run_synthesis(L, synthesis_of_seed(L, seeds[0]), logs, kw)
+  failed += run_jobs(L.first, logs, label="phase 1: ", **kw)
+  for _ in range(L.plan.extend_grid):
+    ext = extension_jobs(L)
+    if not ext:
+      break
+    failed += run_jobs(ext, logs, label="phase 1, lr grid extended: ", **kw)
+  for seed in seeds[1:]:
+    failed += run_synthesis(L, synthesis_of_seed(L, seed), logs, kw)
+    later = []
+    for c, rep, k in L.later:
+      if k != seed:
+        continue
+      lr = chosen_lr(L.out, c, rep, L.plan)
+      if lr is None:
+        print(f"[phase 2] {c}/{rep} seed {k}: no phase-1 results; skipped", flush=True)
+        failed.append(f"regression_{c}_{rep}_seed{k}")
+        continue
+      later.append(regression_job(L.out, L.plan, c, rep, lr, k, L.python, L.data))
+    failed += run_jobs(later, logs, label=f"phase 2, seed {seed}: ", **kw)
+  if L.crossed:
+    lr = chosen_lr(L.out, L.crossed, "ours", L.plan)
+    if lr is None:
+      print(f"[crossed] {L.crossed}/ours: no phase-1 results; skipped", flush=True)
+      failed.append(f"crossed_{L.crossed}")
+    else:
+      failed += run_jobs(crossed_jobs(L, lr), logs, label="crossed: ", **kw)
+      failed += run_jobs([seed_spread_job(L, lr)], logs, label="", **{**kw, "at_once": 1})
+  rest = [j for j in L.figures if j.kind != "evaluate"]
+  failed += run_jobs(L.tables + curve_jobs(L) + rest, logs, label="", **{**kw, "at_once": 1})
+  if L.archive:
+    archive_lib.sync(L.out, L.archive)
+  return failed
+
+
+def remaining_s(launch: Launch, *, at_once: int = 1, later=None) -> float:
+  """Seconds of what is not done yet (phase 2 at the lr chosen so far, data rendering while
+  DIR has no cache, tables and figures), divided by `at_once` jobs at a time (the best case)."""
+  L, plan = launch, launch.plan
+  later = phase2_jobs(L) if later is None else later
+  est = sum(j.estimate_s for j in L.synth + L.first if not j.done())
+  est += sum(plan.regression_s[setting_of(c)] for (c, _, _), j in later if not j.done())
+  if not os.path.isdir(os.path.join(L.out, "cache")):
+    est += sum(plan.data_s[setting_of(c)] for c in L.settings)
+  est += sum(j.estimate_s for j in L.tables + L.figures if not j.done())
+  return est / at_once
+
+
+def print_plan(launch: Launch, *, commands: bool, at_once: int = 1) -> None:
+  """The summary line (runs, estimate of what is not done yet, divided by `at_once` jobs at a
+  time: the best case); with `commands`, every job."""
+  L, plan = launch, launch.plan
+  fmt = progress_lib.format_duration
+  later = phase2_jobs(L)
+  est = remaining_s(L, at_once=at_once, later=later)
+  at = f", {at_once} jobs at a time at best" if at_once > 1 else ""
+  if plan.extend_grid:  # groups whose seed-0 choice is settled inside its grid need none
+    settled = all(j.done() for j in L.first)
+    groups = {
+      g for g in map(_group, L.first) if not settled or extension_lr(L.out, *g, plan) is not None
+    }
+    worst_s = sum(plan.regression_s[setting_of(c)] for c, _ in groups) * plan.extend_grid
+    at += (
+      f"; plus up to {len(groups) * plan.extend_grid} phase-1 runs (up to {fmt(worst_s)}) "
+      "extending an lr grid whose choice is at its edge"
+    )
+  print(
+    f"{plan.name} comparison into {L.out}: {len(L.synth)} view-synthesis runs, "
+    f"{len(L.first) + len(L.later)} regression runs ({len(L.first)} in phase 1, {len(L.later)} "
+    f"in phase 2), {len(L.tables)} tables, {len(L.figures)} figure steps; estimated "
+    f"{fmt(est)} for what is not done yet ({plan.where}){at}.",
+    flush=True,
+  )
+  for c in L.settings:
+    if isinstance(L.data.get(c), tuple):
+      where = f"capture prepared as {L.data[c][0]} in {L.data[c][1]} (car setting)"
+    elif c in L.data:
+      where = f"prepared {plan_lib.real_source(c)} data in {L.data[c]}"
+    else:
+      where = "its procedural family (configs/regression.py settings)"
+    print(f"  data of {c}: {where}", flush=True)
+  damaged = [(j.name, d) for j in L.synth + L.first if (d := damage(j.workdir)) is not None]
+  for name, d in damaged:
+    print(f"  {name}: {d}; the launch trains it again", flush=True)
+  crossed = crossed_jobs(L, None)
+  if crossed:
+    est_s = len(crossed) * plan.regression_s[setting_of(L.crossed)] + 60
+    print(
+      f"  crossed seeds of {L.crossed}'s ours: {len(crossed)} more regression runs, estimated "
+      f"{fmt(est_s)} (not in the estimate above)",
+      flush=True,
+    )
+  if not commands:
+    return
+  for j in L.synth + L.first:
+    print(f"[{'done' if j.done() else '~' + fmt(j.estimate_s)}] {j.command()}")
+  for (c, _, _), job in later:
+    state = "done" if job.done() else f"~{fmt(plan.regression_s[setting_of(c)])}"
+    print(f"[{state}, phase 2] {job.command()}")
+  print("  (phase 2: <LR> = the lr chosen on seed 0's validation errors, where not chosen yet)")
+  for job in crossed:
+    print(f"[~{fmt(plan.regression_s[setting_of(L.crossed)])}, crossed] {job.command()}")
+  if L.crossed:
+    print(
+      f"[~1min] experiments/seed_spread.py --decode over {L.out}/crossed/{L.crossed} and the "
+      f"paired ours runs at <LR> -> {L.out}/seed_spread_{L.crossed}.md"
+    )
+  if plan.stop:
+    print(
+      "[~5s each] experiments/learning_curve.py --bands --metrics eval/validation/score per "
+      f"column, runs at the chosen lr -> {L.out}/curve_<column>.{{png,md}}"
+    )
+  if plan.synthesis_caps:
+    print(
+      "[~5s each] experiments/learning_curve.py --bands --metrics eval/psnr per column, its "
+      f"view-synthesis runs -> {L.out}/curve_synthesis_<column>.{{png,md}} (each run's plateau "
+      'record: final_metrics.json "stopping")'
+    )
+  for j in L.tables + L.figures:
+    print(f"[~{fmt(j.estimate_s)}] {j.command()}")

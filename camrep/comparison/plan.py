@@ -1,0 +1,221 @@
+"""The comparison's run plans, read from plans.toml, and the flags and estimates they give.
+
+A plan (one `--size`) is data: seeds, learning-rate grids per setting, step caps and the
+stopping rule, and the inputs of its time estimate. What the library already says is read from
+it, not restated: the settings (`camrep.data.sources`), each setting's real dataset, the
+representations a regression run accepts, the :quick configs' step counts the converge caps are
+multiples of, and GQN's ConvDRAW schedules.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import importlib
+import pathlib
+import tomllib
+from collections.abc import Mapping
+from typing import Any
+
+from camrep.configs import common
+from camrep.configs import gqn_convdraw as gqn_convdraw_config
+from camrep.data import sources
+
+PLANS_FILE = pathlib.Path(__file__).with_name("plans.toml")
+SETTINGS = sources.SETTINGS
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+  """One launch size.
+
+  Attributes:
+    name: the size ("quick", "converge", ...).
+    variant: the config variant of its runs ("quick", "medium", or "" for paper size).
+    seeds: regression seeds (and synthesis seeds where `paired_synthesis`).
+    lrs: learning-rate grid per setting.
+    synthesis_s: estimated seconds per view-synthesis run, per setting ("capture": a capture
+      column's; "gqn_convdraw": GQN's generator), where given.
+    regression_s: estimated seconds per regression run (data cached), per setting.
+    data_s: one-time rendering of a setting's regression data, seconds.
+    evaluate_s: `camrep.synthesis.evaluate` of one synthesis run, seconds.
+    where: what the estimate assumes, in words.
+    paired_synthesis: one view-synthesis run per seed, read by the regression seed of that number.
+    extend_grid: how many lrs beyond its grid phase 1 may try while seed 0's choice is at an edge.
+    stop: the stopping rule ({min_improvement, window, min_share, evaluations}); empty: none.
+    regression_caps: steps per setting under the stopping rule.
+    synthesis_caps: view-synthesis steps per setting under the rule; a setting not named keeps
+      its config's own total_steps and no rule.
+    convdraw_steps: GQN's ConvDRAW length, its schedules stretched to it (0: its config's own).
+  """
+
+  name: str
+  variant: str
+  seeds: tuple[int, ...]
+  lrs: dict[str, tuple[float, ...]]
+  synthesis_s: dict[str, float]
+  regression_s: dict[str, float]
+  data_s: dict[str, float]
+  evaluate_s: float
+  where: str = ""
+  paired_synthesis: bool = False
+  extend_grid: int = 0
+  stop: dict[str, float] = dataclasses.field(default_factory=dict)
+  regression_caps: dict[str, int] = dataclasses.field(default_factory=dict)
+  synthesis_caps: dict[str, int] = dataclasses.field(default_factory=dict)
+  convdraw_steps: int = 0
+
+  @property
+  def suffix(self) -> str:
+    """The `:variant` of its config arguments ("" at paper size)."""
+    return f":{self.variant}" if self.variant else ""
+
+  def has_convdraw(self) -> bool:
+    """Whether GQN's generator has a config at this plan's variant."""
+    return self.variant in common.NO_MEDIUM
+
+
+def real_source(setting: str) -> str:
+  """The real dataset a setting's `--data SETTING=DIR` holds: the first registered reader of the
+  setting that is neither procedural nor a capture format (gqn, srn_cars, gibson, seven_scenes)."""
+  return next(
+    s.name
+    for s in sources.SOURCES.values()
+    if s.setting == setting and not s.procedural and ".captures." not in s.module
+  )
+
+
+def quick_steps(config_module: str) -> int:
+  """total_steps of camrep.configs.<module>'s :quick variant."""
+  return int(
+    importlib.import_module(f"camrep.configs.{config_module}").get_config("quick").total_steps
+  )
+
+
+@functools.cache
+def settings() -> dict[str, dict[str, Any]]:
+  """{setting: {synthesis_config, representations}} of plans.toml, checked against the library."""
+  from camrep.regression import targets
+
+  data = _read()["settings"]
+  if set(data) != set(SETTINGS):
+    raise ValueError(f"{PLANS_FILE}: settings {sorted(data)} are not the library's {SETTINGS}")
+  for name, s in data.items():
+    bad = set(s["representations"]) - set(targets.REPRESENTATIONS)
+    if bad:
+      raise ValueError(f"{PLANS_FILE}: {name}: unknown representations {sorted(bad)}")
+  return {n: {**data[n], "representations": tuple(data[n]["representations"])} for n in SETTINGS}
+
+
+@functools.cache
+def _read() -> dict[str, Any]:
+  with open(PLANS_FILE, "rb") as f:
+    return tomllib.load(f)
+
+
+def _floats(d: Mapping[str, Any]) -> dict[str, float]:
+  return {k: float(v) for k, v in d.items()}
+
+
+def _plan(name: str, d: Mapping[str, Any]) -> Plan:
+  common_fields = dict(
+    name=name,
+    variant=d["variant"],
+    seeds=tuple(d["seeds"]),
+    lrs={s: tuple(float(x) for x in v) for s, v in d["lrs"].items()},
+    where=d.get("where", ""),
+    paired_synthesis=bool(d.get("paired_synthesis", False)),
+    extend_grid=int(d.get("extend_grid", 0)),
+  )
+  if "seconds" in d:
+    sec = d["seconds"]
+    return Plan(
+      synthesis_s=_floats(sec["synthesis"]),
+      regression_s=_floats(sec["regression"]),
+      data_s=_floats(sec["data"]),
+      evaluate_s=float(sec["evaluate"]),
+      **common_fields,
+    )
+  # A plan with a stopping rule: caps, and estimates from per-step times and expected shares.
+  est, factors = d["estimate"], d["synthesis_cap_factors"]
+  configs = {s: settings()[s]["synthesis_config"] for s in SETTINGS}
+  quick = {s: quick_steps(pathlib.Path(c).stem) for s, c in configs.items()}
+  syn_caps = {s: int(factors[s]) * quick[s] for s in SETTINGS}
+  convdraw = int(factors["convdraw"]) * quick_steps("gqn_convdraw")
+  reg_caps = {s: int(v) for s, v in d["regression_caps"].items()}
+  syn_s = {
+    s: est["synthesis_overhead_s"] + est["synthesis_share"] * syn_caps[s] * t
+    for s, t in est["synthesis_step_s"].items()
+  }
+  syn_s["capture"] = (
+    est["synthesis_overhead_s"]
+    + est["synthesis_share"] * syn_caps["car"] * est["capture_synthesis_step_s"]
+  )
+  syn_s["gqn_convdraw"] = est["convdraw_overhead_s"] + convdraw * est["convdraw_step_s"]
+  reg_s = {
+    s: est["regression_overhead_s"] + est["regression_share"] * reg_caps[s] * t
+    for s, t in est["regression_step_s"].items()
+  }
+  return Plan(
+    synthesis_s=syn_s,
+    regression_s=reg_s,
+    data_s=_floats(est["data"]),
+    evaluate_s=float(est["evaluate"]),
+    stop=_floats(d["stop"]),
+    regression_caps=reg_caps,
+    synthesis_caps=syn_caps,
+    convdraw_steps=convdraw,
+    **common_fields,
+  )
+
+
+@functools.cache
+def plans() -> dict[str, Plan]:
+  """Every size of plans.toml, by name."""
+  return {name: _plan(name, d) for name, d in _read()["sizes"].items()}
+
+
+def expected_share(plan: Plan) -> float:
+  """The share of its cap a regression run is expected to train (for the plan's summary)."""
+  return float(_read()["sizes"][plan.name].get("estimate", {}).get("regression_share", 1.0))
+
+
+def regression_flags(plan: Plan, setting: str) -> list[str]:
+  """The plan's --config flags of a regression run of `setting`: cap, evaluation period and the
+  stopping rule (none without a rule)."""
+  if not plan.stop:
+    return []
+  cap = plan.regression_caps[setting]
+  return [
+    f"--config.total_steps={cap}",
+    f"--config.eval_every_steps={cap // int(plan.stop['evaluations'])}",
+    f"--config.stop.min_steps={int(cap * plan.stop['min_share'])}",
+    f"--config.stop.min_improvement={plan.stop['min_improvement']:g}",
+    f"--config.stop.window={plan.stop['window']:g}",
+  ]
+
+
+def synthesis_flags(plan: Plan, setting: str, kind: str = "") -> list[str]:
+  """The plan's --config flags of a view-synthesis run of `setting` with pose input `kind`: its
+  cap and the plateau rule (none without synthesis caps); for GQN's generator ("convdraw") its
+  length with the schedules stretched to it (no rule, no resuming at another length)."""
+  if kind == "convdraw":
+    n = plan.convdraw_steps
+    if not n:
+      return []
+    stretched = gqn_convdraw_config.quick_schedules(n)
+    return [f"--config.total_steps={n}", f"--config.eval_every_steps={n // 20}"] + [
+      f"--config.{field}={steps}" for field, steps in stretched.items()
+    ]
+  cap = plan.synthesis_caps.get(setting)
+  if not cap:
+    return []
+  return [
+    f"--config.total_steps={cap}",
+    f"--config.eval_every_steps={cap // int(plan.stop['evaluations'])}",
+    f"--config.stop.min_improvement={plan.stop['min_improvement']:g}",
+    f"--config.stop.window={plan.stop['window']:g}",
+    f"--config.stop.min_steps={int(cap * plan.stop['min_share'])}",
+    # A raised cap resumes a run that reached the old one (recorded in config_history.jsonl).
+    "--config.allow_changes=total_steps,eval_every_steps,stop",
+  ]

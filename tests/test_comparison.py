@@ -1,0 +1,238 @@
+"""The comparison launcher (`python -m camrep.comparison`): its plans, commands, estimates and
+job order, on dry runs and fabricated runs (no training)."""
+
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+
+import pytest
+
+from camrep.comparison import command, launch, plan
+from camrep.synthesis import components, config_schema
+from tests.test_tables import _summary, _write
+
+
+def test_dry_run(tmp_path, capsys):
+  assert command.main(["--size", "quick", "--out", str(tmp_path), "--dry_run"]) == 0
+  text = capsys.readouterr().out
+  first = text.splitlines()[0]
+  assert "regression runs" in first and "estimated" in first and "2 CPU cores" in first
+  assert (
+    "--config=configs/gqn.py:quick" in text and "--config=configs/seven_scenes.py:quick" in text
+  )
+  assert "--config.representation=axis_angle" in text and "experiments/table2.py" in text
+  assert f"--config.synthesis_workdir={tmp_path}/synthesis/car\n" in text
+  assert "--config.optax.lr=<LR>" in text  # phase 2: other seeds at the chosen lr
+  # Phase 2 reads the lr that seed 0's validation chose.
+  quick = plan.plans()["quick"]
+  reg = os.path.join(str(tmp_path), "regression")
+  _write(reg, "car", "quat", 1e-3, 0, _summary("car", 3.0), _summary("car", 1.0))
+  _write(reg, "car", "quat", 3e-3, 0, _summary("car", 2.0), _summary("car", 9.0))
+  assert launch.chosen_lr(str(tmp_path), "car", "quat", quick) == 3e-3
+  assert (
+    command.main(["--size", "paper", "--out", str(tmp_path), "--dry_run", "--settings", "car"]) == 0
+  )
+  assert "--config=configs/regression.py " in capsys.readouterr().out
+  args = ["--size", "medium", "--out", str(tmp_path), "--dry_run", "--jobs", "4"]
+  assert command.main(args) == 0
+  text = capsys.readouterr().out
+  assert "4 jobs at a time" in text.splitlines()[0] and "derived, not measured" in text
+  assert "--config=configs/gqn.py:medium" in text
+  assert "--config=configs/regression.py:medium" in text
+  # --noise_runs: the GQN noise figure's other pose inputs and GQN's own generator (not medium).
+  noise = ["--out", str(tmp_path), "--dry_run", "--settings", "gqn", "--noise_runs"]
+  assert command.main(["--size", "quick", *noise]) == 0
+  text = capsys.readouterr().out
+  for name in ("gqn_lowdim", "gqn_mlp", "gqn_convdraw"):
+    assert f"--workdir={tmp_path}/synthesis/{name}" in text
+  assert "--config=configs/gqn_convdraw.py:quick" in text and "noise_figure.py" in text
+  assert command.main(["--size", "medium", *noise, "--noise_kinds", "lowdim,convdraw"]) == 0
+  text = capsys.readouterr().out
+  assert "synthesis/gqn_lowdim" in text and "gqn_mlp" not in text and "convdraw" not in text
+
+
+def test_jobs_run_at_once(tmp_path, monkeypatch):
+  """--jobs N: N subprocesses at a time, each told its share of GPU memory; failures named."""
+  monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)
+  assert (
+    launch.job_env(1) is None and launch.job_env(3)["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.300"
+  )
+  marks = tmp_path / "marks"
+  marks.mkdir()
+  # Each job waits (up to 20 s) until the other has started: only passes if both run at once.
+  code = (
+    "import os, sys, time; m, me, other, frac = sys.argv[1:]; open(os.path.join(m, me), 'w');"
+    "t = time.time()\nwhile not os.path.exists(os.path.join(m, other)) and time.time() - t < 20:"
+    " time.sleep(0.05)\nassert os.path.exists(os.path.join(m, other));"
+    "assert os.environ['XLA_PYTHON_CLIENT_MEM_FRACTION'] == frac"
+  )
+  jobs = [
+    launch.Job(me, [sys.executable, "-c", code, str(marks), me, other, "0.450"], "", 1)
+    for me, other in (("a", "b"), ("b", "a"))
+  ]
+  fail = launch.Job("fails", [sys.executable, "-c", "raise SystemExit(3)"], "", 1)
+  assert launch.run_jobs(jobs + [fail], str(tmp_path / "logs"), at_once=2, label="") == ["fails"]
+  assert sorted(os.listdir(marks)) == ["a", "b"]
+
+
+def test_converge_plan(tmp_path, capsys):
+  """--size converge: >= 3 seeds per cell, the stopping rule on every regression, one
+  synthesis run per seed paired with ours' regression seed, capture columns, an estimate; the
+  lr grid extends while a choice is at its edge; --max_hours starts nothing after the deadline."""
+  cap = tmp_path / "chair"
+  cap.mkdir()
+  out = str(tmp_path / "cmp")
+  args = ["--size", "converge", "--out", out, "--dry_run", "--data", f"car_chair=nerf:{cap}"]
+  assert command.main(args) == 0
+  text = capsys.readouterr().out
+  first = text.splitlines()[0]
+  assert first.startswith("converge comparison") and "estimated" in first
+  assert "phase-1 runs" in first and "edge" in first
+  the_launch = command.make_launch(command.parse_args(args))
+  converge = the_launch.plan
+  assert len(converge.seeds) >= 3 and all(len(g) >= 3 for g in converge.lrs.values())
+  cells = {}
+  for j in the_launch.first:
+    cells.setdefault(launch._group(j), set()).add(j.argv[j.argv.index("-m") + 5])
+  for col, rep, seed in the_launch.later:
+    cells[col, rep].add(f"--config.seed={seed}")
+  assert ("car_chair", "ours") in cells and ("seven_scenes", "ours") in cells
+  assert all(len(seeds) >= 3 for seeds in cells.values())
+  for j in the_launch.first:
+    assert "--config.stop.min_improvement=0.02" in j.argv and "--config.eval_every_steps=" in (
+      " ".join(j.argv)
+    )
+  ours = [j for j in the_launch.first if "--config.representation=ours" in j.argv]
+  for j in ours:
+    seed = next(a for a in j.argv if a.startswith("--config.seed=")).split("=")[1]
+    assert any(a.endswith(f"_seed{seed}") for a in j.argv if a.startswith("--config.synthesis_"))
+  syn = {j.name for j in the_launch.synth}
+  assert {f"synthesis_car_chair_seed{k}" for k in range(3)} <= syn
+  chair = next(j for j in the_launch.synth if j.name == "synthesis_car_chair_seed1")
+  assert f"--config.data.dir={cap}" in chair.argv and "--config.seed=1" in chair.argv
+  assert any("table1_car_chair.md" in " ".join(j.argv) for j in the_launch.tables)
+  # The capture's MLP embedding has its own synthesis runs, which its mlp regressions read.
+  mlp = next(j for j in the_launch.synth if j.name == "synthesis_car_chair_mlp_seed2")
+  assert "--config.rep.kind=mlp" in mlp.argv and f"--config.data.dir={cap}" in mlp.argv
+  assert "--config.data.scenes_per_device=1" in mlp.argv
+  assert mlp.estimate_s == converge.synthesis_s["capture"] < converge.synthesis_s["car"]
+  mlp_reg = [j for j in the_launch.first if j.name.startswith("regression_car_chair_mlp_")]
+  wd = os.path.join(out, "synthesis", "car_chair_mlp_seed0")
+  assert mlp_reg and all(f"--config.synthesis_workdir={wd}" in j.argv for j in mlp_reg)
+  assert launch.synthesis_column("car_chair_mlp_seed0", the_launch.data) == "car_chair"
+  assert launch.synthesis_column("car_mlp_seed0", the_launch.data) == "car"
+  noise = next(j for j in the_launch.figures if j.name == "noise_figure_car_chair")
+  assert os.path.join(out, "synthesis", "car_chair_mlp_seed1") in noise.argv
+  assert noise.argv[noise.argv.index("--column") + 1] == "chair, car setting"  # not "(car)"
+  # The grid extends: car quat chose the highest lr of (3e-4, 1e-3, 3e-3) -> 1e-2 next.
+  reg = os.path.join(out, "regression")
+
+  def write(lr, val):  # named as the launcher names its workdirs (lr3e-3_seed0)
+    _write(reg, "car", "quat", lr, 0, _summary("car", val), _summary("car", 1.0))
+    wd = os.path.join(reg, "car", "quat", f"lr{lr:g}_seed0")
+    os.rename(wd, os.path.join(reg, "car", "quat", f"{launch.lr_tag(lr)}_seed0"))
+
+  for lr, val in ((3e-4, 3.0), (1e-3, 2.0), (3e-3, 1.0)):
+    write(lr, val)
+  assert launch.extension_lr(out, "car", "quat", converge) == 1e-2
+  write(1e-2, 2.0)
+  assert launch.extension_lr(out, "car", "quat", converge) is None  # 3e-3 now inside the grid
+  assert launch.chosen_lr(out, "car", "quat", converge) == 3e-3
+  curves = [j for j in launch.curve_jobs(the_launch) if j.name == "curve_car"]
+  assert len(curves) == 1 and "--bands" in curves[0].argv
+  title = curves[0].argv[curves[0].argv.index("--title") + 1]  # says what the score is
+  assert title.startswith("car: validation score = rotation_error_deg mean / 2.85")
+  assert os.path.join(reg, "car", "quat", "lr3e-3_seed0") in curves[0].argv
+  assert os.path.join(reg, "car", "quat", "lr1e-3_seed0") not in curves[0].argv
+  assert [launch.half_decade(x, up=u) for x, u in ((1e-3, True), (3e-4, False), (1e-4, False))] == [
+    3e-3,
+    1e-4,
+    3e-5,
+  ]
+  # --max_hours: past the deadline nothing starts, and that is not a failure.
+  job = launch.Job("never", [sys.executable, "-c", "raise SystemExit(3)"], "", 1)
+  assert launch.run_jobs([job], str(tmp_path / "logs"), at_once=1, label="", deadline=0.0) == []
+  assert "not started (--max_hours)" in capsys.readouterr().out
+  assert not os.path.exists(tmp_path / "logs" / "never.log")
+
+
+def _synthesis_quick(setting):
+  module = plan.settings()[setting]["synthesis_config"].removeprefix("configs/").removesuffix(".py")
+  return importlib.import_module(f"camrep.configs.{module}").get_config("quick")
+
+
+def test_converge_synthesis_to_its_plateau(tmp_path, capsys):
+  """--size converge: every view-synthesis run but GQN's ConvDRAW gets a cap
+  of 4x its quick steps and the plateau rule, flags its config accepts (ConvDRAW: 4x its quick
+  length with its schedules stretched, no rule); the held-out PSNR
+  curves of each column's synthesis runs are drawn with bands over seeds."""
+  out = str(tmp_path / "cmp")
+  args = ["--size", "converge", "--out", out, "--dry_run", "--noise_runs"]
+  assert command.main(args) == 0
+  assert "curve_synthesis_<column>" in capsys.readouterr().out
+  the_launch = command.make_launch(command.parse_args(args))
+  flags = {j.name: {a.split("=")[0]: a.split("=")[1] for a in j.argv[4:]} for j in the_launch.synth}
+  assert flags["synthesis_car_seed2"]["--config.total_steps"] == "4800"
+  assert flags["synthesis_car_mlp_seed0"]["--config.stop.min_steps"] == "1200"
+  g = flags["synthesis_gqn_lowdim_seed1"]
+  assert g["--config.total_steps"] == "8000" and g["--config.eval_every_steps"] == "400"
+  assert g["--config.stop.min_improvement"] == "0.02" and g["--config.seed"] == "1"
+  # GQN's generator: 4x its quick length, its schedules stretched to it, no plateau rule.
+  draw = flags["synthesis_gqn_convdraw_seed0"]
+  assert draw["--config.total_steps"] == "8000" and draw["--config.optax.anneal_steps"] == "6400"
+  assert "--config.stop.window" not in draw
+  quick = importlib.import_module("camrep.configs.gqn_convdraw").get_config("quick")
+  assert quick.optax.anneal_steps == 2000 * 8 // 10  # the fractions the stretch keeps
+  # The flags fit the configs they go with: caps 4x their quick steps (the car 8x), the rule
+  # and the permission to raise a cap accepted.
+  for name in plan.SETTINGS:
+    c = _synthesis_quick(name)
+    caps = the_launch.plan.synthesis_caps
+    assert caps[name] == (8 if name == "car" else 4) * c.total_steps
+    plateau = dict(
+      a.removeprefix("--config.").split("=") for a in plan.synthesis_flags(the_launch.plan, name)
+    )
+    for k, v in plateau.items():
+      section, _, field = k.rpartition(".")
+      node = c[section] if section else c
+      kind = type(node[field])
+      node[field] = v if kind is str else float(v) if kind is float else int(v)
+    config_schema.validate(c, overridden=set(plateau))
+    assert components.stopping_rule(c).active
+  # Curves: one job per column over its synthesis workdirs that exist.
+  for name in ("car_seed0", "car_seed1", "car_mlp_seed0", "gqn_seed0"):
+    os.makedirs(os.path.join(out, "synthesis", name))
+  jobs = {j.name: j.argv for j in launch.curve_jobs(the_launch)}
+  car = jobs["curve_synthesis_car"]
+  assert "eval/psnr" in car and "--bands" in car
+  assert sum(a.startswith(os.path.join(out, "synthesis", "car")) for a in car) == 3
+  assert "curve_synthesis_gqn" in jobs and "curve_synthesis_gibson" not in jobs
+
+
+def test_crossed_seeds(tmp_path, capsys):
+  """--crossed COLUMN: every regression seed of ours on every other synthesis
+  seed, outside regression/ (never tabled), then experiments/seed_spread.py; off by default."""
+  out = str(tmp_path / "cmp")
+  args = ["--size", "converge", "--out", out, "--dry_run", "--settings", "car,gqn"]
+  assert command.main([*args, "--crossed", "car"]) == 0
+  text = capsys.readouterr().out
+  assert "crossed seeds of car's ours: 6 more regression runs" in text
+  the_launch = command.make_launch(command.parse_args([*args, "--crossed", "car"]))
+  jobs = launch.crossed_jobs(the_launch, 1e-3)
+  assert len(jobs) == 6 and len({j.name for j in jobs}) == 6
+  job = next(j for j in jobs if j.name == "crossed_car_lr1e-3_seed0_syn2")
+  assert f"--workdir={os.path.join(out, 'crossed', 'car', 'lr1e-3_seed0_syn2')}" in job.argv
+  assert f"--config.synthesis_workdir={os.path.join(out, 'synthesis', 'car_seed2')}" in job.argv
+  assert "--config.seed=0" in job.argv and "--config.representation=ours" in job.argv
+  assert "--config.optax.lr=0.001" in job.argv and "--config.stop.min_improvement=0.02" in job.argv
+  spread = launch.seed_spread_job(the_launch, 1e-3)
+  assert "experiments/seed_spread.py" in spread.argv and "--decode" in spread.argv
+  assert os.path.join(out, "regression", "car", "ours", "lr1e-3_seed*") in spread.argv
+  # Off by default; refused where the sizes do not pair seeds or the column is not launched.
+  assert launch.crossed_jobs(command.make_launch(command.parse_args(args)), 1e-3) == []
+  for bad in (["--size", "quick", "--crossed", "car"], [*args, "--crossed", "gibson"]):
+    with pytest.raises(SystemExit) as e:
+      command.parse_args([*bad, "--out", out] if bad[1] == "quick" else bad)
+    assert e.value.code == 2
