@@ -34,13 +34,13 @@ def test_dry_run(tmp_path, capsys):
   assert (
     command.main(["--size", "paper", "--out", str(tmp_path), "--dry_run", "--settings", "car"]) == 0
   )
-  assert "--config=configs/regression.py " in capsys.readouterr().out
+  assert "--config=configs/regression.py:car " in capsys.readouterr().out
   args = ["--size", "medium", "--out", str(tmp_path), "--dry_run", "--jobs", "4"]
   assert command.main(args) == 0
   text = capsys.readouterr().out
   assert "4 jobs at a time" in text.splitlines()[0] and "derived, not measured" in text
   assert "--config=configs/gqn.py:medium" in text
-  assert "--config=configs/regression.py:medium" in text
+  assert "--config=configs/regression.py:car,medium" in text
   # --noise_runs: the GQN noise figure's other pose inputs and GQN's own generator (not medium).
   noise = ["--out", str(tmp_path), "--dry_run", "--settings", "gqn", "--noise_runs"]
   assert command.main(["--size", "quick", *noise]) == 0

@@ -150,10 +150,14 @@ def matmul_peak(n: int = 2048, reps: int = 5, dtype: str = "float32", *, cpu: bo
 def gqn_config(
   width: float, scenes: int, *, image_size: int = 64, setting: str = "gqn", devices: int = 1
 ):
-  """The paper's config of `setting` at `width`, `scenes` per device, procedural data in memory."""
+  """The paper's config of `setting` ("gqn" or "car") at `width`, `scenes` per device, procedural
+  data in memory."""
   from camrep.configs import gqn, shapenet_car
 
-  c = (gqn if setting == "gqn" else shapenet_car).get_config()
+  # The config module, and whether its procedural family takes the image size (the car's objects
+  # render at any size; GQN's rooms at their own).
+  module, sized = {"gqn": (gqn, False), "car": (shapenet_car, True)}[setting]
+  c = module.get_config()
   c.model.width = width
   c.model.image_size = image_size
   c.data.scenes_per_device = scenes
@@ -162,7 +166,7 @@ def gqn_config(
   c.data.num_threads = 0
   c.data.family.num_train_scenes = max(scenes * devices, 4)  # one batch's worth, rendered once
   c.data.family.num_test_scenes = 2
-  if setting != "gqn":
+  if sized:
     c.data.family.image_size = image_size
   return c
 

@@ -19,7 +19,8 @@ aside as <name>.damaged, and trained again):
      DIR/synthesis/<name>: each setting's learned pose system; the car's (and each capture
      column's) MLP embedding (`--config.rep.kind=mlp`); with --noise_runs GQN's other pose
      inputs (lowdim, mlp) and its own generator (configs/gqn_convdraw.py, not at medium size);
-  2. regression runs (`python -m camrep.regression --config=configs/regression.py[:variant]`)
+  2. regression runs (`python -m camrep.regression
+     --config=configs/regression.py:SETTING[,variant]`)
      into DIR/regression/<column>/<representation>/<lr>_seed<k>: phase 1 trains seed 0 at every
      lr of the setting's grid; phase 2 the other seeds at the lr seed 0's validation errors chose
      (`camrep.regression.tables.select`), or at every lr with --full_grid. Rendered data and

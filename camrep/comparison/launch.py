@@ -353,15 +353,13 @@ def table_jobs(out: str, py: str, settings: Sequence[str]) -> list[Job]:
   table1.md holds every Table 1 column DIR has runs of, not only this launch's settings: a launch
   of one setting (a chunk, an extension) rewrites it without dropping the others' columns."""
   jobs = []
-  t1 = ("car", "gqn", "gibson")
-  if any(s in settings for s in t1):
-    runs_ = [os.path.join(out, "regression", s, "*", "*") for s in t1]
-    argv = [py, "experiments/table1.py", "--runs", *runs_, "--out", os.path.join(out, "table1.md")]
-    jobs.append(Job("table1", argv, "", 3))
-  if "seven_scenes" in settings:
-    runs_ = [os.path.join(out, "regression", "seven_scenes", "*", "*")]
-    argv = [py, "experiments/table2.py", "--runs", *runs_, "--out", os.path.join(out, "table2.md")]
-    jobs.append(Job("table2", argv, "", 3))
+  for table in ("table1", "table2"):
+    # Every column of the table DIR may hold, read from its own regression/<setting> runs.
+    of_table = [s for s in SETTINGS if plan_lib.settings()[s]["table"] == table]
+    if any(s in settings for s in of_table):
+      runs_ = [os.path.join(out, "regression", s, "*", "*") for s in of_table]
+      md = os.path.join(out, f"{table}.md")
+      jobs.append(Job(table, [py, f"experiments/{table}.py", "--runs", *runs_, "--out", md], "", 3))
   for col in [c for c in settings if c not in SETTINGS]:
     runs_ = os.path.join(out, "regression", col, "*", "*")
     md = os.path.join(out, f"table1_{col}.md")
@@ -497,10 +495,11 @@ def make_launch(
   out = os.path.abspath(out)
   names = [c for c in columns if "ours" in reps[c]]
   # The MLP embedding's own synthesis runs, for the car and each capture column.
-  names += [f"{c}_mlp" for c in columns if setting_of(c) == "car" and "mlp" in reps[c]]
-  if noise_kinds and "gqn" in columns:
-    kinds = [k for k in noise_kinds if k != "convdraw" or plan.has_convdraw()]
-    names += [n for n in ["gqn", *(f"gqn_{k}" for k in kinds)] if n not in names]
+  names += [f"{c}_mlp" for c in columns if "mlp" in reps[c]]
+  kinds = [k for k in noise_kinds or () if k != "convdraw" or plan.has_convdraw()]
+  noisy = [c for c in columns if plan_lib.settings().get(c, {}).get("noise_inputs")]
+  for s in noisy if noise_kinds else []:
+    names += [n for n in [s, *(f"{s}_{k}" for k in kinds)] if n not in names]
   if plan.paired_synthesis:  # one synthesis run per seed, paired with the regression seed
     names = [f"{n}_seed{k}" for n in names for k in plan.seeds]
   data = {c: d for c, d in data.items() if c in columns}

@@ -2,7 +2,7 @@
 
 A plan (one `--size`) is data: seeds, learning-rate grids per setting, step caps and the
 stopping rule, and the inputs of its time estimate. What the library already says is read from
-it, not restated: the settings (`camrep.data.sources`), each setting's real dataset, the
+it, not restated: the settings (`camrep.settings`), each setting's real dataset, the
 representations a regression run accepts, the :quick configs' step counts the converge caps are
 multiples of, and GQN's ConvDRAW schedules.
 """
@@ -17,12 +17,14 @@ import tomllib
 from collections.abc import Mapping
 from typing import Any
 
+from camrep import pose_encodings
+from camrep import settings as settings_lib
 from camrep.configs import common
 from camrep.configs import gqn_convdraw as gqn_convdraw_config
 from camrep.data import sources
 
 PLANS_FILE = pathlib.Path(__file__).with_name("plans.toml")
-SETTINGS = sources.SETTINGS
+SETTINGS = settings_lib.names()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,7 +83,9 @@ def real_source(setting: str) -> str:
   return next(
     s.name
     for s in sources.SOURCES.values()
-    if s.setting == setting and not s.procedural and ".captures." not in s.module
+    if settings_lib.get(s.setting).name == setting
+    and not s.procedural
+    and ".captures." not in s.module
   )
 
 
@@ -95,13 +99,11 @@ def quick_steps(config_module: str) -> int:
 @functools.cache
 def settings() -> dict[str, dict[str, Any]]:
   """{setting: {synthesis_config, representations}} of plans.toml, checked against the library."""
-  from camrep.regression import targets
-
   data = _read()["settings"]
   if set(data) != set(SETTINGS):
     raise ValueError(f"{PLANS_FILE}: settings {sorted(data)} are not the library's {SETTINGS}")
   for name, s in data.items():
-    bad = set(s["representations"]) - set(targets.REPRESENTATIONS)
+    bad = set(s["representations"]) - set(pose_encodings.REPRESENTATIONS)
     if bad:
       raise ValueError(f"{PLANS_FILE}: {name}: unknown representations {sorted(bad)}")
   return {n: {**data[n], "representations": tuple(data[n]["representations"])} for n in SETTINGS}
