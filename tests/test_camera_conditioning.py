@@ -438,6 +438,12 @@ def test_learned_relative_refuses_the_polar_system():
     cc.LearnedRelative(spec)
 
 
+def test_learned_relative_refuses_the_truncated_exponential():
+  spec = P.PoseSystemSpec(dofs=ROOMS_SPEC.dofs, n_blocks=2, block_size=2, exp_method="taylor2")
+  with pytest.raises(ValueError, match="exact exponential"):
+    cc.LearnedRelative(spec)
+
+
 def test_head_layout_and_its_refusal():
   assert ra.HeadLayout.of(32, 1, 4) == ra.HeadLayout(camera=16, reps=4, rope=16)
   assert ra.HeadLayout.of(32, 1, 3) == ra.HeadLayout(camera=15, reps=5, rope=16)

@@ -533,7 +533,8 @@ class LearnedRelative(_Learned):
   what the transformer learns here is the frequencies.
 
   Attributes:
-    spec: the pose system (its n_dofs * n_blocks * block_size dims must fit in a head).
+    spec: the pose system (its n_dofs * n_blocks * block_size dims must fit in a head; an exact
+      exp_method, "spectral" or "expm", since the relative form needs M orthogonal).
     init_scale: std of the generators' free coefficients at init (N(0, init_scale^2): a 2 x 2
       block's frequency is its coefficient), in radians per unit of the DOF; the pose
       system's own init (1e-3) would start with no camera information at all.
@@ -551,6 +552,11 @@ class LearnedRelative(_Learned):
   relative = True
 
   def __post_init__(self):
+    if self.spec.exp_method == "taylor2":
+      raise ValueError(
+        "LearnedRelative needs an exact exponential (exp_method 'spectral' or 'expm'): the "
+        "relative form M(a)^T M(b) = M(b - a) fails for the truncated Taylor series 'taylor2'"
+      )
     polar = [d.name for d in self.spec.dofs if d.width != 1]
     if polar:
       raise ValueError(
