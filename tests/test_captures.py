@@ -1,4 +1,4 @@
-"""Posed captures (issue 31): NeRF transforms.json, LLFF and COLMAP readers, the object-centric
+"""Posed captures: NeRF transforms.json, LLFF and COLMAP readers, the object-centric
 normalisation, splits, `prepare --source nerf|llff|colmap`, and the real-data path end to end.
 
 Fixtures are written by code here, each format by an independent writer (the COLMAP `.bin` files

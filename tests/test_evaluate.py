@@ -177,7 +177,7 @@ def test_cli_writes_all_files(workdir, tmp_path, capsys):
 
 @pytest.mark.parametrize("kind", ["lowdim", "mlp"])
 def test_other_pose_inputs_train_and_take_noise(kind, tmp_path):
-  """The noise figure's comparison inputs (issue 5): GQN's low-dimensional pose vector and the
+  """The noise figure's comparison inputs: GQN's low-dimensional pose vector and the
   supplement's MLP embedding train in the same loop and go through the same noise evaluation."""
   config = gqn.get_config("smoke")
   config.rep.kind = kind
@@ -250,7 +250,7 @@ def test_noise_figure_script(tmp_path):
 
 
 def test_noise_figure_groups_seeds_by_pose_input_with_a_band(tmp_path):
-  """Issue 29 part 5: runs are grouped by their config's pose input (not their order or
+  """Runs are grouped by their config's pose input (not their order or
   directory), each group drawn as its mean with a min-max band and tabled as "mean [min, max]";
   the table redraws the same band."""
   nf = noise_figure

@@ -1,4 +1,4 @@
-"""Red-team faults of the command lines (issue 27 parts 1, 5, 7 and 8; issue 28 part 4): each
+"""Red-team faults of the command lines: each
 user mistake or resource fault ends in exit 2 with one `error:` line and no traceback, and leaves
 the workdir or dataset as it was (or in a state the next start accepts).
 

@@ -1,4 +1,4 @@
-"""Mixed precision (`model.dtype="bfloat16"`, issue 14 part 3): bfloat16 compute, float32 state.
+"""Mixed precision (`model.dtype="bfloat16"`): bfloat16 compute, float32 state.
 
 The tolerance of the training test was set from measurements (BUILD_NOTES, "Mixed precision"):
 on `configs/gqn.py:smoke` from the same initial state and batches, the per-step relative gap

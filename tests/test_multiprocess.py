@@ -1,4 +1,4 @@
-"""Multi-process training with jax.distributed (issue 6): 2 processes on localhost, CPU
+"""Multi-process training with jax.distributed: 2 processes on localhost, CPU
 collectives (gloo), each reading its own shard of the scenes, train exactly as 1 process that
 holds the same global batch on 2 devices (tests/multiprocess_reference.py): the same logged
 losses and the same parameters in the final checkpoint, which the 2 processes saved together.

@@ -1,5 +1,5 @@
 """The nearest-neighbour oracle (camrep.data.oracle): the test that would catch images and pose
-labels misaligned on a family's path (issue 18's first candidate)."""
+labels misaligned on a family's path (a first suspect when a regressor does not learn)."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ def test_nearest_view_poses_hand_made():
 @pytest.mark.parametrize("name", slow_except(["rooms", "area"], ["rooms"]))
 def test_regression_views_are_their_labels_rendered(name, tmp_path):
   """Every image the regression reads (through the on-disk cache) is what the renderer draws
-  from its pose label: images and labels cannot be misaligned on this path (issue 18's first
+  from its pose label: images and labels cannot be misaligned on this path (the first
   candidate, ruled out)."""
   fam = procedural.make_family(name, preset="small")
   views_lib.load_split(fam, "train", cache_dir=str(tmp_path))  # renders and writes the cache

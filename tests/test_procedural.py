@@ -143,7 +143,7 @@ def test_determinism(name):
 
 
 def test_rooms_wall_styles():
-  """ "distinct" walls (issue 16): four wall materials a quarter turn of hue apart, so a view of a
+  """ "distinct" walls: four wall materials a quarter turn of hue apart, so a view of a
   wall tells which wall it is; "tinted" (the default) keeps the old look."""
   import colorsys
 

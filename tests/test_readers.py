@@ -324,7 +324,7 @@ def test_seven_scenes_reader_real_sample(caplog):
   assert len(records) == 6 and "outside the grid cuboid" in caplog.text
   margin = seven_scenes.SevenScenes(STAIRS.parent, image_size=32, margin=0.5)
   assert len(list(margin.iter_views("test"))) == 6
-  # The default (issue 31): seven_scenes.DEFAULT_MARGIN admits the real test frames.
+  # The default: seven_scenes.DEFAULT_MARGIN admits the real test frames.
   default = seven_scenes.SevenScenes(STAIRS.parent, image_size=32)
   assert default.margin == seven_scenes.DEFAULT_MARGIN == 0.5
   assert len(list(default.iter_views("test"))) == 6

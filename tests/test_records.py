@@ -1,4 +1,4 @@
-"""A workdir's record is complete and checked (issue 27 part 3, and part 4's stop message).
+"""A workdir's record is complete and checked (and the stop message).
 
 record.json holds what decides the data and the pose system beyond config.json (the procedural
 family's resolved parameters, the pose spec, the data fingerprint): a changed library default or

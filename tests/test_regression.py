@@ -120,7 +120,7 @@ def test_baseline_end_to_end(tmp_path, cache):
   np.testing.assert_array_equal(cached.images(rows), rendered.images(rows))
   np.testing.assert_array_equal(cached.poses, rendered.poses)
   config.data.cache_dir = cache
-  # (issue 19) A rerun in this workdir with another config: refused unless allowed.
+  # A rerun in this workdir with another config: refused unless allowed.
   _check_rerun_with_another_config(wd, config)
 
 

@@ -1,4 +1,4 @@
-"""Pose regression on prepared real data (issue 15): `camrep.regression` with data.source /
+"""Pose regression on prepared real data: `camrep.regression` with data.source /
 data.dir, end to end at configs/regression.py:smoke.
 
 Data: the real 7-Scenes stairs sample in ../shared/fixtures (skipped when absent, as in CI), and

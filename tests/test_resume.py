@@ -1,4 +1,4 @@
-"""Deterministic resume (issue 7): a run killed part-way, or stopped by SIGTERM, or killed while
+"""Deterministic resume: a run killed part-way, or stopped by SIGTERM, or killed while
 it saves a checkpoint, and started again with the same command ends bit-identical to a run left
 alone: the same parameters and the same logged metrics at every step.
 
@@ -141,14 +141,14 @@ def test_killed_and_restarted_run_is_bit_identical(sig, reference, tmp_path):
   r = _run(workdir)
   assert r.returncode == 0, r.stderr[-3000:]
   assert "resumed from step" in r.stdout
-  if sig == signal.SIGKILL:  # (issue 19, e) the dead process's lock is taken over, with a warning
+  if sig == signal.SIGKILL:  # the dead process's lock is taken over, with a warning
     assert f"taking over the stale lock of {workdir}: PID {proc.pid}" in r.stderr
   assert not os.path.exists(workdir / ".camrep.lock")
   _assert_identical(workdir, reference)
 
 
 def test_second_start_on_a_live_workdir_is_refused(reference, tmp_path):
-  """(issue 19, d) While a run holds its workdir, a second start is refused (exit 2, naming the
+  """While a run holds its workdir, a second start is refused (exit 2, naming the
   holder) and writes nothing; the first finishes bit-identical to a run alone."""
   workdir = tmp_path / "w"
   proc = _start(workdir)

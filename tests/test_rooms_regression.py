@@ -1,12 +1,12 @@
-"""Issue 18's sanity test: the GQN rooms regression learns on the rooms its quick config renders.
+"""A sanity test: the GQN rooms regression learns on the rooms its quick config renders.
 
 The cause it catches: rooms whose views can only be placed relative to the room's own context
 views. A square room looks the same after a quarter turn, and every cue that tells a view from
 its twins (wall tints, the light's azimuth, the objects) used to be drawn afresh per room, so no
 single view says which way is which; the loss is then minimised by a constant pose and the
-regressor stays there (issue 18: prediction spread ~0.01 against labels spread 0.46, and the
-same errors with another room's context). The quick rooms now have walls whose hues follow the
-world directions (`wall_style='compass'`); the old look stays available as `wall_style='tinted'`.
+regressor stays there (measured on such rooms: prediction spread ~0.01 against labels spread
+0.46, and the same errors with another room's context). The quick rooms have walls whose hues
+follow the world directions (`wall_style='compass'`); the old look stays as `wall_style='tinted'`.
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ def _report(got):
 
 def test_quick_rooms_regression_learns_the_yaw():
   """The quick config's rooms: after 300 steps the yaw error is far below chance (90 deg) on the
-  training views, on held-out views of the training rooms and on new rooms (issue 16: pose
+  training views, on held-out views of the training rooms and on new rooms (pose
   observable in rooms never seen; with the old look the held-out views stay at chance: the next
   test)."""
   got = _train_and_score(_small_quick_config())

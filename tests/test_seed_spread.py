@@ -1,4 +1,4 @@
-"""experiments/seed_spread.py (issue 29 part 3): the crossed synthesis-seed x regression-seed
+"""experiments/seed_spread.py: the crossed synthesis-seed x regression-seed
 table, its variance split, and the decoding error of a pose system, on fabricated run directories
 (and, for the decoding error, a one-step car view-synthesis run)."""
 

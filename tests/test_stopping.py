@@ -1,4 +1,4 @@
-"""The plateau stopping rule (camrep/runtime/stopping.py, issue 29): the rule on given curves;
+"""The plateau stopping rule (camrep/runtime/stopping.py): the rule on given curves;
 the regression driver applying it at its periodic validation (configs/regression.py:smoke runs
 whose validation score is replaced by a fixed curve: flat -> stops early and says why; still
 improving -> trains to the cap); and the view-synthesis trainer applying it at its held-out

@@ -278,7 +278,7 @@ def test_command_line_on_a_held_workdir_is_exit_2_naming_the_holder(trained):
 
 
 def test_machine_names_the_backend_the_devices_and_the_cpu():
-  """A run's records say what ran it: runs of one table may come from a lent GPU and this CPU."""
+  """A run's records say what ran it: runs of one table may come from a GPU machine and this CPU."""
   m = workdir_lib.machine()
   assert m["backend"] == jax.default_backend() and m["devices"] == len(jax.devices())
   assert m["device_kind"] == jax.devices()[0].device_kind and m["jax"] == jax.__version__

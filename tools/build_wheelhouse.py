@@ -1,6 +1,6 @@
 """Build the wheelhouse a GPU machine needs to run camrep: the project's dependencies it lacks.
 
-The lent GPU machines (nvidia-h100-x1, nvidia-h200; /work/.library/device/KINDS.md) run Python
+The GPU machines (nvidia-h100-x1, nvidia-h200; /work/.library/device/KINDS.md) run Python
 3.12 on x86-64 with JAX, Flax, Optax, Orbax, chex, OpenCV and a long list of other packages
 (`GPU_IMAGE`), and reach no package registry. This script, run on the CPU machine:
 

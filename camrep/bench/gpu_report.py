@@ -1,6 +1,6 @@
 """One report of camrep on a GPU: the step alone, end to end, paper configs, :medium runs.
 
-A GPU is lent to this project now and then, for well under an hour, in commands of at most 10
+A GPU machine is at hand now and then, for well under an hour, in commands of at most 10
 minutes that cannot reach a package registry. This script measures everything in a few such
 commands ("calls"), each a group of phases run as subprocesses under one time budget (default
 470 s), and writes one Markdown + JSON report:
@@ -69,7 +69,7 @@ E2E_CONFIGS = {
   "gibson": "configs/gibson.py",
   "seven_scenes": "configs/seven_scenes.py",
 }
-# The calls a lent GPU runs, each well inside the device tool's 10 minutes, with a guess of its
+# The calls a GPU machine runs, each well inside the device tool's 10 minutes, with a guess of its
 # minutes on one H100 (compiles dominate: ~1 min per paper-size step and renderer).
 CALLS = (
   ("env,step,profile,host", 7),

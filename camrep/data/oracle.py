@@ -1,4 +1,4 @@
-"""How observable a family's poses are: a nearest-neighbour oracle (issues 16 and 18):
+"""How observable a family's poses are: a nearest-neighbour oracle:
 `python -m camrep.data.oracle --family=rooms --scenes=30 --train_views=10 [--config.FIELD=VALUE]`.
 
 For each query view, the reference view (of the same scene) with the smallest pixel distance

@@ -316,7 +316,7 @@ def topology(*, processes: int, devices: int, scenes_per_device: int) -> dict[st
 def machine() -> dict[str, Any]:
   """What ran a run, for its records (final_metrics.json, results.json): JAX's backend, the kind
   and count of its devices, the host's CPU model and the jax version. Runs of one table may come
-  from several machines (a lent GPU beside the CPU), whose results differ in round-off."""
+  from several machines (a GPU machine beside the CPU), whose results differ in round-off."""
   import jax  # here: the rest of this module is read by tools that never import JAX
 
   cpu = platform.processor() or platform.machine()
