@@ -19,8 +19,13 @@ _TIMING = re.compile(
 )
 _CANONICAL = {"hour": "h", "hours": "h", "minute": "min", "minutes": "min"}
 _CANONICAL |= {"second": "s", "seconds": "s"}
-# Durations that say nothing checkable ("in about a minute", "every few seconds").
-_VAGUE = re.compile(r"\b(?:a|an|a few|few|several)\s+(?:seconds?|minutes?|hours?)\b", re.I)
+# Durations that say nothing checkable ("in about a minute", "every few seconds"); "a second" only
+# where no word follows it ("a second launch" is an ordinal).
+_VAGUE = re.compile(
+  r"\b(?:(?:a|an|a few|few|several)\s+(?:seconds|minutes?|hours?)|(?:a few|few|several)\s+second"
+  r"|an?\s+second(?!\s+[a-z]))\b",
+  re.I,
+)
 
 
 def _prose(text: str) -> str:
@@ -52,6 +57,12 @@ def test_timings_are_parsed_as_written():
     "37 min",
     "79-82 h",
   }
+  assert _VAGUE.findall("in about a minute, every few seconds, in a second.") == [
+    "a minute",
+    "few seconds",
+    "a second",
+  ]
+  assert not _VAGUE.findall("a second launch on the same DIR")
 
 
 def test_every_readme_timing_is_one_measured_in_build_notes():
