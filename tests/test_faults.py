@@ -634,3 +634,12 @@ def test_a_family_count_below_one_is_refused_before_anything_is_written(tmp_path
   config.data.family.test_views = 0
   with pytest.raises(runconfig.ConfigError, match="test_views=0: must be an integer >= 1"):
     synthesis_schema.validate(config)
+
+
+def test_a_seen_capture_without_a_training_view_is_refused(tmp_path, capsys):
+  # holdout_every=1 holds every view out: the dataset was written without a train split, exit 0.
+  root = _capture(tmp_path)
+  assert prepare.main(_prepare_args(root, tmp_path / "d", "--config.holdout_every=1")) == 2
+  _assert_one_error(capsys.readouterr().err, "cap has no view left to train on", "holdout_every")
+  assert not (tmp_path / "d").exists()
+  assert prepare.main(_prepare_args(root, tmp_path / "d", "--config.holdout_every=2")) == 0
