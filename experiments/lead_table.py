@@ -101,10 +101,24 @@ def capture_columns(runs: str) -> tuple[Column, ...]:
   )
 
 
-def row(runs: str, column: Column, *, skip_damaged: bool = False) -> list[str] | None:
-  """The lead table's row of `column`, or None when RUNS holds none of its runs."""
-  pattern = os.path.join(runs, column.directory, "*", "*")
-  results = C.load_results([pattern], skip_damaged=skip_damaged)
+def row(
+  runs: str,
+  column: Column,
+  *,
+  skip_damaged: bool = False,
+  results: Sequence[dict] | None = None,
+) -> list[str] | None:
+  """The lead table's row of `column`, or None when RUNS holds none of its runs.
+
+  Args:
+    runs: RUNS.
+    column: the row's column.
+    skip_damaged: see `camrep.regression.tables.load_results`.
+    results: the column's runs, already read (default: read from RUNS/<column.directory>).
+  """
+  if results is None:
+    pattern = os.path.join(runs, column.directory, "*", "*")
+    results = C.load_results([pattern], skip_damaged=skip_damaged)
   if not results:
     return None
   by_rep = {rep: sel for (_, rep), sel in C.select(results).items()}
@@ -179,7 +193,14 @@ def build(runs: str, *, skip_damaged: bool = False) -> str:
       one cell.
   """
   columns = COLUMNS + capture_columns(runs)
-  rows = [r for c in columns if (r := row(runs, c, skip_damaged=skip_damaged)) is not None]
+  # Every run is read once, so that each damaged one is named (or skipped with one warning)
+  # together with the others, whichever column it belongs to.
+  directories = sorted({c.directory for c in columns})
+  patterns = [os.path.join(runs, d, "*", "*") for d in directories]
+  by_directory = {d: [] for d in directories}
+  for r in C.load_results(patterns, skip_damaged=skip_damaged):
+    by_directory[os.path.relpath(r["_path"], runs).split(os.sep)[0]].append(r)
+  rows = [r for c in columns if (r := row(runs, c, results=by_directory[c.directory])) is not None]
   if not rows:
     raise FileNotFoundError(f"no regression runs with results.json under {runs}")
   return C.markdown_table(HEADER, rows)

@@ -613,3 +613,33 @@ def test_help_lists_config_its_variants_and_every_source():
   for layout in ("transforms_{train,val,test}.json", "poses_bounds.npy", "sparse/0/"):
     assert layout in listed
   assert " --config: --config.FIELD=VALUE" in " ".join(r.stdout.split("flags:")[1].split())
+
+
+def test_a_family_count_below_one_is_refused_before_anything_is_written(tmp_path, capsys):
+  # A split without views (tfds: "No examples were yielded"), a rendering without samples
+  # (supersample=0 wrote a dataset), more objects at least than at most (numpy's "low >= high").
+  base = ["--source=rooms", "--preset=small", "--no_progress", "--config.image_size=16"]
+  for flags_ in (
+    ["--config.test_views=0"],
+    ["--config.num_test_scenes=0"],
+    ["--config.train_views=-1"],
+    ["--config.supersample=0"],
+    ["--config.min_objects=5", "--config.max_objects=2"],
+  ):
+    assert prepare.main([*base, f"--data_dir={tmp_path / 'd'}", *flags_]) == 2, flags_
+    field = flags_[0].removeprefix("--config.")
+    _assert_one_error(capsys.readouterr().err, field, "must")
+    assert not (tmp_path / "d").exists()
+  config = gqn.get_config("smoke")
+  config.data.family.test_views = 0
+  with pytest.raises(runconfig.ConfigError, match="test_views=0: must be an integer >= 1"):
+    synthesis_schema.validate(config)
+
+
+def test_a_seen_capture_without_a_training_view_is_refused(tmp_path, capsys):
+  # holdout_every=1 holds every view out: the dataset was written without a train split, exit 0.
+  root = _capture(tmp_path)
+  assert prepare.main(_prepare_args(root, tmp_path / "d", "--config.holdout_every=1")) == 2
+  _assert_one_error(capsys.readouterr().err, "cap has no view left to train on", "holdout_every")
+  assert not (tmp_path / "d").exists()
+  assert prepare.main(_prepare_args(root, tmp_path / "d", "--config.holdout_every=2")) == 0

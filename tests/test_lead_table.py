@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 
 import numpy as np
 
@@ -119,6 +120,45 @@ def test_lead_table_capture_median_row_is_robust_to_one_outlier_view(tmp_path):
   assert mean[5] == "**tie**" and float(mean[4].split()[0]) > 1.3
   assert median[5] == "**better**" and median[2].endswith("(quat)")
   assert abs(float(median[4].split()[0]) - 0.5) < 0.1
+
+
+def test_lead_table_names_every_damaged_run_and_refuses_two_runs_of_one_cell(tmp_path, capsys):
+  """A cut results.json in one column and a damaged errors_test.npz in another: both named in
+  one error line (exit 2, nothing written); --skip_damaged warns once for each and tables the
+  rest; two runs of one cell are refused naming both."""
+  lt = lead_table
+  root = str(tmp_path / "regression")
+  for seed in range(2):
+    for column in ("car", "car_chair"):
+      _run(root, column, "ours", 1e-3, seed, {"rotation_error_deg": _errors(2.0, seed)})
+      _run(root, column, "quat", 1e-3, seed, {"rotation_error_deg": _errors(4.0, seed)})
+  cut = os.path.join(root, "car", "ours", "lr1e-03_seed1", "results.json")
+  bad = os.path.join(root, "car_chair", "quat", "lr1e-03_seed0", "errors_test.npz")
+  with open(cut, "r+") as f:
+    f.truncate(40)
+  with open(bad, "r+b") as f:
+    f.truncate(30)
+  out = str(tmp_path / "lead.md")
+  assert lt.main(["--runs", root, "--out", out]) == 2
+  err = capsys.readouterr().err
+  assert err.startswith("error: damaged runs") and len(err.splitlines()) == 1
+  assert cut in err and bad in err and "Traceback" not in err and not os.path.exists(out)
+  assert lt.main(["--runs", root, "--out", out, "--skip_damaged"]) == 0
+  warnings = capsys.readouterr().err.splitlines()
+  assert len(warnings) == 2  # one for each, though two rows read the capture's runs
+  assert warnings[0].startswith(f"warning: skipped {cut} cannot be read as JSON")
+  assert warnings[1].startswith(f"warning: skipped {bad} cannot be read as per-view errors")
+  lines = {line.split("|")[1].strip() for line in open(out).read().splitlines()[2:]}
+  assert lines == {"car rotation (deg)", "chair rotation (deg; capture)",
+                   "chair rotation (deg, median; capture)"}  # fmt: skip
+  shutil.rmtree(os.path.dirname(cut))
+  os.remove(bad)
+  again = os.path.join(root, "car_chair", "quat", "lr1e-03_seed0")
+  shutil.copytree(again, os.path.join(root, "car_chair", "quat", "lr1.0e-03_seed0"))
+  assert lt.main(["--runs", root]) == 2
+  err = capsys.readouterr().err
+  assert "two runs of car/quat at lr 0.001, seed 0" in err
+  assert "car_chair/quat/lr1e-03_seed0" in err and "car_chair/quat/lr1.0e-03_seed0" in err
 
 
 def test_view_failures_counts_gross_failures_and_views_everyone_fails(tmp_path, capsys):

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import json
 import pathlib
 import re
 
 import pytest
+
+from camrep.bench import gpu_report
+from tools import run_notebook
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -74,3 +78,18 @@ def test_every_readme_timing_is_one_measured_in_build_notes():
   assert not missing, f"README timings with no measured twin in BUILD_NOTES.md: {missing}"
   vague = _VAGUE.findall(readme)
   assert not vague, f"README durations that are not measured figures: {vague}"
+
+
+def test_the_notebook_quotes_only_measured_durations():
+  """The quickstart's text (its markdown cells) and the tools' help quote measured durations:
+  each is in BUILD_NOTES.md or in the notebook's own committed output, none is vague."""
+  nb = json.loads((ROOT / "notebooks" / "quickstart.ipynb").read_text(encoding="utf-8"))
+  cells = nb["cells"]
+  text = "".join("".join(c["source"]) for c in cells if c["cell_type"] == "markdown")
+  output = "".join("".join(o.get("text", [])) for c in cells for o in c.get("outputs", []))
+  assert "165 s" in _timings(text) and "165 s" in _timings(output)
+  missing = sorted(_timings(text) - _timings(BUILD_NOTES.read_text()) - _timings(output))
+  assert not missing, f"notebook durations with no measured twin: {missing}"
+  for doc in (text, run_notebook.__doc__):
+    assert not _VAGUE.findall(doc), _VAGUE.findall(doc)
+  assert "about a minute" not in gpu_report.__doc__  # its smoke check takes 140 s or more

@@ -1,6 +1,6 @@
-"""A pose-regression run killed (SIGKILL) or stopped (SIGTERM, as Ctrl-C) part-way and started
-again with the same command ends as a run left alone: the same results.json (apart from its
-timings and machine) and the same logged metrics at every step. SIGTERM saves a checkpoint,
+"""A pose-regression run killed (SIGKILL) or stopped (SIGTERM, or Ctrl-C's SIGINT) part-way and
+started again with the same command ends as a run left alone: the same results.json (apart from
+its timings and machine) and the same logged metrics at every step. A stop saves a checkpoint,
 says how to resume, exits 0 and leaves no lock; a killed run's lock is taken over.
 
 Each run is a separate process (`python -m camrep.regression` through
@@ -106,7 +106,9 @@ def reference(tmp_path_factory, cache):
   return workdir
 
 
-@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
+@pytest.mark.parametrize(
+  "sig", [signal.SIGKILL, signal.SIGTERM, signal.SIGINT], ids=["SIGKILL", "SIGTERM", "SIGINT"]
+)
 def test_a_regression_killed_or_stopped_resumes_to_the_same_results(
   sig, reference, cache, tmp_path
 ):
@@ -115,9 +117,9 @@ def test_a_regression_killed_or_stopped_resumes_to_the_same_results(
   _wait_for_step(proc, workdir, 26)  # past checkpoint 20
   proc.send_signal(sig)
   out, err = proc.communicate(timeout=300)
-  if sig == signal.SIGTERM:
+  if sig != signal.SIGKILL:  # SIGTERM, or Ctrl-C (SIGINT): saved and stopped alike
     assert proc.returncode == 0, err[-3000:]
-    line = [x for x in out.splitlines() if "on SIGTERM" in x]
+    line = [x for x in out.splitlines() if f"on {sig.name}" in x]
     assert line and "checkpoint saved" in line[0] and "run the same command to resume" in line[0]
     assert not (workdir / workdir_lib.LOCK_FILE).exists()
     assert not (workdir / "results.json").exists()

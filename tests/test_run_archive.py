@@ -421,6 +421,19 @@ def test_the_stop_message_says_what_becomes_of_the_runs_in_flight(
   assert not (tmp_path / "out" / ".camrep.lock").exists()  # the lock is given back
 
 
+def test_the_stop_message_of_this_checkout_says_regression_runs_resume():
+  """The unpatched message: regression runs keep checkpoints (their config has a period, read by
+  the run frame), so a stopped one resumes (tests/test_regression_resume.py runs it)."""
+  from camrep.configs import regression
+  from camrep.regression import config_schema
+
+  assert command.regression_resumes()
+  assert regression.get_config("quick").ckpt_every_steps > 0
+  assert "ckpt_every_steps" in config_schema.SCHEMA
+  message = command.interrupted_message("1 s", "")
+  assert message.endswith("regression runs resume from their last checkpoint too")
+
+
 def test_a_stopped_launch_lets_its_run_save_before_it_ends(rc, tmp_path, monkeypatch):
   """Ctrl-C while a run is in flight: the run gets SIGTERM (a training run saves a checkpoint
   and exits) and the launcher waits for it, instead of killing it at once."""

@@ -129,6 +129,16 @@ def test_bad_record_is_named(tmp_path):
     storage.prepare(Broken(), tmp_path, progress=False)
 
 
+def test_a_split_without_views_is_named_and_nothing_is_kept(tmp_path):
+  class Empty(FakeSource):
+    name = "empty"
+    _views = {**FakeSource._views, "test": [0, 0, 0]}
+
+  with pytest.raises(DataError, match=r"source 'empty' gave no view for its 'test' split"):
+    storage.prepare(Empty(), tmp_path, progress=False)
+  assert [p.name for p in tmp_path.rglob("*")] == ["empty"]  # the (empty) lock directory
+
+
 def test_overwrite_regenerates(tmp_path):
   class Shifted(FakeSource):
     def iter_views(self, split):

@@ -5,7 +5,7 @@ not dependencies).
 Printed text becomes "stream" outputs; images shown with `IPython.display.display(Image(data=png))`
 become "display_data" outputs with their PNG (a stub `IPython.display` is installed while the
 cells run); an exception becomes an "error" output and stops the run. Refresh the quickstart's
-committed outputs after changing it (about a minute on 2 CPU cores):
+committed outputs after changing it (the committed run: 165 s on a shared 2-core CPU):
 
   .venv/bin/python tools/run_notebook.py notebooks/quickstart.ipynb --write
 

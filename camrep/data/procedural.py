@@ -219,7 +219,48 @@ def make_config(name: str, preset: str = "default", **overrides):
     raise ValueError(f"preset must be one of {PRESETS}, got {preset!r}")
   fields = dict(SMALL_OVERRIDES[name]) if preset == "small" else {}
   fields.update(overrides)
-  return _CONFIGS[name](**fields)
+  config = _CONFIGS[name](**fields)
+  check_counts(config)
+  return config
+
+
+COUNTS = (
+  "image_size",
+  "num_train_scenes",
+  "num_test_scenes",
+  "num_scenes",
+  "train_views",
+  "test_views",
+  "train_stride",
+  "test_stride",
+  "supersample",
+  "batch_size",
+)
+"""Fields of the family configs that count something and must be at least 1: a split without
+scenes or views cannot be stored or evaluated, and the others size or divide the rendering."""
+
+
+def check_counts(config) -> None:
+  """Refuses counts a family cannot render with, before anything is rendered or written.
+
+  Args:
+    config: a family's config dataclass.
+
+  Raises:
+    ValueError: a field of `COUNTS` that is not an integer >= 1, or min_objects below 0 or
+      above max_objects.
+  """
+  for field in COUNTS:
+    value = getattr(config, field, None)
+    if field in {f.name for f in dataclasses.fields(config)} and (
+      isinstance(value, bool) or not isinstance(value, int) or value < 1
+    ):
+      raise ValueError(f"{field}={value!r}: must be an integer >= 1")
+  low, high = getattr(config, "min_objects", 0), getattr(config, "max_objects", 0)
+  if low < 0 or low > high:
+    raise ValueError(
+      f"min_objects={low!r}, max_objects={high!r}: must satisfy 0 <= min_objects <= max_objects"
+    )
 
 
 def make_family(name: str, preset: str = "default", **overrides) -> ProceduralFamily:

@@ -45,6 +45,7 @@ import errno
 import json
 import os
 import pathlib
+import re
 import shutil
 import sys
 import tempfile
@@ -456,6 +457,15 @@ def _write(builder, source, path, name, version, config, metadata, t0) -> None:
       if err is None:
         raise
       raise err from e
+    except AssertionError as e:  # tfds refuses a split without records (its incomplete copy gone)
+      empty = re.search(r'split "([^"]+)": No examples were yielded', str(e))
+      if empty is None:
+        raise
+      raise DataError(
+        path,
+        f"source {source.name!r} gave no view for its {empty.group(1)!r} split; nothing was "
+        "kept. Check the input (or the settings that choose the split's views)",
+      ) from None
   splits = {}
   shape = image_shape(source)
   for split in builder.info.splits:

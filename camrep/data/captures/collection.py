@@ -181,6 +181,14 @@ class CaptureSource:
     rules = [self._frame_splits(i) for i in range(len(self.captures))]
     self._split_of = [labels for labels, _ in rules]
     self._split_rule = [rule for _, rule in rules]
+    for i in self.seen:  # a seen capture trains: without a training view it is an unseen one
+      if "train" not in self._split_of[i]:
+        raise DataError(
+          self.captures[i].root,
+          f"{names[i]} has no view left to train on ({self._split_rule[i]}): hold out fewer "
+          "views (--config.holdout_every=K, K >= 2; 0 keeps every view for training), or hold "
+          "the whole capture out with --config.unseen",
+        )
     self.normalizations: list[normalize.Normalization] = []
     self.reports: list[dict[str, Any]] = []
     self._poses: list[np.ndarray] = []
