@@ -355,7 +355,7 @@ def table_jobs(out: str, py: str, settings: Sequence[str]) -> list[Job]:
   jobs = []
   for table in ("table1", "table2"):
     # Every column of the table DIR may hold, read from its own regression/<setting> runs.
-    of_table = [s for s in SETTINGS if plan_lib.settings()[s]["table"] == table]
+    of_table = [s for s, v in plan_lib.settings().items() if v["table"] == table]
     if any(s in settings for s in of_table):
       runs_ = [os.path.join(out, "regression", s, "*", "*") for s in of_table]
       md = os.path.join(out, f"{table}.md")

@@ -98,7 +98,8 @@ def quick_steps(config_module: str) -> int:
 
 @functools.cache
 def settings() -> dict[str, dict[str, Any]]:
-  """{setting: {synthesis_config, representations}} of plans.toml, checked against the library."""
+  """{setting: {synthesis_config, representations, table, ...}} of plans.toml, in its order,
+  checked against the library."""
   data = _read()["settings"]
   if set(data) != set(SETTINGS):
     raise ValueError(f"{PLANS_FILE}: settings {sorted(data)} are not the library's {SETTINGS}")
@@ -106,7 +107,8 @@ def settings() -> dict[str, dict[str, Any]]:
     bad = set(s["representations"]) - set(pose_encodings.REPRESENTATIONS)
     if bad:
       raise ValueError(f"{PLANS_FILE}: {name}: unknown representations {sorted(bad)}")
-  return {n: {**data[n], "representations": tuple(data[n]["representations"])} for n in SETTINGS}
+  # In plans.toml's order: the order of the tables' columns.
+  return {n: {**s, "representations": tuple(s["representations"])} for n, s in data.items()}
 
 
 @functools.cache
