@@ -284,6 +284,14 @@ def test_batches_stack_consecutive_steps():
   np.testing.assert_array_equal(np.asarray(fed["pose"]), stacked["pose"])
   with pytest.raises(ValueError, match="steps_per_element"):
     pipe.dataset(steps_per_element=0)
+  # Spans of varying length (a train loop's dispatches ending at evaluations and checkpoints).
+  spans = [(0, 3), (3, 1), (4, 2)]
+  got = list(pipe.iterator(spans=spans))
+  assert [len(b["scene"]) for b in got] == [3, 1, 2]
+  for (first, n), b in zip(spans, got, strict=True):
+    assert_batches_equal(b, pipe.batches(first, n))
+  with pytest.raises(ValueError, match="at least one step"):
+    pipe.dataset(spans=[(0, 0)])
 
 
 def test_epochs_draw_scenes_without_replacement():

@@ -494,17 +494,30 @@ class BatchPipeline:
     )
 
   def dataset(
-    self, *, start_step: int = 0, num_steps: int | None = None, steps_per_element: int = 1
+    self,
+    *,
+    start_step: int = 0,
+    num_steps: int | None = None,
+    steps_per_element: int = 1,
+    spans: Sequence[tuple[int, int]] | None = None,
   ) -> grain.MapDataset:
     """A grain MapDataset whose i-th element is `batch(start_step + i)`, or with
     `steps_per_element` K > 1, `batches(start_step + i K, K)` (the last one shorter when K does
-    not divide `num_steps`).
+    not divide `num_steps`), or with `spans`, `batches(first, n)` of the i-th (first, n).
 
     Args:
       start_step: first step (resume point).
       num_steps: number of steps; None for an (effectively) endless stream.
       steps_per_element: K, consecutive steps stacked in each element.
+      spans: (first step, number of steps) of each element, for a train loop whose dispatches
+        run a varying number of steps (they end at evaluations and checkpoints); replaces the
+        other arguments.
     """
+    if spans is not None:
+      spans = [(int(first), int(n)) for first, n in spans]
+      if any(n < 1 for _, n in spans):
+        raise ValueError(f"every span must hold at least one step, got {spans}")
+      return grain.MapDataset.source(spans).map(self._span_batches)
     k = int(steps_per_element)
     if k < 1:
       raise ValueError(f"steps_per_element must be >= 1, got {steps_per_element}")
@@ -516,8 +529,16 @@ class BatchPipeline:
       lambda i: self.batches(start_step + i * k, min(k, stop - start_step - i * k))
     )
 
+  def _span_batches(self, span: tuple[int, int]) -> Batch:
+    return self.batches(*span)
+
   def iterator(
-    self, *, start_step: int = 0, num_steps: int | None = None, steps_per_element: int = 1
+    self,
+    *,
+    start_step: int = 0,
+    num_steps: int | None = None,
+    steps_per_element: int = 1,
+    spans: Sequence[tuple[int, int]] | None = None,
   ) -> Iterator[Batch]:
     """Batches from `start_step` on, prefetched by worker processes or reader threads.
 
@@ -530,13 +551,14 @@ class BatchPipeline:
       num_steps: number of steps; None for an endless stream.
       steps_per_element: K: each element stacks K consecutive steps (`dataset`), for a train
         loop that runs K steps per dispatch.
+      spans: each element stacks the steps of one (first step, n) (`dataset`).
 
     Returns:
       A grain DatasetIterator (also supports `get_state`/`set_state`).
     """
     cfg = self.config
     ds = self.dataset(
-      start_step=start_step, num_steps=num_steps, steps_per_element=steps_per_element
+      start_step=start_step, num_steps=num_steps, steps_per_element=steps_per_element, spans=spans
     )
     # num_threads 0: read in the consumer's thread (grain's default would be 16 threads and a
     # 500-batch buffer).

@@ -210,16 +210,17 @@ def make_p_train_step(model: synthesizers.Synthesizer, tx: Optimizers, *, pose_s
 
 
 def make_p_train_chunk(model: synthesizers.Synthesizer, tx: Optimizers, *, pose_steps: int):
-  """`train_step` scanned over K steps (`lax.scan`), pmapped: p_chunk(replicated state, (D, K,
-  ...) batches, key) -> (state, metrics stacked (D, K), ok (D,)), `ok` 1.0 when every step of
-  the K was finite (the finite check reduced on the device). The state is donated."""
+  """`train_step` scanned over K steps (`lax.scan`), pmapped: p_chunk(replicated state, (K, D,
+  ...) batches (`BatchPipeline.batches`' layout, mapped over their device axis 1), key) ->
+  (state, metrics stacked (D, K), ok (D,)), `ok` 1.0 when every step of the K was finite (the
+  finite check reduced on the device). The state is donated."""
   fn = functools.partial(train_step, model=model, tx=tx, pose_steps=pose_steps)
 
   def chunk(state, batches_, key):
     state, metrics = jax.lax.scan(lambda s, b: fn(s, b, key), state, batches_)
     return state, metrics, jnp.min(metrics["train/finite"])
 
-  return jax.pmap(chunk, axis_name=AXIS, in_axes=(0, 0, None), donate_argnums=(0,))
+  return jax.pmap(chunk, axis_name=AXIS, in_axes=(0, 1, None), donate_argnums=(0,))
 
 
 def state_dict(state: TrainState) -> dict:

@@ -18,10 +18,8 @@ from __future__ import annotations
 
 import itertools
 from collections.abc import Callable, Iterator
-from typing import Any
 
 import jax
-import jax.numpy as jnp
 import ml_collections
 import numpy as np
 from typing_extensions import override
@@ -100,33 +98,22 @@ class SynthesisStage(frame_lib.Stage):
     return stopping.psnr_score(row["eval/psnr"]) if "eval/psnr" in row else None
 
 
-def _stack(xs: list[Any]) -> Any:
-  """Per-step (D, ...) arrays stacked on a steps axis: (D, n, ...)."""
-  xp = jnp if any(isinstance(x, jax.Array) for x in xs) else np
-  return xp.stack(xs, axis=1)
-
-
 def _stacked_device_batches(config, pipe, spans) -> Iterator[dict]:
-  """The training batches of each span (first step, n): (D, ...) for n = 1, (D, n, ...) stacked
-  for n > 1, copied to the devices `data.device_prefetch` dispatches ahead."""
-  first = next(spans)
-  total = config.total_steps
-  host = pipe.iterator(start_step=first[0] - 1, num_steps=max(total - first[0] + 1, 0))
-
-  def chunks():
-    for _, n in itertools.chain([first], spans):
-      bs = [next(host) for _ in range(n)]
-      yield {k: bs[0][k] for k in KEYS} if n == 1 else {k: _stack([b[k] for b in bs]) for k in KEYS}
-
+  """The training batches of each span (first step, n), read in one go per span
+  (`BatchPipeline.batches`, the batch of step s being `batch(s - 1)`): (K, D, ...) arrays,
+  copied to the devices `data.device_prefetch` dispatches ahead; (D, ...) for a span of one
+  step (the single-step program's layout)."""
+  spans = [(first - 1, n) for first, n in spans]
+  host = pipe.iterator(spans=spans)
   n_ahead = int(config.data.get("device_prefetch", 2))
   try:
     it = (
-      pipeline_lib.prefetch_to_device(chunks(), n_ahead, devices=jax.local_devices())
+      pipeline_lib.prefetch_to_device(host, n_ahead, devices=jax.local_devices(), device_axis=1)
       if n_ahead > 0
-      else chunks()
+      else host
     )
-    for b in it:
-      yield {k: b[k] for k in KEYS}
+    for (_, n), b in zip(spans, it, strict=False):
+      yield {k: b[k][0] for k in KEYS} if n == 1 else {k: b[k] for k in KEYS}
   finally:
     if hasattr(host, "close"):
       host.close()
