@@ -8,13 +8,15 @@ other from the config) trains one member per (lr, seed): the run that
   python -m camrep.regression --config=... --workdir=DIR/<lr tag>_seed<k> \\
     --config.optax.lr=LR --config.seed=K [--config.FIELD=VALUE ...]
 
-trains (`member_name`: "lr1e-3_seed0", the comparison launcher's layout), into that workdir, with
+trains (`runs.run_name`: "lr1e-3_seed0", the comparison launcher's layout), into that workdir, with
 the same files (`driver`'s docstring) and the same config.json: the tables read it unchanged and
 that command resumes or reruns it alone. A `{seed}` in `--config.synthesis_workdir` is each
 member's seed (the comparison's paired view-synthesis runs, DIR/synthesis/car_seed{seed}).
 
-One program: the members' states are stacked on a leading member axis and one jitted
-`jax.vmap` of `learner.train_step` (or `train_steps`, K per dispatch) trains them all. What a
+One program: the members' states are stacked on a leading member axis and one jitted group step
+(`group_step`) trains them all: a `jax.vmap` of `learner.train_step` (or `train_steps`, K per
+dispatch) on accelerators, each member's own step side by side in the one program on a CPU
+(`resolve_program`: XLA:CPU runs vmapped convolutions, grouped convolutions, 5x slower). What a
 single run takes from its seed and lr, each member keeps:
 
   init      its seed's (`driver.RegressionStage.init`), and its frozen representation ("mlp"'s
@@ -22,10 +24,10 @@ single run takes from its seed and lr, each member keeps:
   data      its seed's batch order (each seed's `views.train_pipeline`; members of one seed
             share its batches): the batches are stacked (M, B, ...) on the member axis;
   lr        the optimiser runs at rate 1 (`learner.unit_rate`) and each member's updates are
-            scaled by its lr: Adam(lr)'s update bit for bit. The vectorised convolutions and
-            reductions sum in another order than a run's own, so a member equals the run trained
-            alone up to float32 round-off (tests/test_grid.py: parameters, losses and errors
-            within 1e-4 relative after a few steps).
+            scaled by its lr: Adam(lr)'s update bit for bit. Vectorised convolutions and
+            reductions may sum in another order than a run's own, so a member equals the run
+            trained alone up to float32 round-off (tests/test_grid.py: predictions, losses and
+            errors within 1e-5 relative after a few steps, in both programs).
 
 Everything else is per member, as in a single run: its run frame (`runtime.frame.Frame`: lock,
 config and record checks, checkpoints, config_history.jsonl), its metrics.jsonl rows, its
@@ -60,7 +62,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from camrep.regression import config_schema, driver, learner
+from camrep.regression import config_schema, driver, learner, runs
 from camrep.regression import views as views_lib
 from camrep.runtime import frame as frame_lib
 from camrep.runtime import preemption, stopping
@@ -70,14 +72,8 @@ from camrep.runtime.runconfig import ConfigError
 SEED_FIELD = "{seed}"
 
 
-def lr_tag(lr: float) -> str:
-  """The lr part of a member's directory name: 1e-3 -> "lr1e-3", 3e-4 -> "lr3e-4"."""
-  return f"lr{lr:.0e}".replace("e-0", "e-")
-
-
-def member_name(lr: float, seed: int) -> str:
-  """A member's directory under the grid's workdir: "lr1e-3_seed0"."""
-  return f"{lr_tag(lr)}_seed{seed}"
+lr_tag = runs.lr_tag
+member_name = runs.run_name
 
 
 def member_config(
@@ -174,18 +170,49 @@ def unstack(tree: Any, i: int) -> Any:
   return jax.tree.map(lambda x: x[i], tree)
 
 
-def group_step(n: int) -> Callable:
-  """The vectorised step over `n` steps per dispatch: fn(states, batches, lrs) -> (states,
-  metrics, ok), with states, batches and lrs stacked on the member axis (M, ...); metrics
-  (M,) per key (n = 1) or (M, n); ok (M,) 1.0 where every step of the member was finite."""
+PROGRAMS = ("auto", "vmap", "unrolled")
+"""How the group step holds its members (`group_step`)."""
+
+
+def resolve_program(program: str = "auto") -> str:
+  """The group step's form: "vmap" (one `jax.vmap` over the member axis: the accelerators'
+  choice) or "unrolled" (each member's own step, side by side in one jitted program: the CPU's
+  choice, "auto" there). On XLA:CPU, vmapping a conv layer over members with their own kernels
+  makes it a grouped convolution (feature_group_count = M), which XLA:CPU runs 5x slower than the
+  members' convolutions one by one (camrep.bench.regression_grid)."""
+  if program not in PROGRAMS:
+    raise ValueError(f"program must be one of {PROGRAMS}, got {program!r}")
+  if program == "auto":
+    return "unrolled" if jax.default_backend() == "cpu" else "vmap"
+  return program
+
+
+def _unrolled(step: Callable) -> Callable:
+  """`step` over stacked members, each member's own call in one program (see `resolve_program`)."""
+
+  def run(states, batch, lrs):
+    outs = [step(unstack(states, i), unstack(batch, i), lrs[i]) for i in range(lrs.shape[0])]
+    return tuple(stack([o[j] for o in outs]) for j in range(len(outs[0])))
+
+  return run
+
+
+def group_step(n: int, program: str = "auto") -> Callable:
+  """The group's step over `n` steps per dispatch: fn(states, batches, lrs) -> (states, metrics,
+  ok), with states, batches and lrs stacked on the member axis (M, ...) (batches (M, n, ...) for
+  n > 1); metrics (M,) per key (n = 1) or (M, n); ok (M,): 1.0 where every step of the member
+  was finite. Each member's numbers are those of `learner.train_step` (`train_steps`) on it
+  alone; `program` (`resolve_program`) decides only how they are computed."""
+  batched = jax.vmap if resolve_program(program) == "vmap" else _unrolled
   if n == 1:
+    step = batched(learner.train_step)
 
     def one(states, batch, lrs):
-      states, metrics = jax.vmap(learner.train_step)(states, batch, lrs)
+      states, metrics = step(states, batch, lrs)
       return states, metrics, metrics["finite"]
 
     return jax.jit(one, donate_argnums=0)
-  return jax.jit(jax.vmap(learner.train_steps), donate_argnums=0)
+  return jax.jit(batched(learner.train_steps), donate_argnums=0)
 
 
 def _rows(metrics, i: int, n: int, stage: driver.RegressionStage) -> list[dict[str, float]]:
