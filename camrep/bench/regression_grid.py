@@ -1,11 +1,11 @@
 """Benchmark: a grid of regression runs (seeds x lrs) as one vectorised program against the same
-runs one after another (`camrep.regression.grid`).
+runs one after another (`camrep.regression.vectorised`).
 
 Builds every member of `configs/regression.py:<setting>,<variant>` at `--seeds` x `--lrs` (its
 seed's init and batches, its lr), then times, interleaved in one process `--rounds` times (these
 machines are shared: compare the ratio of one run):
 
-  grid        `grid.group_step(1, program)` for each of `--programs`: "unrolled" (each
+  grid        `vectorised.group_step(1, program)` for each of `--programs`: "unrolled" (each
               member's step side by side in one jitted program) and "vmap" (one `jax.vmap` of
               `learner.train_step` over the members' stacked states and batches), `--steps`
               steps of all M members;
@@ -44,7 +44,7 @@ def _parse(argv=None):
   p.add_argument("--steps", type=int, default=10, help="timed steps per side per round")
   p.add_argument("--rounds", type=int, default=3, help="interleaved repeats")
   p.add_argument(
-    "--programs", default="unrolled,vmap", help="group step forms (camrep.regression.grid)"
+    "--programs", default="unrolled,vmap", help="group step forms (camrep.regression.vectorised)"
   )
   p.add_argument("--cache", default="/tmp/camrep_bench_regression_cache", help="data cache")
   return p.parse_args(argv)
@@ -55,7 +55,7 @@ class GridTimer:
 
   Attributes:
     members: M, the grid's size.
-    programs: the group step's forms timed (`grid.group_step`).
+    programs: the group step's forms timed (`vectorised.group_step`).
     compile_s: {program, "sequential"} seconds of the first (compiling) call of each side.
   """
 
@@ -66,13 +66,13 @@ class GridTimer:
     import numpy as np
 
     from camrep.configs import regression
-    from camrep.regression import driver, grid, learner
+    from camrep.regression import driver, learner, vectorised
     from camrep.regression import views as views_lib
 
     config = regression.get_config(f"{setting},{variant}")
     config.representation = representation
     config.data.cache_dir = cache_dir
-    specs = grid.members(config, "", list(lrs), list(seeds))
+    specs = vectorised.members(config, "", list(lrs), list(seeds))
     data, states, batches = None, [], {}
     for _, c in specs:
       setup = driver.prepare(c, log=log, data=data)
@@ -88,8 +88,8 @@ class GridTimer:
       (jax.jit(learner.train_step, donate_argnums=0), s, [jax.device_put(b) for b in batches[c.seed]])
       for s, (_, c) in zip(states, specs, strict=True)
     ]  # fmt: skip
-    unit = grid._unit(states)
-    self._groups = {p: [grid.group_step(1, p), grid.stack(unit)] for p in programs}
+    unit = vectorised._unit(states)
+    self._groups = {p: [vectorised.group_step(1, p), vectorised.stack(unit)] for p in programs}
     self._rates = jax.numpy.asarray([c.optax.lr for _, c in specs], jax.numpy.float32)
     self._batches = [
       jax.device_put(jax.tree.map(lambda *xs: np.stack(xs), *[batches[c.seed][i] for _, c in specs]))

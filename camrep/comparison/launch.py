@@ -42,8 +42,8 @@ _STOPPING = threading.Event()
 class Job:
   """One subprocess: a name (its log file), argv, the workdir whose record marks it done (""
   for tables and figures, which always run), what kind of job it is, and an estimate. A
-  regression grid (runs trained as one program, `camrep.regression.grid`) has the workdirs of its
-  runs in `members` (its workdir is theirs' parent)."""
+  regression grid (runs trained as one program, `camrep.regression.vectorised`) has the workdirs
+  of its runs in `members` (its workdir is theirs' parent)."""
 
   name: str
   argv: list[str]
@@ -286,9 +286,9 @@ def regression_grid_job(
   data: dict | None = None,
 ) -> Job:
   """The regression runs of one column and representation at `lrs` x `seeds` trained as one
-  program (`python -m camrep.regression --lrs --seeds`, `camrep.regression.grid`), each into the
-  workdir its own run would have (lrs None: the "<LR>" placeholder of --dry_run's phase 2); an
-  "ours" or "mlp" member reads the synthesis run of its seed where the plan pairs them."""
+  program (`python -m camrep.regression --lrs --seeds`, `camrep.regression.vectorised`), each into
+  the workdir its own run would have (lrs None: the "<LR>" placeholder of --dry_run's phase 2);
+  an "ours" or "mlp" member reads the synthesis run of its seed where the plan pairs them."""
   one = regression_job(out, plan, column, rep, None, seeds[0], py, data)
   drop = ("--workdir=", "--config.seed=", "--config.optax.lr=", "--config.synthesis_workdir=")
   argv = [a for a in one.argv if not a.startswith(drop)]
@@ -529,12 +529,16 @@ def make_launch(
   data: dict | None = None,
   python: str = "python",
   full_grid: bool = False,
+  vectorise: bool = True,
   skip_figures: bool = False,
   noise_kinds: Sequence[str] = (),
   crossed: str = "",
   archive: str = "",
 ) -> Launch:
-  """Every job of a launch (see the package docstring for what each argument asks)."""
+  """Every job of a launch (see the package docstring for what each argument asks; `vectorise`
+  False: one process per regression run even where the plan vectorises them)."""
+  if not vectorise:
+    plan = dataclasses.replace(plan, vectorise={})
   data = dict(data or {})
   captures = [c for c in data if c not in SETTINGS]
   columns = list(settings) + [c for c in captures if setting_of(c) in settings]

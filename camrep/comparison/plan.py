@@ -50,7 +50,7 @@ class Plan:
       its config's own total_steps and no rule.
     convdraw_steps: GQN's ConvDRAW length, its schedules stretched to it (0: its config's own).
     vectorise: the regression runs of one column and representation trained as one program
-      (`camrep.regression.grid`: phase 1 one over the lrs, phase 2 one over the later seeds):
+      (`camrep.regression.vectorised`: phase 1 one over the lrs, phase 2 one over the later seeds):
       {"step_speedup": member-steps per second of the program over the runs one after another,
       "startup_s": what a run spends outside its steps, paid once per program}; empty: one
       process per run.

@@ -2,7 +2,7 @@
 --config=configs/regression.py[:quick|:smoke] --workdir=DIR [--config.FIELD=VALUE ...]`
 (`camrep.regression.driver.run`); with `--lrs=LR,LR,... --seeds=K,K,...` (either or both), a grid
 of such runs trained together as one vectorised program, member (lr, k) into
-DIR/<lr tag>_seed<k> (`camrep.regression.grid`).
+DIR/<lr tag>_seed<k> (`camrep.regression.vectorised`).
 
 The config is checked first (`camrep.regression.config_schema`: every field, and the fields the
 chosen setting, representation and data use). The same command resumes a run from its latest
@@ -17,7 +17,7 @@ import jax
 from absl import flags, logging
 
 from camrep import configs
-from camrep.regression import config_schema, driver, grid
+from camrep.regression import config_schema, driver, vectorised
 from camrep.runtime import cli
 
 _CONFIG = configs.define_config_flag(
@@ -30,9 +30,9 @@ _LRS = flags.DEFINE_list(
 _SEEDS = flags.DEFINE_list(
   "seeds",
   None,
-  "A grid of runs trained together (camrep.regression.grid): its seeds (default: the config's "
-  "seed); member (lr, k) writes DIR/lr<lr>_seed<k>. A {seed} in --config.synthesis_workdir is "
-  "each member's seed.",
+  "A grid of runs trained together (camrep.regression.vectorised): its seeds (default: the "
+  "config's seed); member (lr, k) writes DIR/lr<lr>_seed<k>. A {seed} in "
+  "--config.synthesis_workdir is each member's seed.",
 )
 flags.mark_flags_as_required(["config", "workdir"])
 
@@ -73,9 +73,9 @@ def main(argv) -> None:
   axes = grid_axes(_CONFIG.value, overridden)
   log = lambda s: print(s, flush=True)  # noqa: E731
   if axes is not None:
-    grid.members(_CONFIG.value, _WORKDIR.value, *axes, overridden=overridden)  # checked first
+    vectorised.members(_CONFIG.value, _WORKDIR.value, *axes, overridden=overridden)  # checked first
     print(f"JAX {jax.__version__}, devices {jax.local_devices()}", flush=True)
-    grid.run(
+    vectorised.run(
       _CONFIG.value, _WORKDIR.value, lrs=axes[0], seeds=axes[1], overridden=overridden, log=log
     )
     return

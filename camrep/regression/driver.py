@@ -144,7 +144,7 @@ def prepare(
 ) -> Setup:
   """Restores the pose input and renders the data of a resolved config (in that order, so that a
   bad synthesis workdir fails before minutes of rendering); `data`: the config's data, made
-  already (runs that differ only in seed and lr share it: `grid`).
+  already (runs that differ only in seed and lr share it: `vectorised`).
 
   Raises:
     ConfigError: as `pose_system.representation_params`, or the synthesis workdir's run is not

@@ -120,7 +120,7 @@ def lr_tag(lr: float) -> str:
 
 def run_name(lr: float, seed: int) -> str:
   """A regression run's directory name under DIR/regression/<column>/<representation> (the
-  comparison's layout, and a grid's members: `camrep.regression.grid`): "lr1e-3_seed0"."""
+  comparison's layout, and a grid's members: `camrep.regression.vectorised`): "lr1e-3_seed0"."""
   return f"{lr_tag(lr)}_seed{seed}"
 
 

@@ -1,4 +1,4 @@
-"""Tests of the regression grid (camrep.regression.grid): seeds x lrs trained as one program.
+"""Tests of the regression grid (camrep.regression.vectorised): seeds x lrs trained as one program.
 
 Fast: member naming and checks, the unit-rate step against Adam(lr)'s, and the group step (both
 programs, 1 and 2 steps per dispatch) against each member's own steps on a tiny car regressor.
@@ -21,7 +21,7 @@ import pytest
 
 from camrep import settings
 from camrep.configs import regression as regression_config
-from camrep.regression import driver, grid, learner
+from camrep.regression import driver, learner, vectorised
 from camrep.runtime.runconfig import ConfigError
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -46,14 +46,14 @@ def _config(**kw):
 
 
 def test_member_names_configs_and_checks(tmp_path):
-  assert grid.member_name(1e-3, 0) == "lr1e-3_seed0"
-  assert grid.member_name(3e-4, 2) == "lr3e-4_seed2" and grid.lr_tag(1e-2) == "lr1e-2"
+  assert vectorised.member_name(1e-3, 0) == "lr1e-3_seed0"
+  assert vectorised.member_name(3e-4, 2) == "lr3e-4_seed2" and vectorised.lr_tag(1e-2) == "lr1e-2"
   base = _config()
-  c = grid.member_config(base, 3e-3, 2)
+  c = vectorised.member_config(base, 3e-3, 2)
   assert (c.optax.lr, c.seed) == (3e-3, 2) and (base.optax.lr, base.seed) != (3e-3, 2)
   ours = _config(representation="ours", synthesis_workdir="/runs/car_seed{seed}")
-  assert grid.member_config(ours, 1e-3, 1).synthesis_workdir == "/runs/car_seed1"
-  specs = grid.members(base, str(tmp_path), [1e-3, 3e-3], [0, 1])
+  assert vectorised.member_config(ours, 1e-3, 1).synthesis_workdir == "/runs/car_seed1"
+  specs = vectorised.members(base, str(tmp_path), [1e-3, 3e-3], [0, 1])
   assert [os.path.basename(w) for w, _ in specs] == [
     "lr1e-3_seed0",
     "lr1e-3_seed1",
@@ -62,11 +62,11 @@ def test_member_names_configs_and_checks(tmp_path):
   ]
   assert [(c.optax.lr, c.seed) for _, c in specs] == [(1e-3, 0), (1e-3, 1), (3e-3, 0), (3e-3, 1)]
   with pytest.raises(ConfigError, match="share a directory"):
-    grid.members(base, str(tmp_path), [1e-3, 1.2e-3], [0])
+    vectorised.members(base, str(tmp_path), [1e-3, 1.2e-3], [0])
   with pytest.raises(ConfigError, match="at least one lr"):
-    grid.members(base, str(tmp_path), [], [0])
+    vectorised.members(base, str(tmp_path), [], [0])
   with pytest.raises(ConfigError, match="member lr=0.001 seed=0: .*synthesis_workdir"):
-    grid.members(ours, str(tmp_path), [1e-3], [0])  # /runs/car_seed0 is no directory
+    vectorised.members(ours, str(tmp_path), [1e-3], [0])  # /runs/car_seed0 is no directory
 
 
 def test_command_line_errors(tmp_path):
@@ -121,7 +121,7 @@ def tiny():
 def test_the_unit_rate_step_is_adams_bit_for_bit(tiny):
   states, lrs, batches = tiny
   state, lr = states[1], lrs[1]
-  unit = grid._unit([state])[0]
+  unit = vectorised._unit([state])[0]
   assert unit.regressor.hparams.lr == 1.0
   assert jax.tree.structure(unit.opt_state) == jax.tree.structure(state.opt_state)
   a, ma = jax.jit(learner.train_step)(state, batches[1][0])
@@ -145,25 +145,25 @@ def test_the_group_step_equals_each_members_own_steps(tiny, program, n):
       state, m = jax.jit(learner.train_step)(state, b)
       ms.append(m)
     alone.append((state, ms))
-  group = grid.stack(grid._unit(states))
+  group = vectorised.stack(vectorised._unit(states))
   rates = jnp.asarray(lrs, jnp.float32)
-  fn = grid.group_step(n, program)
+  fn = vectorised.group_step(n, program)
   if n == 1:
     metrics = []
     for k in range(2):
-      chunk = grid.stack([bs[k] for bs in batches])
+      chunk = vectorised.stack([bs[k] for bs in batches])
       group, m, ok = fn(group, chunk, rates)
       metrics.append(m)
       assert ok.shape == (2,) and np.all(np.asarray(ok) == 1)
     losses = np.stack([np.asarray(m["loss"]) for m in metrics], axis=1)  # (M, steps)
   else:
-    chunk = grid.stack([grid.stack(bs) for bs in batches])  # (M, n, ...)
+    chunk = vectorised.stack([vectorised.stack(bs) for bs in batches])  # (M, n, ...)
     group, m, ok = fn(group, chunk, rates)
     losses = np.asarray(m["loss"])
     assert ok.shape == (2,) and losses.shape == (2, 2)
   for i, (state, ms) in enumerate(alone):
     np.testing.assert_allclose(losses[i], [float(x["loss"]) for x in ms], rtol=RTOL)
-    member = grid.unstack(group, i)
+    member = vectorised.unstack(group, i)
     assert int(member.step) == 2
     for x, y in zip(jax.tree.leaves(state.params), jax.tree.leaves(member.params), strict=True):
       np.testing.assert_allclose(x, y, rtol=RTOL, atol=ATOL)
@@ -176,10 +176,11 @@ def test_the_group_step_equals_each_members_own_steps(tiny, program, n):
 
 
 def test_resolve_program():
-  assert grid.resolve_program("auto") == ("unrolled" if jax.default_backend() == "cpu" else "vmap")
-  assert grid.resolve_program("vmap") == "vmap"
+  auto = "unrolled" if jax.default_backend() == "cpu" else "vmap"
+  assert vectorised.resolve_program("auto") == auto
+  assert vectorised.resolve_program("vmap") == "vmap"
   with pytest.raises(ValueError, match="program must be one of"):
-    grid.resolve_program("loop")
+    vectorised.resolve_program("loop")
 
 
 # --------------------------------------------------------------------------- end to end
@@ -222,13 +223,13 @@ def test_members_equal_runs_trained_alone_and_resume_as_a_group(tmp_path):
   config = _config(**{"data.cache_dir": cache, "eval_every_steps": 2})
   gdir = str(tmp_path / "grid")
   lines = []
-  results = grid.run(config, gdir, lrs=[1e-3, 3e-3], seeds=[0, 1], log=lines.append)
+  results = vectorised.run(config, gdir, lrs=[1e-3, 3e-3], seeds=[0, 1], log=lines.append)
   assert [(r["lr"], r["seed"]) for r in results] == [(1e-3, 0), (1e-3, 1), (3e-3, 0), (3e-3, 1)]
   assert any("training 4 members together from step 0" in x for x in lines)
   for lr, seed in ((1e-3, 0), (3e-3, 1)):
-    name = grid.member_name(lr, seed)
+    name = vectorised.member_name(lr, seed)
     member, alone = os.path.join(gdir, name), str(tmp_path / "alone" / name)
-    r_alone = driver.run(grid.member_config(config, lr, seed), alone, log=lambda s: None)
+    r_alone = driver.run(vectorised.member_config(config, lr, seed), alone, log=lambda s: None)
     r_member = driver.read_results(member)
     assert r_member["grid"] == {"lrs": [1e-3, 3e-3], "seeds": [0, 1]}
     skip = {"grid", "train_seconds", "steps_per_sec", "eval_seconds", "machine"}
@@ -256,17 +257,17 @@ def test_members_equal_runs_trained_alone_and_resume_as_a_group(tmp_path):
       assert json.load(f)["complete"] is True
   # Complete: nothing to do. A raised cap resumes the whole group from its step.
   lines.clear()
-  done = grid.run(config, gdir, lrs=[1e-3, 3e-3], seeds=[0, 1], log=lines.append)
+  done = vectorised.run(config, gdir, lrs=[1e-3, 3e-3], seeds=[0, 1], log=lines.append)
   assert done == json.loads(json.dumps(results))
   assert not any("training" in x for x in lines)
   longer = _config(**{"data.cache_dir": cache, "eval_every_steps": 2, "total_steps": 4})
   lines.clear()
-  again = grid.run(longer, gdir, lrs=[1e-3, 3e-3], seeds=[0, 1], log=lines.append)
+  again = vectorised.run(longer, gdir, lrs=[1e-3, 3e-3], seeds=[0, 1], log=lines.append)
   assert [r["steps"] for r in again] == [4] * 4
   assert sum("resumed from step 3" in x for x in lines) == 4
   assert any("training 4 members together from step 3" in x for x in lines)
   # Unfinished members at different steps: refused, nothing written.
   longest = _config(**{"data.cache_dir": cache, "eval_every_steps": 2, "total_steps": 5})
   with pytest.raises(ConfigError, match="resume from different steps"):
-    grid.run(longest, gdir, lrs=[1e-3, 3e-3], seeds=[0, 2], log=lambda s: None)
+    vectorised.run(longest, gdir, lrs=[1e-3, 3e-3], seeds=[0, 2], log=lambda s: None)
   assert not os.path.exists(os.path.join(gdir, "lr1e-3_seed2", "results.json"))

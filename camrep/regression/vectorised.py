@@ -26,7 +26,7 @@ single run takes from its seed and lr, each member keeps:
   lr        the optimiser runs at rate 1 (`learner.unit_rate`) and each member's updates are
             scaled by its lr: Adam(lr)'s update bit for bit. Vectorised convolutions and
             reductions may sum in another order than a run's own, so a member equals the run
-            trained alone up to float32 round-off (tests/test_grid.py: predictions, losses and
+            trained alone up to float32 round-off (tests/test_vectorised.py: predictions, losses and
             errors within 1e-5 relative after a few steps, in both programs).
 
 Everything else is per member, as in a single run: its run frame (`runtime.frame.Frame`: lock,
