@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import signal
 import subprocess
 import sys
 
@@ -192,7 +193,8 @@ def _files(wd: str) -> set[str]:
     rel = os.path.relpath(d, wd)
     if rel.startswith("checkpoints"):
       continue
-    out |= {os.path.normpath(os.path.join(rel, n)) for n in names}
+    # TensorBoard's event file is named by its time and host
+    out |= {os.path.normpath(os.path.join(rel, n.split(".out.")[0])) for n in names}
   return out
 
 
@@ -255,19 +257,34 @@ def test_members_equal_runs_trained_alone_and_resume_as_a_group(tmp_path):
           np.testing.assert_array_equal(a[k], b[k])
     with open(os.path.join(member, "final_metrics.json")) as f:
       assert json.load(f)["complete"] is True
-  # Complete: nothing to do. A raised cap resumes the whole group from its step.
+  # Complete: nothing to do.
   lines.clear()
   done = vectorised.run(config, gdir, lrs=[1e-3, 3e-3], seeds=[0, 1], log=lines.append)
   assert done == json.loads(json.dumps(results))
   assert not any("training" in x for x in lines)
-  longer = _config(**{"data.cache_dir": cache, "eval_every_steps": 2, "total_steps": 4})
-  lines.clear()
-  again = vectorised.run(longer, gdir, lrs=[1e-3, 3e-3], seeds=[0, 1], log=lines.append)
-  assert [r["steps"] for r in again] == [4] * 4
-  assert sum("resumed from step 3" in x for x in lines) == 4
-  assert any("training 4 members together from step 3" in x for x in lines)
-  # Unfinished members at different steps: refused, nothing written.
-  longest = _config(**{"data.cache_dir": cache, "eval_every_steps": 2, "total_steps": 5})
+  # SIGTERM after the first step: every member saves a checkpoint and the group stops.
+  gdir2 = str(tmp_path / "grid2")
+
+  def stop_after_compiling(line):
+    if line.startswith("compiled in"):
+      os.kill(os.getpid(), signal.SIGTERM)
+
+  assert (
+    vectorised.run(config, gdir2, lrs=[1e-3, 3e-3], seeds=[0, 1], log=stop_after_compiling) is None
+  )
+  for name in os.listdir(gdir2):
+    assert os.listdir(os.path.join(gdir2, name, "checkpoints")) == ["1"]
+    assert not os.path.exists(os.path.join(gdir2, name, "results.json"))
+  # Unfinished members at different steps (seed 2 would start at 0): refused, nothing written.
   with pytest.raises(ConfigError, match="resume from different steps"):
-    vectorised.run(longest, gdir, lrs=[1e-3, 3e-3], seeds=[0, 2], log=lambda s: None)
-  assert not os.path.exists(os.path.join(gdir, "lr1e-3_seed2", "results.json"))
+    vectorised.run(config, gdir2, lrs=[1e-3, 3e-3], seeds=[0, 2], log=lambda s: None)
+  assert not os.path.exists(os.path.join(gdir2, "lr1e-3_seed2"))
+  # The same command resumes the whole group from step 1, to what the uninterrupted grid gave.
+  lines.clear()
+  resumed = vectorised.run(config, gdir2, lrs=[1e-3, 3e-3], seeds=[0, 1], log=lines.append)
+  assert sum("resumed from step 1" in x for x in lines) == 4
+  assert any("training 4 members together from step 1" in x for x in lines)
+  for a, b in zip(resumed, results, strict=True):
+    _close({k: a[k] for k in ("validation", "test", "final_train")}, {
+      k: b[k] for k in ("validation", "test", "final_train")
+    })  # fmt: skip
