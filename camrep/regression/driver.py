@@ -3,7 +3,8 @@
 `python -m camrep.regression --config=configs/regression.py:SETTING[,quick|,smoke] --workdir=DIR
 [--config.representation=ours --config.synthesis_workdir=W ...]` trains one
 pose regressor (`learner`) for one (setting, representation, learning rate, seed) and
-writes into DIR:
+writes into DIR (with `--lrs` / `--seeds`, a grid of such runs trained as one program, each into
+its own DIR/<lr>_seed<k>: `camrep.regression.vectorised`):
 
   config.json        the config (its setting's sizes and hyper-parameters)
   record.json        what identifies its data and pose system beyond the config
