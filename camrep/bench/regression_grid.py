@@ -63,7 +63,6 @@ class GridTimer:
                steps: int, programs=("unrolled", "vmap"), cache_dir: str = "",
                log=print):  # fmt: skip
     import jax
-    import numpy as np
 
     from camrep.configs import regression
     from camrep.regression import driver, learner, vectorised
@@ -84,17 +83,17 @@ class GridTimer:
           views_lib.learner_batch(c, data.train, stage.pipe.batch(i)) for i in range(steps)
         ]
     self.members, self.steps, self.programs = len(specs), steps, tuple(programs)
+    step = lambda: jax.jit(learner.train_step, donate_argnums=0)  # noqa: E731 - one per member
     self._single = [
-      (jax.jit(learner.train_step, donate_argnums=0), s, [jax.device_put(b) for b in batches[c.seed]])
+      (step(), s, [jax.device_put(b) for b in batches[c.seed]])
       for s, (_, c) in zip(states, specs, strict=True)
-    ]  # fmt: skip
+    ]
     unit = vectorised._unit(states)
     self._groups = {p: [vectorised.group_step(1, p), vectorised.stack(unit)] for p in programs}
     self._rates = jax.numpy.asarray([c.optax.lr for _, c in specs], jax.numpy.float32)
     self._batches = [
-      jax.device_put(jax.tree.map(lambda *xs: np.stack(xs), *[batches[c.seed][i] for _, c in specs]))
-      for i in range(steps)
-    ]  # fmt: skip
+      jax.device_put(vectorised.stack([batches[c.seed][i] for _, c in specs])) for i in range(steps)
+    ]
     self.compile_s = {}
     for p in programs:
       t = time.perf_counter()
