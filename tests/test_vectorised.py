@@ -135,7 +135,7 @@ def test_the_unit_rate_step_is_adams_bit_for_bit(tiny):
   assert not np.allclose(jax.tree.leaves(c.params)[0], jax.tree.leaves(a.params)[0])
 
 
-@pytest.mark.parametrize("program", ["unrolled", "vmap"])
+@pytest.mark.parametrize("program", ["loop", "unrolled", "vmap"])
 @pytest.mark.parametrize("n", [1, 2])
 def test_the_group_step_equals_each_members_own_steps(tiny, program, n):
   states, lrs, batches = tiny
@@ -177,11 +177,11 @@ def test_the_group_step_equals_each_members_own_steps(tiny, program, n):
 
 
 def test_resolve_program():
-  auto = "unrolled" if jax.default_backend() == "cpu" else "vmap"
+  auto = "loop" if jax.default_backend() == "cpu" else "vmap"
   assert vectorised.resolve_program("auto") == auto
   assert vectorised.resolve_program("vmap") == "vmap"
   with pytest.raises(ValueError, match="program must be one of"):
-    vectorised.resolve_program("loop")
+    vectorised.resolve_program("scan")
 
 
 # --------------------------------------------------------------------------- end to end

@@ -5,8 +5,9 @@ Builds every member of `configs/regression.py:<setting>,<variant>` at `--seeds` 
 seed's init and batches, its lr), then times, interleaved in one process `--rounds` times (these
 machines are shared: compare the ratio of one run):
 
-  grid        `vectorised.group_step(1, program)` for each of `--programs`: "unrolled" (each
-              member's step side by side in one jitted program) and "vmap" (one `jax.vmap` of
+  grid        `vectorised.group_step(1, program)` for each of `--programs`: "loop" (one jitted
+              step shared by the members, called member by member), "unrolled" (each member's
+              step side by side in one jitted program) and "vmap" (one `jax.vmap` of
               `learner.train_step` over the members' stacked states and batches), `--steps`
               steps of all M members;
   sequential  each member's own jitted `learner.train_step` (the single run's), `--steps` steps,
@@ -44,7 +45,9 @@ def _parse(argv=None):
   p.add_argument("--steps", type=int, default=10, help="timed steps per side per round")
   p.add_argument("--rounds", type=int, default=3, help="interleaved repeats")
   p.add_argument(
-    "--programs", default="unrolled,vmap", help="group step forms (camrep.regression.vectorised)"
+    "--programs",
+    default="loop,unrolled,vmap",
+    help="group step forms (camrep.regression.vectorised)",
   )
   p.add_argument("--cache", default="/tmp/camrep_bench_regression_cache", help="data cache")
   return p.parse_args(argv)
@@ -60,7 +63,7 @@ class GridTimer:
   """
 
   def __init__(self, setting: str, *, variant: str, representation: str, seeds, lrs,
-               steps: int, programs=("unrolled", "vmap"), cache_dir: str = "",
+               steps: int, programs=("loop", "unrolled", "vmap"), cache_dir: str = "",
                log=print):  # fmt: skip
     import jax
 

@@ -13,11 +13,11 @@ the same files (`driver`'s docstring) and the same config.json: the tables read 
 that command resumes or reruns it alone. A `{seed}` in `--config.synthesis_workdir` is each
 member's seed (the comparison's paired view-synthesis runs, DIR/synthesis/car_seed{seed}).
 
-One program: the members' states are stacked on a leading member axis and one jitted group step
-(`group_step`) trains them all: a `jax.vmap` of `learner.train_step` (or `train_steps`, K per
-dispatch) on accelerators, each member's own step side by side in the one program on a CPU
-(`resolve_program`: XLA:CPU runs vmapped convolutions, grouped convolutions, 5x slower). What a
-single run takes from its seed and lr, each member keeps:
+One program: the members' states are stacked on a leading member axis and one group step
+(`group_step`) trains them all: a jitted `jax.vmap` of `learner.train_step` (or `train_steps`, K
+per dispatch) on accelerators; on a CPU one jitted step shared by every member, called member by
+member (`resolve_program`: XLA:CPU runs vmapped convolutions, grouped convolutions, 4-5x slower).
+What a single run takes from its seed and lr, each member keeps:
 
   init      its seed's (`driver.RegressionStage.init`), and its frozen representation ("mlp"'s
             random embedding, "ours"' pose system of its own synthesis workdir), stacked;
@@ -27,7 +27,7 @@ single run takes from its seed and lr, each member keeps:
             scaled by its lr: Adam(lr)'s update bit for bit. Vectorised convolutions and
             reductions may sum in another order than a run's own, so a member equals the run
             trained alone up to float32 round-off (tests/test_vectorised.py: predictions, losses and
-            errors within 1e-5 relative after a few steps, in both programs).
+            errors within 1e-5 relative after a few steps, in every program).
 
 Everything else is per member, as in a single run: its run frame (`runtime.frame.Frame`: lock,
 config and record checks, checkpoints, config_history.jsonl), its metrics.jsonl rows, its
@@ -170,20 +170,23 @@ def unstack(tree: Any, i: int) -> Any:
   return jax.tree.map(lambda x: x[i], tree)
 
 
-PROGRAMS = ("auto", "vmap", "unrolled")
+PROGRAMS = ("auto", "vmap", "unrolled", "loop")
 """How the group step holds its members (`group_step`)."""
 
 
 def resolve_program(program: str = "auto") -> str:
-  """The group step's form: "vmap" (one `jax.vmap` over the member axis: the accelerators'
-  choice) or "unrolled" (each member's own step, side by side in one jitted program: the CPU's
-  choice, "auto" there). On XLA:CPU, vmapping a conv layer over members with their own kernels
-  makes it a grouped convolution (feature_group_count = M), which XLA:CPU runs 5x slower than the
-  members' convolutions one by one (camrep.bench.regression_grid)."""
+  """The group step's form: "vmap" (one `jax.vmap` over the member axis, the accelerators'
+  choice), "unrolled" (each member's own step side by side in one jitted program) or "loop" (one
+  jitted step, the same for every member since they differ only in data, init and lr, called
+  member by member: the CPU's choice, "auto" there). On XLA:CPU, vmapping a conv layer over
+  members with their own kernels makes it a grouped convolution (feature_group_count = M), which
+  runs 4-5x slower than the members' convolutions one by one, and the unrolled program of 12
+  members ran 0.6-1.2x the runs' speed (camrep.bench.regression_grid): on a CPU the group saves
+  the runs' start-ups and compiles, not step time."""
   if program not in PROGRAMS:
     raise ValueError(f"program must be one of {PROGRAMS}, got {program!r}")
   if program == "auto":
-    return "unrolled" if jax.default_backend() == "cpu" else "vmap"
+    return "loop" if jax.default_backend() == "cpu" else "vmap"
   return program
 
 
@@ -197,22 +200,37 @@ def _unrolled(step: Callable) -> Callable:
   return run
 
 
+def _looped(step: Callable) -> Callable:
+  """`step` over stacked members, one jitted call a member (see `resolve_program`)."""
+  one = jax.jit(step, donate_argnums=0)
+  take = jax.jit(unstack, static_argnums=1)
+  join = jax.jit(lambda outs: tuple(stack([o[j] for o in outs]) for j in range(len(outs[0]))))
+
+  def run(states, batch, lrs):
+    return join([one(take(states, i), unstack(batch, i), lrs[i]) for i in range(len(lrs))])
+
+  return run
+
+
 def group_step(n: int, program: str = "auto") -> Callable:
   """The group's step over `n` steps per dispatch: fn(states, batches, lrs) -> (states, metrics,
   ok), with states, batches and lrs stacked on the member axis (M, ...) (batches (M, n, ...) for
   n > 1); metrics (M,) per key (n = 1) or (M, n); ok (M,): 1.0 where every step of the member
   was finite. Each member's numbers are those of `learner.train_step` (`train_steps`) on it
   alone; `program` (`resolve_program`) decides only how they are computed."""
-  batched = jax.vmap if resolve_program(program) == "vmap" else _unrolled
+  program = resolve_program(program)
   if n == 1:
-    step = batched(learner.train_step)
 
-    def one(states, batch, lrs):
-      states, metrics = step(states, batch, lrs)
-      return states, metrics, metrics["finite"]
+    def step(state, batch, lr):
+      state, metrics = learner.train_step(state, batch, lr)
+      return state, metrics, metrics["finite"]
 
-    return jax.jit(one, donate_argnums=0)
-  return jax.jit(batched(learner.train_steps), donate_argnums=0)
+  else:
+    step = learner.train_steps
+  if program == "loop":
+    return _looped(step)
+  batched = jax.vmap if program == "vmap" else _unrolled
+  return jax.jit(batched(step), donate_argnums=0)
 
 
 def _rows(metrics, i: int, n: int, stage: driver.RegressionStage) -> list[dict[str, float]]:
