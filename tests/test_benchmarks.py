@@ -125,3 +125,22 @@ def test_the_host_loop_stubs_the_renderer_and_the_step():
     pipeline_lib.RenderPipeline.batch = real
   assert rendered and max(rendered) == 0  # blank images: the stub, not the renderer
   assert r["layout"] == "1 x 2 scenes x 4 views" and r["host_ms_per_step"] > 0
+
+
+@pytest.mark.slow
+def test_the_grid_benchmark_times_both_programs_against_the_runs_alone(tmp_path):
+  """`camrep.bench.regression_grid`: the members of a small grid (car :smoke, 2 seeds x 2 lrs)
+  timed as each group program and one after another, interleaved."""
+  from camrep.bench import regression_grid
+
+  timer = regression_grid.GridTimer(
+    "car", variant="smoke", representation="euler", seeds=[0, 1], lrs=[1e-3, 3e-3], steps=2,
+    cache_dir=str(tmp_path), log=lambda *_: None,
+  )  # fmt: skip
+  assert timer.members == 4
+  assert set(timer.compile_s) == {"loop", "unrolled", "vmap", "sequential"}
+  out = regression_grid.measure(timer, rounds=2, log=lambda *_: None)
+  assert len(out["rounds"]) == 2 and out["sequential"]["member_steps_per_s"] > 0
+  for p in ("loop", "unrolled", "vmap"):
+    assert out[p]["speedup"] > 0
+    assert out[p]["member_steps_per_s"] == pytest.approx(4 * out[p]["steps_per_s_per_member"])

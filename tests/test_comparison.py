@@ -94,10 +94,11 @@ def test_converge_plan(tmp_path, capsys):
   converge = the_launch.plan
   assert len(converge.seeds) >= 3 and all(len(g) >= 3 for g in converge.lrs.values())
   cells = {}
-  for j in the_launch.first:
-    cells.setdefault(launch._group(j), set()).add(j.argv[j.argv.index("-m") + 5])
+  for j in the_launch.first:  # one program per column and representation (vectorised)
+    assert j.members and launch.flag_value(j.argv, "--seeds") == "0"
+    cells.setdefault(launch._group(j), set()).update(w.rpartition("_")[2] for w in j.members)
   for col, rep, seed in the_launch.later:
-    cells[col, rep].add(f"--config.seed={seed}")
+    cells[col, rep].add(f"seed{seed}")
   assert ("car_chair", "ours") in cells and ("seven_scenes", "ours") in cells
   assert all(len(seeds) >= 3 for seeds in cells.values())
   for j in the_launch.first:
@@ -105,9 +106,11 @@ def test_converge_plan(tmp_path, capsys):
       " ".join(j.argv)
     )
   ours = [j for j in the_launch.first if "--config.representation=ours" in j.argv]
-  for j in ours:
-    seed = next(a for a in j.argv if a.startswith("--config.seed=")).split("=")[1]
-    assert any(a.endswith(f"_seed{seed}") for a in j.argv if a.startswith("--config.synthesis_"))
+  for j in ours:  # each member reads the synthesis run of its seed
+    assert launch.flag_value(j.argv, "--config.synthesis_workdir").endswith("_seed{seed}")
+    assert {os.path.basename(w) for w in launch.synthesis_reads(j)} == {
+      f"{launch._group(j)[0]}_seed0"
+    }
   syn = {j.name for j in the_launch.synth}
   assert {f"synthesis_car_chair_seed{k}" for k in range(3)} <= syn
   chair = next(j for j in the_launch.synth if j.name == "synthesis_car_chair_seed1")
@@ -120,7 +123,7 @@ def test_converge_plan(tmp_path, capsys):
   assert mlp.estimate_s == converge.synthesis_s["capture"] < converge.synthesis_s["car"]
   mlp_reg = [j for j in the_launch.first if j.name.startswith("regression_car_chair_mlp_")]
   wd = os.path.join(out, "synthesis", "car_chair_mlp_seed0")
-  assert mlp_reg and all(f"--config.synthesis_workdir={wd}" in j.argv for j in mlp_reg)
+  assert mlp_reg and all(launch.synthesis_reads(j) == {wd} for j in mlp_reg)
   assert launch.synthesis_column("car_chair_mlp_seed0", the_launch.data) == "car_chair"
   assert launch.synthesis_column("car_mlp_seed0", the_launch.data) == "car"
   noise = next(j for j in the_launch.figures if j.name == "noise_figure_car_chair")
@@ -236,3 +239,71 @@ def test_crossed_seeds(tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
       command.parse_args([*bad, "--out", out] if bad[1] == "quick" else bad)
     assert e.value.code == 2
+
+
+def test_vectorised_regressions(tmp_path, capsys):
+  """converge and medium train each column's and representation's regressions as one program
+  (`python -m camrep.regression --lrs --seeds`): phase 1 over the lrs with seed 0, phase 2 over
+  the later seeds at the lr seed 0's validation chose; the members are the runs' own workdirs
+  (done when every one is); the estimate says what it saves. quick and paper run one process
+  per run."""
+  out = str(tmp_path / "cmp")
+  args = ["--size", "converge", "--out", out, "--dry_run", "--settings", "car"]
+  assert command.main(args) == 0
+  text = capsys.readouterr().out
+  assert "vectorised regressions" in text and "saves ~" in text
+  assert f"--workdir={out}/regression/car/quat --lrs=0.0003,0.001,0.003 --seeds=0 " in text
+  regressions = [x for x in text.splitlines() if "camrep.regression " in x]
+  assert regressions and not any(
+    "--config.seed=" in x or "--config.optax.lr=" in x for x in regressions
+  )
+  assert f"--workdir={out}/regression/car/quat '--lrs=<LR>' --seeds=1,2 " in text
+  the_launch = command.make_launch(command.parse_args(args))
+  converge = the_launch.plan
+  assert converge.vectorise["startup_s"] > 0
+  quat = next(j for j in the_launch.first if launch._group(j) == ("car", "quat"))
+  reg = os.path.join(out, "regression")
+  assert quat.workdir == os.path.join(reg, "car", "quat") and quat.members == tuple(
+    os.path.join(reg, "car", "quat", f"{t}_seed0") for t in ("lr3e-4", "lr1e-3", "lr3e-3")
+  )
+  alone = 3 * converge.regression_s["car"]
+  assert quat.estimate_s == plan.group_s(converge, "car", 3) < alone
+  startup, speedup = converge.vectorise["startup_s"], converge.vectorise["step_speedup"]
+  one = converge.regression_s["car"]
+  assert quat.estimate_s == pytest.approx(startup + 3 * (one - startup) / speedup)
+  ours = next(j for j in the_launch.first if launch._group(j) == ("car", "ours"))
+  assert launch.flag_value(ours.argv, "--config.synthesis_workdir") == os.path.join(
+    out, "synthesis", "car_seed{seed}"
+  )
+  # Phase 1 done for quat (3e-3 chosen): phase 2 is one program over seeds 1 and 2 at 3e-3.
+  assert not quat.done()
+  for lr, val in ((3e-4, 3.0), (1e-3, 2.0), (3e-3, 1.0)):
+    _write(reg, "car", "quat", lr, 0, _summary("car", val), _summary("car", 1.0))
+    os.rename(
+      os.path.join(reg, "car", "quat", f"lr{lr:g}_seed0"),
+      os.path.join(reg, "car", "quat", f"{launch.lr_tag(lr)}_seed0"),
+    )
+  assert quat.done()
+  later = next(
+    j for j in launch.phase2_grid_jobs(the_launch) if launch._group(j) == ("car", "quat")
+  )
+  assert launch.flag_value(later.argv, "--lrs") == "0.003"
+  assert launch.flag_value(later.argv, "--seeds") == "1,2"
+  assert [os.path.basename(w) for w in later.members] == ["lr3e-3_seed1", "lr3e-3_seed2"]
+  ours2 = next(
+    j for j in launch.phase2_grid_jobs(the_launch) if launch._group(j) == ("car", "ours")
+  )
+  assert launch.synthesis_reads(ours2) == {
+    os.path.join(out, "synthesis", f"car_seed{k}") for k in (1, 2)
+  }
+  # --full_grid: one program over every lr and seed.
+  full = command.make_launch(command.parse_args([*args, "--full_grid"]))
+  quat = next(j for j in full.first if launch._group(j) == ("car", "quat"))
+  assert len(quat.members) == 9 and launch.flag_value(quat.argv, "--seeds") == "0,1,2"
+  assert not full.later
+  # medium is vectorised too; quick and paper start one process per run.
+  assert plan.plans()["medium"].vectorise
+  for size in ("quick", "paper"):
+    assert not plan.plans()[size].vectorise
+    small = command.make_launch(command.parse_args(["--size", size, "--out", out, "--dry_run"]))
+    assert all(not j.members and "--config.seed=0" in j.argv for j in small.first)

@@ -48,6 +48,7 @@ def rc():
 
 def _args(out, archive, *extra):
   return [
+    "--no_vectorise",  # seed by seed, one process per run (test_a_vectorised_launch: the grids)
     "--size",
     "converge",
     "--settings",
@@ -94,13 +95,23 @@ def fake_run_job(rc, ran, score=lambda lr: 1.0 + abs(np.log10(lr) + 3)):
       with open(os.path.join(wd, "final_metrics.json"), "w") as f:
         json.dump({"complete": True, "step": step}, f)
       return True
-    lr, seed = float(_flag(job.argv, "optax.lr")), int(_flag(job.argv, "seed"))
-    val = score(lr)
-    r = dict(setting="car", representation=_flag(job.argv, "representation"), lr=lr, seed=seed)
-    r.update(steps=10, variant="quick", validation=_summary(val), test=_summary(2 * val))
-    with open(os.path.join(wd, "results.json"), "w") as f:
-      json.dump(r, f)
-    np.savez(os.path.join(wd, "errors_test.npz"), rotation_error_deg=np.full(4, val))
+    if job.members:  # a grid: each member's workdir as its own run writes it
+      lrs = [float(x) for x in launch.flag_value(job.argv, "--lrs").split(",")]
+      seeds = [int(x) for x in launch.flag_value(job.argv, "--seeds").split(",")]
+      members = [(lr, k) for lr in lrs for k in seeds]
+      assert [os.path.basename(w) for w in job.members] == [runs.run_name(*m) for m in members]
+    else:
+      members = [(float(_flag(job.argv, "optax.lr")), int(_flag(job.argv, "seed")))]
+    for w, (lr, seed) in zip(job.members or [wd], members, strict=True):
+      os.makedirs(w, exist_ok=True)
+      with open(os.path.join(w, "metrics.jsonl"), "w") as f:
+        f.write('{"step": 1, "eval/psnr": 15.0}\n')
+      val = score(lr)
+      r = dict(setting="car", representation=_flag(job.argv, "representation"), lr=lr, seed=seed)
+      r.update(steps=10, variant="quick", validation=_summary(val), test=_summary(2 * val))
+      with open(os.path.join(w, "results.json"), "w") as f:
+        json.dump(r, f)
+      np.savez(os.path.join(w, "errors_test.npz"), rotation_error_deg=np.full(4, val))
     return True
 
   return run_job
@@ -138,6 +149,36 @@ def test_a_launch_goes_seed_by_seed_and_archives_each_run(rc, tmp_path, monkeypa
   np.testing.assert_array_equal(record.view_errors()["rotation_error_deg"], np.full(4, 1.0))
   assert record.curves == {"eval/psnr": {1: 15.0}}
   assert archive_lib.sync(str(out), str(archive)) == 0  # nothing changed: nothing written
+
+
+def test_a_vectorised_launch_trains_each_group_as_one_program(rc, tmp_path, monkeypatch):
+  """converge (vectorised): phase 1 is one program per representation over its lrs with seed 0,
+  then every later seed's synthesis, then phase 2 one program over seeds 1 and 2 at the chosen
+  lr; every member's run is archived as its own, and a second launch trains nothing."""
+  ran = []
+  monkeypatch.setattr(launch, "run_job", fake_run_job(rc, ran))
+  out, archive = tmp_path / "out", tmp_path / "archive"
+  args = _args(out, archive)[1:]  # without --no_vectorise
+  assert rc.execute(rc.make(args)) == []
+  grid = "lr3e-4-lr1e-3-lr3e-3"
+  assert [n for n in ran if not n.startswith("synthesis_")] == [
+    f"regression_car_ours_{grid}_seed0",
+    f"regression_car_quat_{grid}_seed0",
+    "regression_car_ours_lr1e-3_seed1-2",
+    "regression_car_quat_lr1e-3_seed1-2",
+  ]
+  pos = {n: i for i, n in enumerate(ran)}
+  assert pos["synthesis_car_seed0"] < pos[f"regression_car_ours_{grid}_seed0"]
+  assert pos["synthesis_car_seed2"] < pos["regression_car_ours_lr1e-3_seed1-2"]
+  for rep in ("ours", "quat"):
+    for name in [f"{t}_seed0" for t in ("lr3e-4", "lr1e-3", "lr3e-3")] + [
+      "lr1e-3_seed1",
+      "lr1e-3_seed2",
+    ]:
+      assert (archive / "regression" / "car" / rep / name / "run.json").exists()
+  ran.clear()
+  assert rc.execute(rc.make(args)) == []
+  assert ran == []
 
 
 def test_a_new_machine_restores_the_archive_and_trains_only_what_is_missing(

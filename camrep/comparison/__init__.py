@@ -24,7 +24,12 @@ aside as <name>.damaged, and trained again):
      into DIR/regression/<column>/<representation>/<lr>_seed<k>: phase 1 trains seed 0 at every
      lr of the setting's grid; phase 2 the other seeds at the lr seed 0's validation errors chose
      (`camrep.regression.tables.select`), or at every lr with --full_grid. Rendered data and
-     restored pose systems are cached in DIR/cache;
+     restored pose systems are cached in DIR/cache. Where the plan says `vectorise` (converge,
+     medium), each column's and representation's runs of a phase are one program (`python -m
+     camrep.regression --lrs=... --seeds=...`, `camrep.regression.vectorised`): phase 1 over its
+     lrs, phase 2 over its later seeds once every seed's view synthesis is done (the full grid:
+     one program); each run still writes its own workdir. `--no_vectorise`: one process per
+     run, seed by seed;
   3. tables: experiments/table1.py -> DIR/table1.md (and DIR/table1_<capture>.md),
      experiments/table2.py -> DIR/table2.md, experiments/lead_table.py -> DIR/lead_table.md;
   4. figures: `python -m camrep.synthesis.evaluate` of every view-synthesis run (noise curve,
@@ -35,7 +40,8 @@ aside as <name>.damaged, and trained again):
 `--size converge`: the quick sizes with 3 seeds a cell; every run stopped by the stopping rule
 (`--config.stop.*`) under a cap; lr grids extended by phase 1 (up to `--extend_grid N` lrs) while
 seed 0's choice sits at an edge; one view-synthesis run per seed, synthesis/<name>_seed<k>, read
-by regression seed k of ours; the launch goes seed by seed. `--crossed COLUMN` adds, after phase
+by regression seed k of ours; the launch goes seed by seed (vectorised: every seed's view
+synthesis before phase 2). `--crossed COLUMN` adds, after phase
 2, every regression seed of ours on every other synthesis seed's pose system (DIR/crossed/,
 never tabled with the paired runs), then experiments/seed_spread.py -> DIR/seed_spread_<column>.md.
 

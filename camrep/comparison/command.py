@@ -34,6 +34,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
   p.add_argument("--settings", default=",".join(plan_lib.SETTINGS), help="comma-separated subset")
   p.add_argument("--representations", default="", help="comma-separated subset (default: all)")
   p.add_argument("--full_grid", action="store_true", help="every seed at every learning rate")
+  p.add_argument(
+    "--no_vectorise",
+    action="store_true",
+    help="one process per regression run, seed by seed, where the plan trains a column's runs as "
+    "one program (converge, medium)",
+  )
   p.add_argument("--skip_figures", action="store_true", help="no evaluations or noise figures")
   p.add_argument(
     "--noise_runs",
@@ -146,6 +152,7 @@ def make_launch(args: argparse.Namespace) -> launch_lib.Launch:
       data=args.data,
       python=args.python,
       full_grid=args.full_grid,
+      vectorise=not args.no_vectorise,
       skip_figures=args.skip_figures,
       noise_kinds=args.noise_kinds,
       crossed=args.crossed,

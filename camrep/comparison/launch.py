@@ -41,18 +41,28 @@ _STOPPING = threading.Event()
 @dataclasses.dataclass
 class Job:
   """One subprocess: a name (its log file), argv, the workdir whose record marks it done (""
-  for tables and figures, which always run), what kind of job it is, and an estimate."""
+  for tables and figures, which always run), what kind of job it is, and an estimate. A
+  regression grid (runs trained as one program, `camrep.regression.vectorised`) has the workdirs
+  of its runs in `members` (its workdir is theirs' parent)."""
 
   name: str
   argv: list[str]
   workdir: str
   estimate_s: float
   kind: str = "table"  # "synthesis", "regression", "evaluate" or "table"
+  members: tuple[str, ...] = ()
+
+  @property
+  def workdirs(self) -> tuple[str, ...]:
+    """The workdirs of its runs: its members, else its own (none for tables and figures)."""
+    return self.members or ((self.workdir,) if self.workdir else ())
 
   def done(self) -> bool:
-    """Whether the job's run is finished and readable: a regression run's results; a view-
-    synthesis run complete at the step cap its command gives (or stopped earlier by its plateau
-    rule); an evaluation's noise curve."""
+    """Whether the job's run is finished and readable: a regression run's results (every
+    member's, for a grid); a view-synthesis run complete at the step cap its command gives (or
+    stopped earlier by its plateau rule); an evaluation's noise curve."""
+    if self.members:
+      return all(damage(w) is None and runs.is_finished(w) for w in self.members)
     if not self.workdir or self.kind == "table" or damage(self.workdir) is not None:
       return False
     if self.kind == "regression":
@@ -146,8 +156,7 @@ def setting_of(column: str) -> str:
   return column if column in SETTINGS else column.split("_", 1)[0]
 
 
-def lr_tag(lr: float) -> str:
-  return f"lr{lr:.0e}".replace("e-0", "e-")
+lr_tag = runs.lr_tag
 
 
 def capture_of(name: str, data: dict | None) -> str | None:
@@ -264,6 +273,51 @@ def regression_job(
     argv.append(f"--config.synthesis_workdir={syn}_mlp{pair}")
   name = f"regression_{column}_{rep}_{tag}_seed{seed}"
   return Job(name, argv, wd, plan.regression_s[setting], "regression")
+
+
+def regression_grid_job(
+  out: str,
+  plan: plan_lib.Plan,
+  column: str,
+  rep: str,
+  lrs: Sequence[float] | None,
+  seeds: Sequence[int],
+  py: str,
+  data: dict | None = None,
+) -> Job:
+  """The regression runs of one column and representation at `lrs` x `seeds` trained as one
+  program (`python -m camrep.regression --lrs --seeds`, `camrep.regression.vectorised`), each into
+  the workdir its own run would have (lrs None: the "<LR>" placeholder of --dry_run's phase 2);
+  an "ours" or "mlp" member reads the synthesis run of its seed where the plan pairs them."""
+  one = regression_job(out, plan, column, rep, None, seeds[0], py, data)
+  drop = ("--workdir=", "--config.seed=", "--config.optax.lr=", "--config.synthesis_workdir=")
+  argv = [a for a in one.argv if not a.startswith(drop)]
+  group = os.path.join(out, "regression", column, rep)
+  tags = ["lr<LR>"] if lrs is None else [lr_tag(x) for x in lrs]
+  argv[4:4] = [
+    f"--workdir={group}",
+    f"--lrs={'<LR>' if lrs is None else ','.join(format(x, 'g') for x in lrs)}",
+    f"--seeds={','.join(str(k) for k in seeds)}",
+  ]
+  syn = flag_value(one.argv, "--config.synthesis_workdir")
+  if syn is not None:
+    if plan.paired_synthesis:
+      syn = syn.removesuffix(f"_seed{seeds[0]}") + "_seed{seed}"
+    argv.append(f"--config.synthesis_workdir={syn}")
+  members = tuple(os.path.join(group, f"{t}_seed{k}") for t in tags for k in seeds)
+  name = f"regression_{column}_{rep}_{'-'.join(tags)}_seed{'-'.join(map(str, seeds))}"
+  est = plan_lib.group_s(plan, setting_of(column), len(members))
+  return Job(name, argv, group, est, "regression", members)
+
+
+def synthesis_reads(job: Job) -> set[str]:
+  """The view-synthesis workdirs a regression job reads (each member's seed's for a grid whose
+  --config.synthesis_workdir holds {seed})."""
+  v = flag_value(job.argv, "--config.synthesis_workdir")
+  if v is None:
+    return set()
+  seeds = (flag_value(job.argv, "--seeds") or "").split(",")
+  return {v.replace("{seed}", k) for k in seeds} if "{seed}" in v else {v}
 
 
 def crossed_job(
@@ -403,8 +457,8 @@ def figure_jobs(
 
 
 def _group(job: Job) -> tuple[str, str]:
-  """(column, representation) of a regression job, from its workdir."""
-  parts = job.workdir.split(os.sep)
+  """(column, representation) of a regression job, from its (first run's) workdir."""
+  parts = job.workdirs[0].split(os.sep)
   return parts[-3], parts[-2]
 
 
@@ -475,12 +529,16 @@ def make_launch(
   data: dict | None = None,
   python: str = "python",
   full_grid: bool = False,
+  vectorise: bool = True,
   skip_figures: bool = False,
   noise_kinds: Sequence[str] = (),
   crossed: str = "",
   archive: str = "",
 ) -> Launch:
-  """Every job of a launch (see the package docstring for what each argument asks)."""
+  """Every job of a launch (see the package docstring for what each argument asks; `vectorise`
+  False: one process per regression run even where the plan vectorises them)."""
+  if not vectorise:
+    plan = dataclasses.replace(plan, vectorise={})
   data = dict(data or {})
   captures = [c for c in data if c not in SETTINGS]
   columns = list(settings) + [c for c in captures if setting_of(c) in settings]
@@ -507,10 +565,13 @@ def make_launch(
   first, later = [], []
   for c in columns:
     for rep in reps[c]:
-      for seed in plan.seeds if full_grid else plan.seeds[:1]:
+      seeds = plan.seeds if full_grid else plan.seeds[:1]
+      lrs = plan.lrs[setting_of(c)]
+      if plan.vectorise:  # phase 1 (or the full grid) as one program
+        first.append(regression_grid_job(out, plan, c, rep, lrs, seeds, python, data))
+      else:
         first += [
-          regression_job(out, plan, c, rep, lr, seed, python, data)
-          for lr in plan.lrs[setting_of(c)]
+          regression_job(out, plan, c, rep, lr, seed, python, data) for seed in seeds for lr in lrs
         ]
       if not full_grid:
         later += [(c, rep, seed) for seed in plan.seeds[1:]]
@@ -537,6 +598,22 @@ def phase2_jobs(launch: Launch) -> list[tuple[tuple[str, str, int], Job]]:
     )
     for c, rep, seed in L.later
   ]
+
+
+def phase2_grid_jobs(launch: Launch) -> list[Job]:
+  """A vectorised plan's phase 2: per (column, representation), its later seeds as one program
+  at the lr that seed 0's validation errors choose so far (the <LR> placeholder while phase 1
+  has no results)."""
+  L = launch
+  groups: dict[tuple[str, str], list[int]] = {}
+  for c, rep, seed in L.later:
+    groups.setdefault((c, rep), []).append(seed)
+  jobs = []
+  for (c, rep), seeds in groups.items():
+    lr = chosen_lr(L.out, c, rep, L.plan)
+    lrs = None if lr is None else [lr]
+    jobs.append(regression_grid_job(L.out, L.plan, c, rep, lrs, seeds, L.python, L.data))
+  return jobs
 
 
 def extension_jobs(launch: Launch) -> list[Job]:
@@ -622,9 +699,10 @@ def set_aside_damaged(jobs: Sequence[Job]) -> None:
   """Renames the unreadable file of each job's damaged run (`archive.set_aside`), with a warning
   naming it: the run is not finished, and trains again."""
   for j in jobs:
-    if j.workdir and (d := damage(j.workdir)) is not None:
-      new = archive_lib.set_aside(d)
-      print(f"warning: {d}; the run is trained again (the file is kept as {new})", flush=True)
+    for w in j.workdirs:
+      if (d := damage(w)) is not None:
+        new = archive_lib.set_aside(d)
+        print(f"warning: {d}; the run is trained again (the file is kept as {new})", flush=True)
 
 
 def run_jobs(
@@ -698,10 +776,12 @@ def pending_synthesis(launch: Launch) -> set[str]:
   jobs = list(L.first) + extension_jobs(L) + [job for _, job in phase2_jobs(L)]
   if L.crossed:
     jobs += crossed_jobs(L, chosen_lr(L.out, L.crossed, "ours", L.plan))
+  if L.plan.vectorise:
+    jobs += phase2_grid_jobs(L)
   need = set()
   for j in jobs:
     if not j.done():
-      need |= {v for a in j.argv if (v := flag_value([a], "--config.synthesis_workdir"))}
+      need |= synthesis_reads(j)
   for j in L.figures:
     if j.kind == "evaluate" and not j.done():
       need.add(j.workdir)
@@ -773,7 +853,18 @@ def execute(launch: Launch, *, at_once: int = 1, deadline: float | None = None) 
     if not ext:
       break
     failed += run_jobs(ext, logs, label="phase 1, lr grid extended: ", **kw)
-  for seed in seeds[1:]:
+  if L.plan.vectorise:  # every later seed's synthesis first: phase 2 is one program per group
+    for seed in seeds[1:]:
+      failed += run_synthesis(L, synthesis_of_seed(L, seed), logs, kw)
+    later = []
+    for job in phase2_grid_jobs(L):
+      if "--lrs=<LR>" in job.argv:
+        print(f"[phase 2] {job.name}: no phase-1 results; skipped", flush=True)
+        failed.append(job.name)
+      else:
+        later.append(job)
+    failed += run_jobs(later, logs, label="phase 2: ", **kw)
+  for seed in seeds[1:] if not L.plan.vectorise else ():
     failed += run_synthesis(L, synthesis_of_seed(L, seed), logs, kw)
     later = []
     for c, rep, k in L.later:
@@ -805,13 +896,28 @@ def remaining_s(launch: Launch, *, at_once: int = 1, later=None) -> float:
   """Seconds of what is not done yet (phase 2 at the lr chosen so far, data rendering while
   DIR has no cache, tables and figures), divided by `at_once` jobs at a time (the best case)."""
   L, plan = launch, launch.plan
-  later = phase2_jobs(L) if later is None else later
   est = sum(j.estimate_s for j in L.synth + L.first if not j.done())
-  est += sum(plan.regression_s[setting_of(c)] for (c, _, _), j in later if not j.done())
+  if plan.vectorise:
+    est += sum(j.estimate_s for j in phase2_grid_jobs(L) if not j.done())
+  else:
+    later = phase2_jobs(L) if later is None else later
+    est += sum(plan.regression_s[setting_of(c)] for (c, _, _), j in later if not j.done())
   if not os.path.isdir(os.path.join(L.out, "cache")):
     est += sum(plan.data_s[setting_of(c)] for c in L.settings)
   est += sum(j.estimate_s for j in L.tables + L.figures if not j.done())
   return est / at_once
+
+
+def vectorised_saving_s(launch: Launch) -> tuple[int, int, float]:
+  """A vectorised plan's (programs, runs they train, seconds saved against one process per run)
+  over the regression grids not done yet; (0, 0, 0.0) without vectorising."""
+  L, plan = launch, launch.plan
+  if not plan.vectorise:
+    return 0, 0, 0.0
+  grids = [j for j in L.first + phase2_grid_jobs(L) if j.members and not j.done()]
+  n = sum(len(j.members) for j in grids)
+  alone = sum(len(j.members) * plan.regression_s[setting_of(_group(j)[0])] for j in grids)
+  return len(grids), n, alone - sum(j.estimate_s for j in grids)
 
 
 def print_plan(launch: Launch, *, commands: bool, at_once: int = 1) -> None:
@@ -819,7 +925,7 @@ def print_plan(launch: Launch, *, commands: bool, at_once: int = 1) -> None:
   time: the best case); with `commands`, every job."""
   L, plan = launch, launch.plan
   fmt = progress_lib.format_duration
-  later = phase2_jobs(L)
+  later = [] if plan.vectorise else phase2_jobs(L)
   est = remaining_s(L, at_once=at_once, later=later)
   at = f", {at_once} jobs at a time at best" if at_once > 1 else ""
   if plan.extend_grid:  # groups whose seed-0 choice is settled inside its grid need none
@@ -832,13 +938,25 @@ def print_plan(launch: Launch, *, commands: bool, at_once: int = 1) -> None:
       f"; plus up to {len(groups) * plan.extend_grid} phase-1 runs (up to {fmt(worst_s)}) "
       "extending an lr grid whose choice is at its edge"
     )
+  n_first = sum(len(j.workdirs) for j in L.first)
   print(
     f"{plan.name} comparison into {L.out}: {len(L.synth)} view-synthesis runs, "
-    f"{len(L.first) + len(L.later)} regression runs ({len(L.first)} in phase 1, {len(L.later)} "
+    f"{n_first + len(L.later)} regression runs ({n_first} in phase 1, {len(L.later)} "
     f"in phase 2), {len(L.tables)} tables, {len(L.figures)} figure steps; estimated "
     f"{fmt(est)} for what is not done yet ({plan.where}){at}.",
     flush=True,
   )
+  if plan.vectorise:
+    programs, n, saved = vectorised_saving_s(L)
+    v = plan.vectorise
+    print(
+      f"  vectorised regressions (python -m camrep.regression --lrs --seeds): {n} runs as "
+      f"{programs} programs, phase 1 one per column and representation over its lrs, phase 2 "
+      f"one over its later seeds (after every seed's view synthesis); saves ~{fmt(saved)} "
+      f"of the estimate ({v['startup_s']:g} s of start-up a run paid once a program, steps "
+      f"{v['step_speedup']:g}x as fast)",
+      flush=True,
+    )
   for c in L.settings:
     if isinstance(L.data.get(c), tuple):
       where = f"capture prepared as {L.data[c][0]} in {L.data[c][1]} (car setting)"
@@ -847,7 +965,9 @@ def print_plan(launch: Launch, *, commands: bool, at_once: int = 1) -> None:
     else:
       where = "its procedural family (configs/regression.py settings)"
     print(f"  data of {c}: {where}", flush=True)
-  damaged = [(j.name, d) for j in L.synth + L.first if (d := damage(j.workdir)) is not None]
+  damaged = [
+    (j.name, d) for j in L.synth + L.first for w in j.workdirs if (d := damage(w)) is not None
+  ]
   for name, d in damaged:
     print(f"  {name}: {d}; the launch trains it again", flush=True)
   crossed = crossed_jobs(L, None)
@@ -862,9 +982,13 @@ def print_plan(launch: Launch, *, commands: bool, at_once: int = 1) -> None:
     return
   for j in L.synth + L.first:
     print(f"[{'done' if j.done() else '~' + fmt(j.estimate_s)}] {j.command()}")
-  for (c, _, _), job in later:
-    state = "done" if job.done() else f"~{fmt(plan.regression_s[setting_of(c)])}"
-    print(f"[{state}, phase 2] {job.command()}")
+  if plan.vectorise:
+    for job in phase2_grid_jobs(L):
+      print(f"[{'done' if job.done() else '~' + fmt(job.estimate_s)}, phase 2] {job.command()}")
+  else:
+    for (c, _, _), job in later:
+      state = "done" if job.done() else f"~{fmt(plan.regression_s[setting_of(c)])}"
+      print(f"[{state}, phase 2] {job.command()}")
   print("  (phase 2: <LR> = the lr chosen on seed 0's validation errors, where not chosen yet)")
   for job in crossed:
     print(f"[~{fmt(plan.regression_s[setting_of(L.crossed)])}, crossed] {job.command()}")

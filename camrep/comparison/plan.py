@@ -49,6 +49,11 @@ class Plan:
     synthesis_caps: view-synthesis steps per setting under the rule; a setting not named keeps
       its config's own total_steps and no rule.
     convdraw_steps: GQN's ConvDRAW length, its schedules stretched to it (0: its config's own).
+    vectorise: the regression runs of one column and representation trained as one program
+      (`camrep.regression.vectorised`: phase 1 one over the lrs, phase 2 one over the later seeds):
+      {"step_speedup": member-steps per second of the program over the runs one after another,
+      "startup_s": what a run spends outside its steps, paid once per program}; empty: one
+      process per run.
   """
 
   name: str
@@ -66,6 +71,7 @@ class Plan:
   regression_caps: dict[str, int] = dataclasses.field(default_factory=dict)
   synthesis_caps: dict[str, int] = dataclasses.field(default_factory=dict)
   convdraw_steps: int = 0
+  vectorise: dict[str, float] = dataclasses.field(default_factory=dict)
 
   @property
   def suffix(self) -> str:
@@ -130,6 +136,7 @@ def _plan(name: str, d: Mapping[str, Any]) -> Plan:
     where=d.get("where", ""),
     paired_synthesis=bool(d.get("paired_synthesis", False)),
     extend_grid=int(d.get("extend_grid", 0)),
+    vectorise=_floats(d.get("vectorise", {})),
   )
   if "seconds" in d:
     sec = d["seconds"]
@@ -177,6 +184,17 @@ def _plan(name: str, d: Mapping[str, Any]) -> Plan:
 def plans() -> dict[str, Plan]:
   """Every size of plans.toml, by name."""
   return {name: _plan(name, d) for name, d in _read()["sizes"].items()}
+
+
+def group_s(plan: Plan, setting: str, runs: int) -> float:
+  """Estimated seconds of `runs` regression runs of `setting` trained as one program: one
+  start-up, and their steps at the program's speedup (`Plan.vectorise`); `runs` times a run's
+  estimate without vectorising."""
+  one = plan.regression_s[setting]
+  if not plan.vectorise:
+    return runs * one
+  startup = min(plan.vectorise["startup_s"], one)
+  return startup + runs * (one - startup) / plan.vectorise["step_speedup"]
 
 
 def expected_share(plan: Plan) -> float:

@@ -3,7 +3,8 @@
 `python -m camrep.regression --config=configs/regression.py:SETTING[,quick|,smoke] --workdir=DIR
 [--config.representation=ours --config.synthesis_workdir=W ...]` trains one
 pose regressor (`learner`) for one (setting, representation, learning rate, seed) and
-writes into DIR:
+writes into DIR (with `--lrs` / `--seeds`, a grid of such runs trained as one program, each into
+its own DIR/<lr>_seed<k>: `camrep.regression.vectorised`):
 
   config.json        the config (its setting's sizes and hyper-parameters)
   record.json        what identifies its data and pose system beyond the config
@@ -139,9 +140,12 @@ class Setup:
   reg: learner.Regressor
 
 
-def prepare(config: ml_collections.ConfigDict, *, log=print) -> Setup:
+def prepare(
+  config: ml_collections.ConfigDict, *, log=print, data: views_lib.Data | None = None
+) -> Setup:
   """Restores the pose input and renders the data of a resolved config (in that order, so that a
-  bad synthesis workdir fails before minutes of rendering).
+  bad synthesis workdir fails before minutes of rendering); `data`: the config's data, made
+  already (runs that differ only in seed and lr share it: `vectorised`).
 
   Raises:
     ConfigError: as `pose_system.representation_params`, or the synthesis workdir's run is not
@@ -151,7 +155,7 @@ def prepare(config: ml_collections.ConfigDict, *, log=print) -> Setup:
   spec, rep_params, rep_info = pose_system.representation_params(config)
   if rep_info.get("source") == "synthesis":
     rep_info = check_synthesis(config, rep_info, log=log)
-  data = views_lib.make_data(config)
+  data = views_lib.make_data(config) if data is None else data
   t_data = time.perf_counter() - t0
   scene_max = [data.train.scenes.max(), *(e.queries.scenes.max() for e in data.evals.values())]
   reg = make_regressor(config, spec, int(max(scene_max)) + 1)
@@ -431,12 +435,84 @@ def results_record(
   return out
 
 
+def check_stored_layout(workdir: str) -> None:
+  """Refuses a workdir whose config.json has the old layout (`configs.regression.check_layout`).
+
+  Raises:
+    ConfigError: it has.
+  """
+  stored = workdir_lib.read_stored_config(workdir) if os.path.isdir(workdir) else None
+  if stored is not None:
+    try:
+      regression_config.check_layout(stored)
+    except ValueError as e:
+      raise ConfigError(f"{workdir}: {e}") from None
+
+
+def read_results(workdir: str) -> dict[str, Any] | None:
+  """The workdir's results.json content, or None without one."""
+  path = os.path.join(workdir, RESULTS_FILE)
+  if not os.path.exists(path):
+    return None
+  with open(path, encoding="utf-8") as f:
+    return json.load(f)
+
+
+def pose_record(setup: Setup) -> dict[str, Any]:
+  """What record.json holds of a run's pose system: its spec (learned representations) and the
+  digest of the parameters it read (a resume must read the same ones)."""
+  record = {}
+  if setup.spec is not None:
+    record["pose_spec"] = components.spec_record(setup.spec)
+  if "digest" in setup.rep_info:
+    record["representation"] = {"digest": setup.rep_info["digest"]}
+  return record
+
+
 def clear_outputs(workdir: str) -> None:
   """Removes what an earlier run in `workdir` wrote (results.json, errors_*.npz), before a run
   starts at step 0 in it: a stale file would mark an unfinished run as done."""
   for name in os.listdir(workdir):
     if name == RESULTS_FILE or (name.startswith("errors_") and name.endswith(".npz")):
       os.remove(os.path.join(workdir, name))
+
+
+def complete(
+  frame: frame_lib.Frame,
+  stage: RegressionStage,
+  fit: frame_lib.FitResult,
+  eval_sets,
+  *,
+  predict_fn,
+  rule,
+  grid: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+  """The outputs of a run whose fit is complete: every split's errors (`evaluate_splits`),
+  results.json (with `grid`, the group it was trained in, when given) and final_metrics.json.
+
+  Returns:
+    The results.json content.
+  """
+  setup, workdir, state = stage.setup, frame.workdir, fit.state
+  jax.block_until_ready(state.params)
+  train_seconds = stage.train_seconds()
+  last = {k: v for k, v in fit.last.items() if k.startswith("train/")}
+  if not last:  # nothing logged since the restored step: the run's last train scalars
+    last = {k: v for k, v in session_lib.last_logged(workdir).items() if k.startswith("train/")}
+  record = fit.stopping_record(rule, setup.config.total_steps)
+  stop = {k: record[k] for k in ("rule", "stopped_early", "steps", "reason", "curve")}
+  t_eval = time.perf_counter()
+  summaries, extra = evaluate_splits(
+    setup, state, frame.writer, eval_sets, predict_fn=predict_fn, workdir=workdir, step=fit.step
+  )
+  results = results_record(
+    setup, state, last, train_seconds, time.perf_counter() - t_eval, summaries, extra, stop
+  )
+  if grid is not None:
+    results["grid"] = dict(grid)
+  write_results(os.path.join(workdir, RESULTS_FILE), results)
+  frame.finish(fit.step, {**last, "results": RESULTS_FILE})
+  return results
 
 
 def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[str, Any] | None:
@@ -466,27 +542,16 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
     FloatingPointError: the loss became non-finite (the last checkpoint is kept).
   """
   config = config_schema.validate(config)  # the stage's checks
-  stored = workdir_lib.read_stored_config(workdir) if os.path.isdir(workdir) else None
-  if stored is not None:
-    try:
-      regression_config.check_layout(stored)
-    except ValueError as e:
-      raise ConfigError(f"{workdir}: {e}") from None
+  check_stored_layout(workdir)
   rule = frame_lib.stopping_rule(config)
-  results_path = os.path.join(workdir, RESULTS_FILE)
   with frame_lib.Frame(
     workdir, config, schema=config_schema.SCHEMA, log=log, restart=True, outputs=clear_outputs
   ) as frame:
-    if frame.already_complete(rule) is not None and os.path.exists(results_path):
-      with open(results_path, encoding="utf-8") as f:
-        return json.load(f)
+    if frame.already_complete(rule) is not None and (done := read_results(workdir)) is not None:
+      return done
     record = {"version": 1, "data": views_lib.data_record(config)}
     setup = prepare(config, log=log)
-    if setup.spec is not None:
-      record["pose_spec"] = components.spec_record(setup.spec)
-    if "digest" in setup.rep_info:  # which pose system: a resume must read the same one
-      record["representation"] = {"digest": setup.rep_info["digest"]}
-    frame.check_record(record)
+    frame.check_record({**record, **pose_record(setup)})
     predict_fn = jax.jit(learner.predict_poses)
     eval_sets = {k: views_lib.eval_batches(config, e) for k, e in setup.data.evals.items()}
     stage = RegressionStage(setup, eval_sets, predict_fn=predict_fn)
@@ -496,24 +561,7 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
     fit = frame_lib.fit(frame, stage, state, start, rule=rule, progress_every=20.0)
     if not fit.complete:
       return None
-    state = fit.state
-    jax.block_until_ready(state.params)
-    train_seconds = stage.train_seconds()
-    last = {k: v for k, v in fit.last.items() if k.startswith("train/")}
-    if not last:  # nothing logged since the restored step: the run's last train scalars
-      last = {k: v for k, v in session_lib.last_logged(workdir).items() if k.startswith("train/")}
-    record = fit.stopping_record(rule, config.total_steps)
-    stop = {k: record[k] for k in ("rule", "stopped_early", "steps", "reason", "curve")}
-    t_eval = time.perf_counter()
-    summaries, extra = evaluate_splits(
-      setup, state, frame.writer, eval_sets, predict_fn=predict_fn, workdir=workdir,
-      step=fit.step,
-    )  # fmt: skip
-    results = results_record(
-      setup, state, last, train_seconds, time.perf_counter() - t_eval, summaries, extra, stop
-    )
-    write_results(results_path, results)
-    frame.finish(fit.step, {**last, "results": RESULTS_FILE})
+    results = complete(frame, stage, fit, eval_sets, predict_fn=predict_fn, rule=rule)
   overall = results["test"]["all"]
   log(
     f"test ({config.evals.test_split}): "

@@ -5,9 +5,11 @@ Plain functions, independent of the view-synthesis trainer (`camrep.synthesis.tr
   resolve_hparams(config)                       a run config's loss and optimiser settings
   make_regressor(setting, representation, ...)  the static description: network, heads, loss
   init(key, regressor, batch, rep_params)       a `RegressionState`
-  train_step(state, batch)                      one Adam step; pure, jit it at the call site:
+  train_step(state, batch[, lr])                one Adam step; pure, jit it at the call site:
                                                 `step = jax.jit(regress.train_step)`
-  train_steps(state, batches)                   K steps over stacked batches (`lax.scan`)
+  train_steps(state, batches[, lr])             K steps over stacked batches (`lax.scan`)
+  unit_rate(regressor)                          the regressor whose optimiser has lr 1, for
+                                                steps given their lr (`jax.vmap` over lrs)
   predict_poses(state, batch)                   network -> heads -> decode -> poses
   pose_errors(setting, pred, true)              per-example errors (camrep.metrics)
   evaluate_regression(state, batches)           per-example errors over an eval set
@@ -373,10 +375,24 @@ def loss_terms(
   return total, groups
 
 
+def unit_rate(reg: Regressor) -> Regressor:
+  """The regressor with learning rate 1: its optimiser (`make_optimizer`) ends in scale(-1), so
+  that `train_step(state, batch, lr)` gives Adam(lr)'s update: (-u) * lr is u * (-lr) in IEEE
+  arithmetic, bit for bit. Its optimiser state has the same structure as the regressor's."""
+  return dataclasses.replace(reg, hparams=dataclasses.replace(reg.hparams, lr=1.0))
+
+
 def train_step(
-  state: RegressionState, batch: Mapping[str, Array]
+  state: RegressionState, batch: Mapping[str, Array], lr: Array | None = None
 ) -> tuple[RegressionState, dict[str, Array]]:
   """One optimiser step on the regression loss; pure (jit at the call site).
+
+  Args:
+    state: the state.
+    batch: a training batch.
+    lr: () the learning rate of a state whose regressor has rate 1 (`unit_rate`): its updates
+      are scaled by it, so that runs of several rates share one program (`jax.vmap` over states
+      and rates). None: the optimiser's own rate.
 
   Returns:
     (new state, metrics {"loss", "loss_position", "loss_orientation", "s_position",
@@ -384,10 +400,10 @@ def train_step(
     finite: the update is skipped)}).
   """
   with fastconv.weight_grad(state.regressor.weight_grad):  # read while the step is traced
-    return _train_step(state, batch)
+    return _train_step(state, batch, lr)
 
 
-def _train_step(state, batch):
+def _train_step(state, batch, lr):
   reg = state.regressor
   images, kw = network_inputs(reg, state.rep_params, batch)
   target = encode_poses(reg, state.rep_params, batch["pose"])
@@ -401,6 +417,8 @@ def _train_step(state, batch):
 
   (total, (groups, batch_stats)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state.params)
   updates, opt_state = state.tx.update(grads, state.opt_state, state.params)
+  if lr is not None:
+    updates = jax.tree.map(lambda u: u * lr, updates)
   params = optax.apply_updates(state.params, updates)
   out = {"loss": total, "grad_norm": optax.tree.norm(grads)}
   out.update({f"loss_{g}": v for g, v in groups.items()})
@@ -423,18 +441,19 @@ def _train_step(state, batch):
 
 
 def train_steps(
-  state: RegressionState, batches: Mapping[str, Array]
+  state: RegressionState, batches: Mapping[str, Array], lr: Array | None = None
 ) -> tuple[RegressionState, dict[str, Array], Array]:
   """`train_step` over K stacked batches (`lax.scan`); pure (jit at the call site).
 
   Args:
     state: the state.
     batches: K batches stacked on a leading axis (K, ...).
+    lr: as `train_step`'s.
 
   Returns:
     (state after the K steps, metrics stacked (K,) per key, 1.0 when every step was finite).
   """
-  state, metrics = jax.lax.scan(train_step, state, batches)
+  state, metrics = jax.lax.scan(lambda s, b: train_step(s, b, lr), state, batches)
   return state, metrics, jnp.min(metrics["finite"])
 
 
@@ -477,4 +496,5 @@ __all__ = [
   "resolve_hparams",
   "train_step",
   "train_steps",
+  "unit_rate",
 ]

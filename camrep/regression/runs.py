@@ -113,6 +113,17 @@ class Run:
     return self._errors
 
 
+def lr_tag(lr: float) -> str:
+  """The lr part of a run directory's name: 1e-3 -> "lr1e-3", 3e-4 -> "lr3e-4"."""
+  return f"lr{lr:.0e}".replace("e-0", "e-")
+
+
+def run_name(lr: float, seed: int) -> str:
+  """A regression run's directory name under DIR/regression/<column>/<representation> (the
+  comparison's layout, and a grid's members: `camrep.regression.vectorised`): "lr1e-3_seed0"."""
+  return f"{lr_tag(lr)}_seed{seed}"
+
+
 def read_json(path: str) -> Any:
   """A JSON file.
 

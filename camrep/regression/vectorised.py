@@ -1,0 +1,526 @@
+"""A grid of regression runs (seeds x learning rates of one setting and representation) trained
+together as one vectorised program.
+
+`python -m camrep.regression --config=configs/regression.py:SETTING[,VARIANT] --workdir=DIR
+--lrs=1e-3,3e-3 --seeds=0,1,2 [--config.FIELD=VALUE ...]` (`run`; either flag alone takes the
+other from the config) trains one member per (lr, seed): the run that
+
+  python -m camrep.regression --config=... --workdir=DIR/<lr tag>_seed<k> \\
+    --config.optax.lr=LR --config.seed=K [--config.FIELD=VALUE ...]
+
+trains (`runs.run_name`: "lr1e-3_seed0", the comparison launcher's layout), into that workdir, with
+the same files (`driver`'s docstring) and the same config.json: the tables read it unchanged and
+that command resumes or reruns it alone. A `{seed}` in `--config.synthesis_workdir` is each
+member's seed (the comparison's paired view-synthesis runs, DIR/synthesis/car_seed{seed}).
+
+One program: the members' states are stacked on a leading member axis and one group step
+(`group_step`) trains them all: a jitted `jax.vmap` of `learner.train_step` (or `train_steps`, K
+per dispatch) on accelerators; on a CPU one jitted step shared by every member, called member by
+member (`resolve_program`: XLA:CPU runs vmapped convolutions, grouped convolutions, 4-5x slower).
+What a single run takes from its seed and lr, each member keeps:
+
+  init      its seed's (`driver.RegressionStage.init`), and its frozen representation ("mlp"'s
+            random embedding, "ours"' pose system of its own synthesis workdir), stacked;
+  data      its seed's batch order (each seed's `views.train_pipeline`; members of one seed
+            share its batches): the batches are stacked (M, B, ...) on the member axis;
+  lr        the optimiser runs at rate 1 (`learner.unit_rate`) and each member's updates are
+            scaled by its lr: Adam(lr)'s update bit for bit. Vectorised convolutions and
+            reductions may sum in another order than a run's own, so a member equals the run
+            trained alone up to float32 round-off (tests/test_vectorised.py: predictions, losses and
+            errors within 1e-5 relative after a few steps, in every program).
+
+Everything else is per member, as in a single run: its run frame (`runtime.frame.Frame`: lock,
+config and record checks, checkpoints, config_history.jsonl), its metrics.jsonl rows, its
+periodic validation and plateau rule (`config.stop`), its final evaluation, results.json
+(with "grid": the lrs and seeds it was trained with, whose "train_seconds" is the group's wall
+time), errors_<split>.npz and final_metrics.json. A member whose rule stops it is completed at
+that step and leaves the group (the others train on; one compile per group size); a member
+whose values become non-finite is recorded as such in its final_metrics.json and leaves the
+group, and the command exits with status 3 once the others are done.
+
+Resume: the whole group. Every member's checkpoint is saved at the same steps
+(`ckpt_every_steps`, a stop signal: SIGTERM or Ctrl-C saves all and stops), so the same command
+resumes every unfinished member from the same step; complete members are skipped. Unfinished
+members at different steps (e.g. one resumed alone) are refused with an `error:` line that says
+how to go on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import dataclasses
+import functools
+import itertools
+import os
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from camrep.regression import config_schema, driver, learner, runs
+from camrep.regression import views as views_lib
+from camrep.runtime import frame as frame_lib
+from camrep.runtime import preemption, stopping
+from camrep.runtime import progress as progress_lib
+from camrep.runtime.runconfig import ConfigError
+
+SEED_FIELD = "{seed}"
+
+
+lr_tag = runs.lr_tag
+member_name = runs.run_name
+
+
+def member_config(
+  config: ml_collections.ConfigDict, lr: float, seed: int
+) -> ml_collections.ConfigDict:
+  """The single run's config of member (lr, seed): `config` with optax.lr, seed and a `{seed}`
+  in synthesis_workdir set."""
+  c = copy.deepcopy(config)
+  c.optax.lr = float(lr)
+  c.seed = int(seed)
+  if SEED_FIELD in c.get("synthesis_workdir", ""):
+    c.synthesis_workdir = c.synthesis_workdir.replace(SEED_FIELD, str(seed))
+  return c
+
+
+def members(
+  config: ml_collections.ConfigDict,
+  workdir: str,
+  lrs: Sequence[float],
+  seeds: Sequence[int],
+  *,
+  overridden=(),
+) -> list[tuple[str, ml_collections.ConfigDict]]:
+  """(workdir, checked config) of every member, lr by lr and seed by seed.
+
+  Raises:
+    ConfigError: no lr or seed, one given twice, two lrs that share a directory name, or a
+      member's config that `config_schema.validate` refuses (named by its member).
+  """
+  if not lrs or not seeds:
+    raise ConfigError("a grid needs at least one lr (--lrs) and one seed (--seeds)")
+  names = [member_name(lr, k) for lr in lrs for k in seeds]
+  if len(set(names)) < len(names):
+    dup = sorted({n for n in names if names.count(n) > 1})
+    raise ConfigError(
+      f"--lrs={','.join(format(x, 'g') for x in lrs)} --seeds={','.join(map(str, seeds))}: "
+      f"members share a directory ({', '.join(dup)}); give each lr and seed once, and lrs that "
+      "differ in their first significant digit"
+    )
+  out = []
+  for lr in lrs:
+    for k in seeds:
+      c = member_config(config, lr, k)
+      try:
+        config_schema.validate(c, overridden=overridden)
+      except ConfigError as e:
+        raise ConfigError(f"member lr={lr:g} seed={k}: {e}") from None
+      out.append((os.path.join(workdir, member_name(lr, k)), c))
+  return out
+
+
+@dataclasses.dataclass
+class Member:
+  """One run of the grid while it trains.
+
+  Attributes:
+    workdir, config: the single run's.
+    frame: its entered run frame.
+    setup, record: its `driver.Setup` and record.json content.
+    stage: its `driver.RegressionStage`.
+    state: its state (its own regressor and optimiser) until it joins the group.
+    start: the step it starts or resumes from.
+    last: its last logged train and evaluation scalars.
+    curve: its plateau rule's curve [(step, score)].
+    results: its results.json content once complete.
+    error: why it left the group unfinished (non-finite values), else None.
+  """
+
+  workdir: str
+  config: ml_collections.ConfigDict
+  frame: frame_lib.Frame
+  setup: driver.Setup | None = None
+  record: dict[str, Any] = dataclasses.field(default_factory=dict)
+  stage: driver.RegressionStage | None = None
+  state: Any = None
+  start: int = 0
+  last: dict[str, float] = dataclasses.field(default_factory=dict)
+  curve: list[tuple[int, float]] = dataclasses.field(default_factory=list)
+  results: dict[str, Any] | None = None
+  error: FloatingPointError | None = None
+
+  @property
+  def label(self) -> str:
+    return os.path.basename(self.workdir)
+
+
+def stack(trees: Sequence[Any]) -> Any:
+  """Pytrees of equal structure stacked on a new leading axis."""
+  return jax.tree.map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *trees)
+
+
+def unstack(tree: Any, i: int) -> Any:
+  """Member `i` of a stacked pytree."""
+  return jax.tree.map(lambda x: x[i], tree)
+
+
+PROGRAMS = ("auto", "vmap", "unrolled", "loop")
+"""How the group step holds its members (`group_step`)."""
+
+
+def resolve_program(program: str = "auto") -> str:
+  """The group step's form: "vmap" (one `jax.vmap` over the member axis, the accelerators'
+  choice), "unrolled" (each member's own step side by side in one jitted program) or "loop" (one
+  jitted step, the same for every member since they differ only in data, init and lr, called
+  member by member: the CPU's choice, "auto" there). On XLA:CPU, vmapping a conv layer over
+  members with their own kernels makes it a grouped convolution (feature_group_count = M), which
+  runs 4-5x slower than the members' convolutions one by one, and the unrolled program of 12
+  members ran 0.6-1.2x the runs' speed (camrep.bench.regression_grid): on a CPU the group saves
+  the runs' start-ups and compiles, not step time."""
+  if program not in PROGRAMS:
+    raise ValueError(f"program must be one of {PROGRAMS}, got {program!r}")
+  if program == "auto":
+    return "loop" if jax.default_backend() == "cpu" else "vmap"
+  return program
+
+
+def _unrolled(step: Callable) -> Callable:
+  """`step` over stacked members, each member's own call in one program (see `resolve_program`)."""
+
+  def run(states, batch, lrs):
+    outs = [step(unstack(states, i), unstack(batch, i), lrs[i]) for i in range(lrs.shape[0])]
+    return tuple(stack([o[j] for o in outs]) for j in range(len(outs[0])))
+
+  return run
+
+
+def _looped(step: Callable) -> Callable:
+  """`step` over stacked members, one jitted call a member (see `resolve_program`)."""
+  one = jax.jit(step, donate_argnums=0)
+  take = jax.jit(unstack, static_argnums=1)
+  join = jax.jit(lambda outs: tuple(stack([o[j] for o in outs]) for j in range(len(outs[0]))))
+
+  def run(states, batch, lrs):
+    return join([one(take(states, i), unstack(batch, i), lrs[i]) for i in range(len(lrs))])
+
+  return run
+
+
+def group_step(n: int, program: str = "auto") -> Callable:
+  """The group's step over `n` steps per dispatch: fn(states, batches, lrs) -> (states, metrics,
+  ok), with states, batches and lrs stacked on the member axis (M, ...) (batches (M, n, ...) for
+  n > 1); metrics (M,) per key (n = 1) or (M, n); ok (M,): 1.0 where every step of the member
+  was finite. Each member's numbers are those of `learner.train_step` (`train_steps`) on it
+  alone; `program` (`resolve_program`) decides only how they are computed."""
+  program = resolve_program(program)
+  if n == 1:
+
+    def step(state, batch, lr):
+      state, metrics = learner.train_step(state, batch, lr)
+      return state, metrics, metrics["finite"]
+
+  else:
+    step = learner.train_steps
+  if program == "loop":
+    return _looped(step)
+  batched = jax.vmap if program == "vmap" else _unrolled
+  return jax.jit(batched(step), donate_argnums=0)
+
+
+def _rows(metrics, i: int, n: int, stage: driver.RegressionStage) -> list[dict[str, float]]:
+  return stage.rows({k: v[i] for k, v in metrics.items()}, n)
+
+
+def run(
+  config: ml_collections.ConfigDict,
+  workdir: str,
+  *,
+  lrs: Sequence[float],
+  seeds: Sequence[int],
+  overridden=(),
+  log=print,
+) -> list[dict[str, Any]] | None:
+  """Trains and evaluates the grid's members together (see the module docstring).
+
+  Args:
+    config: a configs/regression.py config (its optax.lr and seed are the members').
+    workdir: the grid's directory; member (lr, k) writes DIR/<member_name(lr, k)>.
+    lrs: the learning rates.
+    seeds: the seeds.
+    overridden: the config fields set on the command line (`config_schema.validate`).
+    log: progress printer.
+
+  Returns:
+    Each member's results.json content (lr by lr, seed by seed), or None when a signal stopped
+    the group (every unfinished member saved a checkpoint).
+
+  Raises:
+    ConfigError: bad grid or config, members that cannot share one program, or unfinished
+      members at different steps.
+    WorkdirError: a member's workdir cannot be written, or another run holds it.
+    FloatingPointError: a member's values became non-finite (the others completed first).
+  """
+  specs = members(config, workdir, lrs, seeds, overridden=overridden)
+  rule = frame_lib.stopping_rule(specs[0][1])
+  group: list[Member] = []
+  with contextlib.ExitStack() as frames:
+    for wd, c in specs:
+      driver.check_stored_layout(wd)
+      frame = frame_lib.Frame(
+        wd, c, schema=config_schema.SCHEMA, log=log, restart=True, outputs=driver.clear_outputs
+      )
+      member = Member(wd, c, frame)
+      frame.__enter__()  # a failed entry undoes itself
+      frames.push(functools.partial(_leave, member))
+      if frame.already_complete(rule) is not None:
+        member.results = driver.read_results(wd)
+      group.append(member)
+    todo = [m for m in group if m.results is None]
+    if todo and _train(todo, rule, log=log, lrs=lrs, seeds=seeds):
+      return None
+  bad = [m for m in group if m.error is not None]
+  if bad:
+    raise FloatingPointError(
+      f"{len(bad)} of {len(group)} members stopped on non-finite values (the others "
+      "completed): " + "; ".join(f"{m.label}: {m.error}" for m in bad)
+    )
+  return [m.results for m in group]
+
+
+def _leave(member: Member, exc_type, exc, tb):
+  """Leaves a member's frame: with its own non-finite stop when it had one (recorded in its
+  final_metrics.json), else as the group leaves."""
+  if member.error is not None:
+    err = member.error
+    return member.frame.__exit__(type(err), err, err.__traceback__)
+  return member.frame.__exit__(exc_type, exc, tb)
+
+
+def _prepare(todo: Sequence[Member], *, log) -> tuple[dict, Callable]:
+  """Each member's setup (one data for all; the record checked by its frame), checked to fit one
+  program; the shared evaluation batches and the jitted prediction."""
+  data = None
+  for m in todo:
+    record = {"version": 1, "data": views_lib.data_record(m.config)}
+    if data is not None and record["data"] != todo[0].record["data"]:
+      raise ConfigError(
+        f"member {m.label}: its data differ from those of {todo[0].label}; train it alone"
+      )
+    m.setup = driver.prepare(m.config, log=log, data=data)
+    data = m.setup.data
+    m.record = {**record, **driver.pose_record(m.setup)}
+    m.frame.check_record(m.record)
+  if len({learner.unit_rate(m.setup.reg) for m in todo}) > 1:
+    raise ConfigError(
+      "the members' regressors differ in more than their lr (synthesis workdirs of different "
+      "pose systems?): train them alone"
+    )
+  eval_sets = {k: views_lib.eval_batches(todo[0].config, e) for k, e in data.evals.items()}
+  return eval_sets, jax.jit(learner.predict_poses)
+
+
+def _unit(states: Sequence[learner.RegressionState]) -> list[learner.RegressionState]:
+  """The states with one regressor at rate 1 (`learner.unit_rate`) and its optimiser: one
+  static part (pytree metadata) for all, so that they stack."""
+  reg = learner.unit_rate(states[0].regressor)
+  tx = learner.make_optimizer(reg.hparams)
+  return [s.replace(regressor=reg, tx=tx) for s in states]
+
+
+def _not_finite(pending, active: Sequence[Member]) -> list[Member]:
+  """The active members whose values in the pending dispatches were not finite, each with its
+  `error` set (the single run's FloatingPointError) and its first bad step's values logged."""
+  bad = []
+  for first, n, metrics, ok, then in pending:
+    ok = np.asarray(jax.device_get(ok))
+    if np.all(ok >= 1):
+      continue
+    host = jax.device_get(metrics)
+    for i, m in enumerate(then):
+      if ok[i] >= 1 or m not in active or m in bad:
+        continue
+      for j, row in enumerate(_rows(host, i, n, m.stage)):
+        if row.get("train/finite", 1.0) >= 1:
+          continue
+        step = first + j
+        names = [key for key, v in row.items() if not np.isfinite(v)]
+        m.frame.writer.write_scalars(step, row)
+        m.error = FloatingPointError(
+          f"non-finite training values at step {step} ({', '.join(names) or 'gradients'}); "
+          f"updates of this step were skipped; {m.frame.origin}; the last checkpoint is kept in "
+          f"{m.workdir} and a resume verifies its checksums before using it"
+        )
+        bad.append(m)
+        break
+  return bad
+
+
+class _Group:
+  """The members training together: their stacked states and rates (leaving shrinks them)."""
+
+  def __init__(self, members_: Sequence[Member]):
+    self.members = list(members_)
+    self.states = stack(_unit([m.state for m in self.members]))
+    self.rates = jnp.asarray([m.config.optax.lr for m in self.members], jnp.float32)
+    for m in self.members:
+      m.state = None  # the group holds it
+
+  def state(self, m: Member) -> learner.RegressionState:
+    return unstack(self.states, self.members.index(m))
+
+  def leave(self, m: Member) -> None:
+    keep = np.asarray([j for j, x in enumerate(self.members) if x is not m])
+    self.members = [self.members[j] for j in keep]
+    if self.members:
+      self.states = jax.tree.map(lambda x: x[keep], self.states)
+      self.rates = self.rates[keep]
+
+
+def _train(todo: list[Member], rule: stopping.Rule, *, log, lrs, seeds) -> bool:
+  """Trains the unfinished members together (see the module docstring); True when a signal
+  stopped them."""
+  eval_sets, predict_fn = _prepare(todo, log=log)
+  for m in todo:
+    m.stage = driver.RegressionStage(m.setup, eval_sets, predict_fn=predict_fn)
+    m.state, m.start = m.frame.restore_or_init(
+      m.stage.init, saved=m.stage.saved, restored=m.stage.restored
+    )
+  starts = {m.start for m in todo}
+  if len(starts) > 1:
+    at = ", ".join(f"{m.label} at step {m.start}" for m in todo)
+    raise ConfigError(
+      f"the grid's unfinished members resume from different steps ({at}): one program trains "
+      "them from one step. Resume each alone with `python -m camrep.regression` and its own "
+      "--workdir, --config.optax.lr and --config.seed (the same config otherwise), then rerun "
+      "the grid (nothing changed)"
+    )
+  start = starts.pop()
+  for m in todo:
+    m.frame.begin(start)
+    m.stage.start(m.frame.writer, train_seconds=m.frame.extra.get("train_seconds", 0.0))
+    m.curve = m.frame.recorded_curve(m.stage.score, start)
+  config = todo[0].config
+  total = int(config.total_steps)
+  log_every, eval_every = int(config.log_every_steps), int(config.eval_every_steps)
+  ckpt_every, k = int(config.ckpt_every_steps), frame_lib.steps_per_dispatch(config)
+  grid_record = {"lrs": [float(x) for x in lrs], "seeds": [int(x) for x in seeds]}
+  group = _Group(todo)
+  log(
+    f"training {len(todo)} members together from step {start}: " + ", ".join(m.label for m in todo)
+  )
+
+  def finish(m: Member, step: int, ended: bool, reason: str) -> None:
+    fit = frame_lib.FitResult(group.state(m), step, m.last, m.curve, ended, reason, False)
+    m.results = driver.complete(
+      m.frame, m.stage, fit, eval_sets, predict_fn=predict_fn, rule=rule, grid=grid_record
+    )
+    overall = m.results["test"]["all"]
+    log(
+      f"{m.label}: complete at step {step}; test: "
+      + ", ".join(f"{k} mean {v['mean']:.4g}" for k, v in overall.items())
+    )
+
+  def save(m: Member, step: int) -> None:
+    m.frame.save(step, m.stage.saved(group.state(m)), m.stage.extra(step))
+
+  compiled: dict[tuple[int, int], Callable] = {}
+  progress = progress_lib.Progress(total, start_step=start, every_seconds=20.0)
+  seed_list = sorted({int(m.config.seed) for m in todo})
+  plan, *aheads = itertools.tee(
+    frame_lib.spans(start, total, k, (eval_every, ckpt_every)), 1 + len(seed_list)
+  )
+  first_of_seed = {int(m.config.seed): m for m in reversed(todo)}
+  # The batches of each seed, read ahead of the loop (members of one seed share them).
+  batches = {s: first_of_seed[s].stage.chunks(a) for s, a in zip(seed_list, aheads, strict=True)}
+  step, pending = start, []
+  with preemption.install_signal_handlers() as signals:
+    try:
+      for first, n in plan:
+        chunks = {s: next(b) for s, b in batches.items()}
+        chunk = jax.tree.map(
+          lambda *xs: np.stack(xs), *[chunks[int(m.config.seed)] for m in group.members]
+        )
+        size = len(group.members)
+        fn = compiled.get((n, size))
+        if fn is None:
+          log(f"compiling the train step of {size} members ({n} step(s) per dispatch) ...")
+          t0 = time.perf_counter()
+          fn = compiled[(n, size)] = group_step(n)
+          group.states, metrics, ok = fn(group.states, chunk, group.rates)
+          log(f"compiled in {time.perf_counter() - t0:.1f} s")
+        else:
+          group.states, metrics, ok = fn(group.states, chunk, group.rates)
+        step = first + n - 1
+        members_then = list(group.members)  # the member axis of this dispatch's metrics
+        pending.append((first, n, metrics, ok, members_then))
+        stopped = preemption.stop_requested(signals)
+        saving = progress_lib.itstime(step, ckpt_every, total) or stopped
+        logged = [s for s in range(first, step + 1) if progress_lib.itstime(s, log_every, total)]
+        if logged or saving:  # the host reads the flags only here: the device runs ahead
+          for m in _not_finite(pending, group.members):
+            log(f"{m.label}: {m.error}")
+            group.leave(m)
+          pending = []
+          if not group.members:
+            break
+        if logged:
+          host, then = jax.device_get(metrics), list(members_then)
+          for m in group.members:
+            rows = _rows(host, then.index(m), n, m.stage)
+            for s in logged:
+              row = {key: v for key, v in rows[s - first].items() if key not in m.stage.unlogged}
+              m.frame.writer.write_scalars(s, row)
+              m.last.update(row)
+        status = progress.update(step)
+        if status:
+          loss = np.asarray(jax.device_get(metrics["loss"]))
+          loss = loss[:, -1] if n > 1 else loss
+          log(f"{status} loss=" + ",".join(f"{x:.4f}" for x in loss))
+        ended = []
+        if progress_lib.itstime(step, eval_every, total) and step < total:
+          for m in list(group.members):
+            scalars = m.stage.evaluate(group.state(m), step)
+            m.last.update(scalars)
+            score = m.stage.score(scalars)
+            if score is not None:
+              m.curve.append((step, score))
+            if rule.active:
+              stop, reason = stopping.check(rule, m.curve)
+              if stop:
+                ended.append((m, reason))
+        if ended:  # the single run's finite check before it saves at its plateau
+          for m in _not_finite(pending, group.members):
+            log(f"{m.label}: {m.error}")
+            group.leave(m)
+          pending = []
+        if saving:
+          for m in group.members:
+            save(m, step)
+        for m, reason in ended:
+          if m not in group.members:
+            continue
+          log(f"{m.label}: stopping at step {step}: {reason}")
+          if not saving:
+            save(m, step)
+          finish(m, step, True, reason)
+          group.leave(m)
+        if not group.members:
+          break
+        if stopped:
+          log(
+            f"stopping at step {step} on a stop signal; every member's checkpoint saved: run "
+            "the same command to resume the grid"
+          )
+          return True
+    finally:
+      for b in batches.values():
+        b.close()
+  for m in list(group.members):
+    finish(m, step, False, "reached total_steps")
+  return False

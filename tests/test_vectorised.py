@@ -1,0 +1,290 @@
+"""Tests of the regression grid (camrep.regression.vectorised): seeds x lrs trained as one program.
+
+Fast: member naming and checks, the unit-rate step against Adam(lr)'s, and the group step (both
+programs, 1 and 2 steps per dispatch) against each member's own steps on a tiny car regressor.
+Slow: the grid end to end at configs/regression.py:car,smoke against runs trained alone, its
+resume and its refusals.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import signal
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from camrep import settings
+from camrep.configs import regression as regression_config
+from camrep.regression import driver, learner, vectorised
+from camrep.runtime.runconfig import ConfigError
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+pytestmark = pytest.mark.usefixtures("fast_compile")
+# Members against runs trained alone: float32 round-off of another summation order.
+RTOL, ATOL = 1e-5, 1e-6
+
+
+def _config(**kw):
+  c = regression_config.get_config("car,smoke")
+  c.representation = "euler"
+  for k, v in kw.items():
+    node = c
+    *path, last = k.split(".")
+    for p in path:
+      node = node[p]
+    node[last] = v
+  return c
+
+
+# ------------------------------------------------------------------------------ members
+
+
+def test_member_names_configs_and_checks(tmp_path):
+  assert vectorised.member_name(1e-3, 0) == "lr1e-3_seed0"
+  assert vectorised.member_name(3e-4, 2) == "lr3e-4_seed2" and vectorised.lr_tag(1e-2) == "lr1e-2"
+  base = _config()
+  c = vectorised.member_config(base, 3e-3, 2)
+  assert (c.optax.lr, c.seed) == (3e-3, 2) and (base.optax.lr, base.seed) != (3e-3, 2)
+  ours = _config(representation="ours", synthesis_workdir="/runs/car_seed{seed}")
+  assert vectorised.member_config(ours, 1e-3, 1).synthesis_workdir == "/runs/car_seed1"
+  specs = vectorised.members(base, str(tmp_path), [1e-3, 3e-3], [0, 1])
+  assert [os.path.basename(w) for w, _ in specs] == [
+    "lr1e-3_seed0",
+    "lr1e-3_seed1",
+    "lr3e-3_seed0",
+    "lr3e-3_seed1",
+  ]
+  assert [(c.optax.lr, c.seed) for _, c in specs] == [(1e-3, 0), (1e-3, 1), (3e-3, 0), (3e-3, 1)]
+  with pytest.raises(ConfigError, match="share a directory"):
+    vectorised.members(base, str(tmp_path), [1e-3, 1.2e-3], [0])
+  with pytest.raises(ConfigError, match="at least one lr"):
+    vectorised.members(base, str(tmp_path), [], [0])
+  with pytest.raises(ConfigError, match="member lr=0.001 seed=0: .*synthesis_workdir"):
+    vectorised.members(ours, str(tmp_path), [1e-3], [0])  # /runs/car_seed0 is no directory
+
+
+def test_command_line_errors(tmp_path):
+  base = [sys.executable, "-m", "camrep.regression", "--config=configs/regression.py:car,smoke"]
+  wd = f"--workdir={tmp_path / 'g'}"
+  for args, message in (
+    (["--lrs=1e-3,abc"], "error: --lrs=1e-3,abc: not a list of floats"),
+    (["--lrs=1e-3", "--config.optax.lr=1e-3"], "error: --lrs sets each member's optax.lr"),
+  ):
+    out = subprocess.run([*base, wd, *args], cwd=ROOT, capture_output=True, text=True)
+    assert out.returncode == 2 and out.stderr.strip().splitlines()[-1].startswith(message)
+    assert "Traceback" not in out.stderr
+  assert not (tmp_path / "g").exists()
+
+
+# ------------------------------------------------------------------------- the group step
+
+
+@pytest.fixture(scope="module")
+def tiny():
+  """A tiny car regressor, two members' states (their own init key and lr) and batches."""
+  setting = settings.get("car")
+  config = _config()
+  config.optax.weight_decay = 1e-4  # the chained optimiser: add_decayed_weights, Adam, scale
+  hp = learner.resolve_hparams(config)
+  reg = learner.make_regressor(setting, "euler", hparams=hp, width=1 / 32)
+  rng = np.random.default_rng(0)
+  n_cols = len(setting.pose_columns)
+
+  def batch(k):
+    r = np.random.default_rng(k)
+    return {
+      "image": r.integers(0, 256, (4, 32, 32, 3), dtype=np.uint8),
+      "pose": r.uniform(-1, 1, (4, n_cols)).astype(np.float32),
+      "scene": np.zeros((4,), np.int32),
+    }
+
+  del rng
+  lrs = (1e-3, 3e-2)
+  states = [
+    learner.init(
+      jax.random.key(seed), dataclasses.replace(reg, hparams=dataclasses.replace(hp, lr=lr)),
+      batch(0),
+    )
+    for seed, lr in zip((0, 1), lrs, strict=True)
+  ]  # fmt: skip
+  # each member its own data order
+  batches = [[batch(10 * m + k) for k in range(2)] for m in range(2)]
+  return states, lrs, batches
+
+
+def test_the_unit_rate_step_is_adams_bit_for_bit(tiny):
+  states, lrs, batches = tiny
+  state, lr = states[1], lrs[1]
+  unit = vectorised._unit([state])[0]
+  assert unit.regressor.hparams.lr == 1.0
+  assert jax.tree.structure(unit.opt_state) == jax.tree.structure(state.opt_state)
+  a, ma = jax.jit(learner.train_step)(state, batches[1][0])
+  b, mb = jax.jit(learner.train_step)(unit, batches[1][0], jnp.float32(lr))
+  for x, y in zip(jax.tree.leaves(a.params), jax.tree.leaves(b.params), strict=True):
+    np.testing.assert_array_equal(x, y)
+  assert float(ma["loss"]) == float(mb["loss"])
+  # without the lr, the unit state's update is Adam(1)'s: another run
+  c, _ = jax.jit(learner.train_step)(unit, batches[1][0])
+  assert not np.allclose(jax.tree.leaves(c.params)[0], jax.tree.leaves(a.params)[0])
+
+
+@pytest.mark.parametrize("program", ["loop", "unrolled", "vmap"])
+@pytest.mark.parametrize("n", [1, 2])
+def test_the_group_step_equals_each_members_own_steps(tiny, program, n):
+  states, lrs, batches = tiny
+  alone = []
+  for state, bs in zip(states, batches, strict=True):
+    ms = []
+    for b in bs:
+      state, m = jax.jit(learner.train_step)(state, b)
+      ms.append(m)
+    alone.append((state, ms))
+  group = vectorised.stack(vectorised._unit(states))
+  rates = jnp.asarray(lrs, jnp.float32)
+  fn = vectorised.group_step(n, program)
+  if n == 1:
+    metrics = []
+    for k in range(2):
+      chunk = vectorised.stack([bs[k] for bs in batches])
+      group, m, ok = fn(group, chunk, rates)
+      metrics.append(m)
+      assert ok.shape == (2,) and np.all(np.asarray(ok) == 1)
+    losses = np.stack([np.asarray(m["loss"]) for m in metrics], axis=1)  # (M, steps)
+  else:
+    chunk = vectorised.stack([vectorised.stack(bs) for bs in batches])  # (M, n, ...)
+    group, m, ok = fn(group, chunk, rates)
+    losses = np.asarray(m["loss"])
+    assert ok.shape == (2,) and losses.shape == (2, 2)
+  for i, (state, ms) in enumerate(alone):
+    np.testing.assert_allclose(losses[i], [float(x["loss"]) for x in ms], rtol=RTOL)
+    member = vectorised.unstack(group, i)
+    assert int(member.step) == 2
+    for x, y in zip(jax.tree.leaves(state.params), jax.tree.leaves(member.params), strict=True):
+      np.testing.assert_allclose(x, y, rtol=RTOL, atol=ATOL)
+    for x, y in zip(
+      jax.tree.leaves(state.opt_state), jax.tree.leaves(member.opt_state), strict=True
+    ):
+      np.testing.assert_allclose(x, y, rtol=RTOL, atol=ATOL)
+  # the two members trained apart: their own lr and init
+  assert not np.allclose(losses[0], losses[1])
+
+
+def test_resolve_program():
+  auto = "loop" if jax.default_backend() == "cpu" else "vmap"
+  assert vectorised.resolve_program("auto") == auto
+  assert vectorised.resolve_program("vmap") == "vmap"
+  with pytest.raises(ValueError, match="program must be one of"):
+    vectorised.resolve_program("scan")
+
+
+# --------------------------------------------------------------------------- end to end
+
+
+def _files(wd: str) -> set[str]:
+  out = set()
+  for d, _, names in os.walk(wd):
+    rel = os.path.relpath(d, wd)
+    if rel.startswith("checkpoints"):
+      continue
+    # TensorBoard's event file is named by its time and host
+    out |= {os.path.normpath(os.path.join(rel, n.split(".out.")[0])) for n in names}
+  return out
+
+
+def _metrics(wd: str) -> list[dict]:
+  with open(os.path.join(wd, "metrics.jsonl")) as f:
+    return [json.loads(x) for x in f]
+
+
+def _close(a, b, path=""):
+  """Nested JSON values equal, numbers within RTOL / ATOL."""
+  if isinstance(a, dict):
+    assert set(a) == set(b), path
+    for k in a:
+      _close(a[k], b[k], f"{path}.{k}")
+  elif isinstance(a, list):
+    assert len(a) == len(b), path
+    for i, (x, y) in enumerate(zip(a, b, strict=True)):
+      _close(x, y, f"{path}[{i}]")
+  elif isinstance(a, float):
+    np.testing.assert_allclose(a, b, rtol=RTOL, atol=ATOL, err_msg=path)
+  else:
+    assert a == b, path
+
+
+@pytest.mark.slow
+def test_members_equal_runs_trained_alone_and_resume_as_a_group(tmp_path):
+  cache = str(tmp_path / "cache")
+  config = _config(**{"data.cache_dir": cache, "eval_every_steps": 2})
+  gdir = str(tmp_path / "grid")
+  lines = []
+  results = vectorised.run(config, gdir, lrs=[1e-3, 3e-3], seeds=[0, 1], log=lines.append)
+  assert [(r["lr"], r["seed"]) for r in results] == [(1e-3, 0), (1e-3, 1), (3e-3, 0), (3e-3, 1)]
+  assert any("training 4 members together from step 0" in x for x in lines)
+  for lr, seed in ((1e-3, 0), (3e-3, 1)):
+    name = vectorised.member_name(lr, seed)
+    member, alone = os.path.join(gdir, name), str(tmp_path / "alone" / name)
+    r_alone = driver.run(vectorised.member_config(config, lr, seed), alone, log=lambda s: None)
+    r_member = driver.read_results(member)
+    assert r_member["grid"] == {"lrs": [1e-3, 3e-3], "seeds": [0, 1]}
+    skip = {"grid", "train_seconds", "steps_per_sec", "eval_seconds", "machine"}
+    _close({k: v for k, v in r_member.items() if k not in skip}, {
+      k: v for k, v in r_alone.items() if k not in skip
+    })  # fmt: skip
+    assert _files(member) == _files(alone)
+    for f in ("config.json", "record.json"):
+      with open(os.path.join(member, f)) as a, open(os.path.join(alone, f)) as b:
+        assert json.load(a) == json.load(b)
+    rows = [_metrics(member), _metrics(alone)]
+    assert [r["step"] for r in rows[0]] == [r["step"] for r in rows[1]]
+    for x, y in zip(*rows, strict=True):
+      _close(x, y)
+    for split in ("test",):
+      a = np.load(os.path.join(member, f"errors_{split}.npz"))
+      b = np.load(os.path.join(alone, f"errors_{split}.npz"))
+      assert set(a.files) == set(b.files)
+      for k in a.files:
+        if a[k].dtype.kind == "f":
+          np.testing.assert_allclose(a[k], b[k], rtol=RTOL, atol=1e-4, err_msg=k)
+        else:
+          np.testing.assert_array_equal(a[k], b[k])
+    with open(os.path.join(member, "final_metrics.json")) as f:
+      assert json.load(f)["complete"] is True
+  # Complete: nothing to do.
+  lines.clear()
+  done = vectorised.run(config, gdir, lrs=[1e-3, 3e-3], seeds=[0, 1], log=lines.append)
+  assert done == json.loads(json.dumps(results))
+  assert not any("training" in x for x in lines)
+  # SIGTERM after the first step: every member saves a checkpoint and the group stops.
+  gdir2 = str(tmp_path / "grid2")
+
+  def stop_after_compiling(line):
+    if line.startswith("compiled in"):
+      os.kill(os.getpid(), signal.SIGTERM)
+
+  assert (
+    vectorised.run(config, gdir2, lrs=[1e-3, 3e-3], seeds=[0, 1], log=stop_after_compiling) is None
+  )
+  for name in os.listdir(gdir2):
+    assert os.listdir(os.path.join(gdir2, name, "checkpoints")) == ["1"]
+    assert not os.path.exists(os.path.join(gdir2, name, "results.json"))
+  # Unfinished members at different steps (seed 2 would start at 0): refused, nothing written.
+  with pytest.raises(ConfigError, match="resume from different steps"):
+    vectorised.run(config, gdir2, lrs=[1e-3, 3e-3], seeds=[0, 2], log=lambda s: None)
+  assert not os.path.exists(os.path.join(gdir2, "lr1e-3_seed2"))
+  # The same command resumes the whole group from step 1, to what the uninterrupted grid gave.
+  lines.clear()
+  resumed = vectorised.run(config, gdir2, lrs=[1e-3, 3e-3], seeds=[0, 1], log=lines.append)
+  assert sum("resumed from step 1" in x for x in lines) == 4
+  assert any("training 4 members together from step 1" in x for x in lines)
+  for a, b in zip(resumed, results, strict=True):
+    _close({k: a[k] for k in ("validation", "test", "final_train")}, {
+      k: b[k] for k in ("validation", "test", "final_train")
+    })  # fmt: skip
