@@ -1,5 +1,5 @@
 """tools/capture_sizes.py: a held-out view beside each run's prediction of it, on the session's
-shared view-synthesis run (any workdir works the same; the README's picture used two capture runs)."""
+shared view-synthesis run (any workdir works alike; the README's picture used two capture runs)."""
 
 from __future__ import annotations
 
