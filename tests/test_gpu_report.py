@@ -27,9 +27,6 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 def _run(*argv: str, timeout: float = 120) -> subprocess.CompletedProcess:
   env = dict(os.environ)
   env.pop("OUT", None)
-  # A check of the code at smoke sizes, figures meaningless: compile in seconds, and as the other
-  # `camrep.main` runs of the suite do (the persistent cache serves the smoke step to both).
-  env["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
   return subprocess.run(
     [sys.executable, *argv], cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
   )
