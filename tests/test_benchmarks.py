@@ -56,6 +56,7 @@ def test_lie_apply_ratio_is_measured_per_round():
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("fast_compile")  # times a step; compiling it dominates
 def test_regression_timer_builds_and_times_the_learners_step(tmp_path):
   """`RegressionTimer` builds the driver's training batch and step of a setting (GQN, :smoke) with
   the regressor's conv gradients replaced as asked, and times it."""

@@ -31,6 +31,10 @@ from tests.utils import snapshot
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
+# Refusals, locks and errors, not numbers: compile as the subprocesses (`_env`) and the shared
+# smoke run do, so that the persistent cache serves their programs to each other.
+pytestmark = pytest.mark.usefixtures("fast_compile")
+
 
 def _assert_one_error(err: str, *fragments: str) -> str:
   assert "Traceback" not in err, err[-3000:]

@@ -236,6 +236,7 @@ def test_a_setting_is_one_class(turntable):
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("fast_compile")  # plumbing, not numbers: compile time dominates
 def test_both_stages_run_a_new_setting(turntable, tmp_path):
   """View synthesis learns the new setting's pose system from its data source, and a
   regression regresses it, with no edit outside this file."""
