@@ -45,7 +45,33 @@ def skew_eig(B: Array) -> tuple[Array, Array]:
   B = jnp.asarray(B)
   Bs = 0.5 * (B - jnp.swapaxes(B, -1, -2))
   H = 1j * Bs.astype(_complex_dtype(B.dtype))
-  return jnp.linalg.eigh(H, symmetrize_input=False)
+  return per_matrix(functools.partial(jnp.linalg.eigh, symmetrize_input=False), H)
+
+
+def per_matrix(fn, X: Array):
+  """fn applied to one (s, s) matrix of X (..., s, s) at a time, outputs restacked on X's batch.
+
+  A batched LAPACK decomposition (eigh, svd) would be one call over the whole batch, but jaxlib
+  0.10's CPU kernels split a batch above ~2e5 FLOP (five 16 x 16 complex eigh) into tasks on
+  XLA:CPU's intra-op thread pool and block the calling pool thread until those tasks end. The
+  generator tables of the DOFs are independent, so XLA runs their decompositions at the same
+  time; once every pool thread (2 on a 2-core machine) blocks in such a call, no thread is left
+  to run the queued tasks and the program never returns. A call with one matrix never splits.
+  Each matrix goes through the same LAPACK routine either way, so results are bit-identical,
+  and the loop costs ~3% of the decompositions' time (6 x 144 generators of size 16).
+
+  Args:
+    fn: (s, s) -> pytree of arrays (e.g. `jnp.linalg.eigh`).
+    X: (..., s, s).
+
+  Returns:
+    fn's pytree, each leaf with X's batch axes in front of its own.
+  """
+  batch = X.shape[:-2]
+  if int(np.prod(batch, dtype=int)) <= 1:
+    return fn(X)
+  out = jax.lax.map(fn, X.reshape(-1, *X.shape[-2:]))
+  return jax.tree.map(lambda y: y.reshape(*batch, *y.shape[1:]), out)
 
 
 def _near_threshold(dtype) -> float:
@@ -183,7 +209,7 @@ def _schur_planes(B: Array) -> tuple[Array, Array, Array]:
   _, V = skew_eig(Bs)
   Z = V[..., h:]  # eigenvalues ascending: the w >= 0 half
   W = 2.0**0.5 * jnp.concatenate([Z.real, Z.imag], axis=-1).astype(B.dtype)
-  U, _, Vh = jnp.linalg.svd(W)
+  U, _, Vh = per_matrix(jnp.linalg.svd, W)
   Q = U @ Vh
   Qt = jnp.swapaxes(Vh, -1, -2) @ jnp.swapaxes(U, -1, -2)
   L = Qt @ Bs @ Q
