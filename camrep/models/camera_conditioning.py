@@ -494,7 +494,9 @@ class LearnedAbsolute(_Learned):
 
   @override
   def view_codes(self, params, poses, grid):
-    return self.codes_of_vectors(P.concat(P.embed(params, self.spec, poses, mode=self.mode), self.spec), grid)
+    return self.codes_of_vectors(
+      P.concat(P.embed(params, self.spec, poses, mode=self.mode), self.spec), grid
+    )
 
   def codes_of_vectors(self, vectors: Array, grid: PatchGrid) -> ViewCodes:
     """Codes of views whose concatenated pose vectors are `vectors` (..., V, n_dofs d): the same

@@ -21,9 +21,9 @@ or "expm"); the rotation loss of both is `loss.rot_weight` sum_l L_rot,l (eq. 9,
 
 Cameras of (a)-(c) (`cameras`): a procedural rooms or object family's own map from pose columns
 to cameras (`camera_conditioning.cameras_of_family`, the family of config `data.preset` and
-`data.family`, also for such data prepared to a directory); prepared data of the car setting (SRN cars,
-a capture): a camera on the unit sphere looking at the origin with a nominal field of view
-(`NOMINAL_FOV_DEG`): the prepared records hold the pose columns (azimuth, polar) only, and a
+`data.family`, also for such data prepared to a directory); prepared data of the car setting
+(SRN cars, a capture): a camera on the unit sphere looking at the origin, with a nominal field of
+view (`NOMINAL_FOV_DEG`): the prepared records hold the pose columns (azimuth, polar) only, and a
 capture is normalised to a median camera distance of 1 (`camrep.data.captures.normalize`), so
 the rotation is exact and the distance and intrinsics are nominal. Other prepared data is
 refused for (a)-(c): its pose columns do not give the camera.
@@ -64,9 +64,7 @@ class Inputs:
 
 
 def _learned_abs(i: Inputs) -> cc.CameraConditioning:
-  return cc.LearnedAbsolute(
-    cc.columnwise(i.spec), rotation_weight=i.rot_weight, n_pairs=i.n_pairs
-  )
+  return cc.LearnedAbsolute(cc.columnwise(i.spec), rotation_weight=i.rot_weight, n_pairs=i.n_pairs)
 
 
 def _learned_rel(i: Inputs) -> cc.CameraConditioning:

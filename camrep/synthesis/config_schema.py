@@ -21,11 +21,11 @@ from collections.abc import Iterable
 from camrep import lie, pose, pose_encodings
 from camrep.data import procedural, sources, storage
 from camrep.data.errors import DataError
+from camrep.models import mvt
 from camrep.runtime import frame as frame_lib
 from camrep.runtime import validate as V
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime.runconfig import ConfigError
-from camrep.models import mvt
 from camrep.synthesis import components, conditionings, synthesizers
 
 TASKS = tuple(synthesizers.TASKS)

@@ -32,8 +32,7 @@ import jax.numpy as jnp
 
 from camrep import pose as P
 from camrep import pose_encodings
-from camrep.models import convdraw
-from camrep.models import mvt, relative_attention
+from camrep.models import convdraw, mvt, relative_attention
 from camrep.models.composite import GQNSynthesis, TableSynthesis
 from camrep.runtime.runconfig import ConfigError
 from camrep.synthesis import conditionings
@@ -458,9 +457,7 @@ class MVTSynthesizer(Synthesizer):
   def _apply(self, params, ctx_images, ctx_poses, query_poses, *, mode, keys, transform=None):
     grid = self.posed.grid(ctx_images)
     c = self._codes(params["rep"], ctx_poses, grid, mode=mode, keys=keys[0])
-    q = self._codes(
-      params["rep"], query_poses, grid, mode=mode, keys=keys[1], transform=transform
-    )
+    q = self._codes(params["rep"], query_poses, grid, mode=mode, keys=keys[1], transform=transform)
     pred, _ = self.module.apply({"params": params["model"]}, ctx_images, c, q)
     return pred
 
