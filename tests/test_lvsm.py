@@ -16,6 +16,7 @@ from camrep import pose as P
 from camrep.configs import lvsm
 from camrep.data import prepare
 from camrep.models import camera_conditioning as cc
+from camrep.regression import pose_system
 from camrep.runtime import cli
 from camrep.runtime.runconfig import ConfigError
 from camrep.synthesis import components, conditionings, config_schema, evaluate, restore, train
@@ -105,6 +106,9 @@ def test_each_conditioning_trains_and_evaluates(camera, tmp_path, capsys):
     assert max(gens) > 0
   else:
     assert run.params["rep"] == {}
+  # Pose regression's "ours" reads a decoder run's pose system, not the transformer's.
+  with pytest.raises(ConfigError, match="MVTSynthesizer run"):
+    pose_system.load_pose_system(workdir, "gqn")
   # The noise test (paper section 4.3) applies where the model reads the pose vectors v(p).
   rc = evaluate.main(["--workdir", workdir, "--what=noise", "--alphas=0,1"])
   err = capsys.readouterr().err

@@ -279,6 +279,7 @@ class CameraConditioning(abc.ABC):
 
   Attributes:
     learns: True when it has parameters (the learned pose system, the "rep" group).
+    spec: the learned pose system it trains (None for the fixed encodings).
     vector_input: True when its codes are the pose system's per-DOF vectors v(p) on every token
       (`LearnedAbsolute.codes_of_vectors`): what the noise test of paper section 4.3 perturbs.
     relative: True when it acts inside attention (a `ViewTransform`), False when it adds token
@@ -288,6 +289,7 @@ class CameraConditioning(abc.ABC):
   learns = False
   relative = False
   vector_input = False
+  spec: P.PoseSystemSpec | None = None
 
   def init(self, key: Array) -> Params:
     """Initial parameters ({} for fixed encodings)."""

@@ -394,7 +394,7 @@ class MVTSynthesizer(Synthesizer):
     module = mvt.SIZES[config.model.size](dtype=compute_dtype(config))
     self.posed = mvt.PosedMVT(module, self.conditioning)
     # The learned conditionings' own pose system (one DOF per column) is the run's.
-    super().__init__(config, getattr(self.conditioning, "spec", spec), module)
+    super().__init__(config, self.conditioning.spec or spec, module)
     self.n_context = int(config.data.n_context)
 
   @property
