@@ -133,6 +133,7 @@ _SWEEPS = {
     synthesis_schema,
     {"allow_changes", "data.preset"},
   ),
+  "lvsm": ("configs/lvsm.py:smoke", synthesis_schema, {"allow_changes", "data.preset"}),
   "regression": (
     "configs/regression.py:smoke",
     regression_schema,

@@ -1,6 +1,6 @@
 """Experiment configs (ml_collections), installed with the package, and the `--config` flag.
 
-One module per experiment (`gqn`, `gqn_convdraw`, `shapenet_car`, `gibson`, `seven_scenes`,
+One module per experiment (`gqn`, `gqn_convdraw`, `lvsm`, `shapenet_car`, `gibson`, `seven_scenes`,
 `regression`), each with `get_config(arg)` built from `common.base()`. A `--config` value names
 one in either of two ways:
 
@@ -25,7 +25,15 @@ flags.disclaim_key_flags()
 
 _HERE = os.path.dirname(os.path.abspath(__file__))
 # The configs a `--config` value may name (modules of this package with a get_config).
-NAMES = ("gqn", "gqn_convdraw", "shapenet_car", "gibson", "seven_scenes", "regression")
+NAMES = (
+  "gqn",
+  "gqn_convdraw",
+  "lvsm",
+  "shapenet_car",
+  "gibson",
+  "seven_scenes",
+  "regression",
+)
 
 
 def path(name: str) -> str:

@@ -279,12 +279,17 @@ class CameraConditioning(abc.ABC):
 
   Attributes:
     learns: True when it has parameters (the learned pose system, the "rep" group).
+    spec: the learned pose system it trains (None for the fixed encodings).
+    vector_input: True when its codes are the pose system's per-DOF vectors v(p) on every token
+      (`LearnedAbsolute.codes_of_vectors`): what the noise test of paper section 4.3 perturbs.
     relative: True when it acts inside attention (a `ViewTransform`), False when it adds token
       features (or nothing).
   """
 
   learns = False
   relative = False
+  vector_input = False
+  spec: P.PoseSystemSpec | None = None
 
   def init(self, key: Array) -> Params:
     """Initial parameters ({} for fixed encodings)."""
@@ -487,11 +492,21 @@ class LearnedAbsolute(_Learned):
   rotation_weight: float = 0.0
   n_pairs: int = 64
 
+  vector_input = True
+
   @override
   def view_codes(self, params, poses, grid):
-    v = P.concat(P.embed(params, self.spec, poses, mode=self.mode), self.spec)
+    return self.codes_of_vectors(
+      P.concat(P.embed(params, self.spec, poses, mode=self.mode), self.spec), grid
+    )
+
+  def codes_of_vectors(self, vectors: Array, grid: PatchGrid) -> ViewCodes:
+    """Codes of views whose concatenated pose vectors are `vectors` (..., V, n_dofs d): the same
+    vector on each of the view's N tokens (for vectors quantised or perturbed by the caller)."""
     return ViewCodes(
-      features=jnp.broadcast_to(v[..., None, :], (*v.shape[:-1], grid.n, v.shape[-1]))
+      features=jnp.broadcast_to(
+        vectors[..., None, :], (*vectors.shape[:-1], grid.n, vectors.shape[-1])
+      )
     )
 
 
@@ -589,3 +604,16 @@ class LearnedRelative(_Learned):
     return ViewCodes(
       transform=ViewTransform(D=jnp.swapaxes(M, -1, -2), D_inv=M), values=self.values
     )
+
+
+def columnwise(spec: P.PoseSystemSpec) -> P.PoseSystemSpec:
+  """The pose system with one DOF per pose column: each DOF of several columns (the polar (x, y)
+  DOF of rooms) becomes one `LinearDof` per column on its range at its spacing; the others are
+  kept. `LearnedRelative` needs this form (one generator per coordinate)."""
+  out = []
+  for d in spec.dofs:
+    if d.width == 1:
+      out.append(d)
+    else:
+      out.extend(P.LinearDof(c, d.low, d.high, d.spacing) for c in d.column_names)
+  return dataclasses.replace(spec, dofs=tuple(out))

@@ -197,6 +197,9 @@ MVTQuick = functools.partial(MultiViewTransformer, patch=8, width=128, depth=4, 
 MVTMedium = functools.partial(MultiViewTransformer, patch=8, width=384, depth=8, heads=6)
 MVTTiny = functools.partial(MultiViewTransformer, patch=4, width=32, depth=1, heads=2)
 
+SIZES = {"tiny": MVTTiny, "quick": MVTQuick, "medium": MVTMedium}
+"""The sizes by name (a run's `config.model.size`)."""
+
 
 @dataclasses.dataclass(frozen=True)
 class PosedMVT:

@@ -177,6 +177,13 @@ def load_pose_system(
     run = restore.load_run(workdir)
   except (FileNotFoundError, ckpt_lib.CheckpointError) as e:
     raise ConfigError(f"synthesis_workdir: {e}") from None
+  if run.model.spec != spec or not run.model.reads_pose_vectors:
+    raise ConfigError(
+      f"synthesis_workdir {workdir} is a {type(run.model).__name__} run (task "
+      f"{syn_config.task!r}) whose pose input is not the setting's pose system as pose vectors; "
+      "representation 'ours' reads the pose system of a decoder run (configs/gqn.py, "
+      "configs/shapenet_car.py, ...)"
+    )
   rep = jax.tree.map(jnp.asarray, run.params["rep"])
   return {
     "spec": spec,

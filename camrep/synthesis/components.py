@@ -38,6 +38,8 @@ def check_config(config) -> None:
   except ValueError as e:  # unknown data.source; num_workers
     raise ConfigError(str(e)) from None
   synthesizers.check_config(config)
+  if config.task in synthesizers.TASKS:  # an unknown task: the schema's rule names it
+    synthesizers.task_model(config).check(config, pose_spec(config))
   if config.total_steps < 1:
     raise ConfigError(f"total_steps must be >= 1, got {config.total_steps}")
   rule = stopping_rule(config)

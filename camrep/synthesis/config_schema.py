@@ -21,11 +21,12 @@ from collections.abc import Iterable
 from camrep import lie, pose, pose_encodings
 from camrep.data import procedural, sources, storage
 from camrep.data.errors import DataError
+from camrep.models import mvt
 from camrep.runtime import frame as frame_lib
 from camrep.runtime import validate as V
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime.runconfig import ConfigError
-from camrep.synthesis import components, synthesizers
+from camrep.synthesis import components, conditionings, synthesizers
 
 TASKS = tuple(synthesizers.TASKS)
 DATA_MODES = ("random", "pairs")
@@ -51,6 +52,14 @@ def _convdraw(c) -> bool:
   return synthesizers.is_generator(c)
 
 
+def _mvt(c) -> bool:
+  return synthesizers.TASKS.get(c.task) is synthesizers.MVTSynthesizer
+
+
+def _not_mvt(c) -> bool:
+  return not _mvt(c)
+
+
 def _grid(c) -> bool:
   return c.rep.get("kind", "grid") == "grid"
 
@@ -68,6 +77,8 @@ _NOT_TABLE = "the GQN task's encoder gives the scene code; used by task='table' 
 _NOT_CONVDRAW = "used by model.kind='convdraw' (GQN's generator) only"
 _NOT_GRID = "rep.kind is not 'grid': no learned generators, no rotation losses"
 _NOT_POLAR = "the setting has no polar (x, y) DOF; used by gqn and gibson data only"
+_NOT_MVT = "used by task='mvt' (the multi-view transformer, configs/lvsm.py) only"
+_MVT_SIZE = "task='mvt' sizes its transformer by model.size"
 
 _F, _U = V.Field, V.unless
 # Resume policies (`validate`): FIXED unless marked. MAY_CHANGE fields change how a run goes on,
@@ -97,7 +108,7 @@ SCHEMA: dict[str, V.Field] = {
     resume=_FREE,
   ),
   "data.device_prefetch": _F(V.NONNEG, resume=_FREE),
-  "model.width": _F(V.POSITIVE),
+  "model.width": _F(V.POSITIVE, _U(_not_mvt, _MVT_SIZE)),
   "model.image_size": _F(
     V.one_of(TABLE_IMAGE_SIZES),
     _U(_table, f"the GQN task's model renders {GQN_IMAGE_SIZE} px images; task='table' only"),
@@ -105,7 +116,11 @@ SCHEMA: dict[str, V.Field] = {
   "model.scene_dim": _F(V.POSITIVE, _U(_table, _NOT_TABLE)),
   "model.per_scene_norm": _F(V.ANY, _U(_table, _NOT_TABLE)),
   "model.norm_eps": _F(V.NONNEG, _U(_table, _NOT_TABLE)),
-  "model.gamma_init_one": _F(V.ANY),
+  "model.gamma_init_one": _F(V.ANY, _U(_not_mvt, "the transformer has no AdaIN")),
+  # The multi-view transformer (configs/lvsm.py; absent from configs/common.py:base).
+  "model.camera": _F(V.one_of(tuple(conditionings.CONDITIONINGS)), _U(_mvt, _NOT_MVT)),
+  "model.size": _F(V.one_of(tuple(mvt.SIZES)), _U(_mvt, _NOT_MVT)),
+  "model.init_scale": _F(V.POSITIVE, _U(_mvt, _NOT_MVT)),
   "model.kind": _F(V.one_of(synthesizers.MODEL_KINDS)),
   "model.dtype": _F(V.one_of(synthesizers.COMPUTE_DTYPES), resume=_M),
   # GQN's generator (configs/gqn_convdraw.py; `retired`: the values configs/common.py:base gave

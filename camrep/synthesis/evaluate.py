@@ -157,6 +157,13 @@ def _evaluate(fv: flags.FlagValues, out: str, alphas, what, log) -> int:
         f"{run_.config.model.get('kind', 'decoder')!r}); the flag is for GQN's generator only"
       )
     run_.config.model.draw_temperature = fv.draw_temperature
+  if not run_.model.reads_pose_vectors:
+    raise cli.UsageError(
+      f"--what={','.join(sorted(what))}: the run in {fv.workdir} (model.camera "
+      f"{run_.config.model.get('camera')!r}) feeds its model no per-DOF pose vectors v(p): the "
+      "noise test perturbs them (paper section 4.3) and the Gram maps show them; of the "
+      "multi-view transformer's conditionings only learned_abs has them"
+    )
   log(f"restored step {run_.step} of {fv.workdir} ({components.setting(run_.config)})")
   result = None
   if "noise" in what:

@@ -32,9 +32,10 @@ import jax.numpy as jnp
 
 from camrep import pose as P
 from camrep import pose_encodings
-from camrep.models import convdraw
+from camrep.models import convdraw, mvt, relative_attention
 from camrep.models.composite import GQNSynthesis, TableSynthesis
 from camrep.runtime.runconfig import ConfigError
+from camrep.synthesis import conditionings
 
 Array = jax.Array
 Params = dict
@@ -113,6 +114,8 @@ class Synthesizer(abc.ABC):
     n_context: context views per scene (GQN layouts), None for per-scene tables.
     reads_context: the model encodes each scene's context views (GQN layouts).
     temperature: latent temperature of `predict` for a generative model, else None.
+    reads_pose_vectors: the model reads the pose encoding's per-DOF vectors, which `predict`'s
+      `transform` perturbs (the noise test) and the Gram maps show.
     variants: further predictions of the held-out evaluation, {name: temperature}.
   """
 
@@ -120,6 +123,13 @@ class Synthesizer(abc.ABC):
   temperature: float | None = None
   variants: Mapping[str, float] = {}
   reads_context = False
+  reads_pose_vectors = True
+
+  @classmethod
+  def check(cls, config, spec: P.PoseSystemSpec) -> None:
+    """Raises ConfigError where this model cannot run the config on pose system `spec` (beyond
+    `check_config`'s layout checks); builds nothing but shapes."""
+    del config, spec
 
   def __init__(self, config, spec: P.PoseSystemSpec, module: nn.Module):
     self.config, self.spec, self.module = config, spec, module
@@ -362,6 +372,137 @@ class ConvDraw(Synthesizer):
     return jnp.clip(pred, -1.0, 1.0)
 
 
+class MVTSynthesizer(Synthesizer):
+  """The multi-view transformer (`camrep.models.mvt`, LVSM-style) on the GQN layout: the first
+  `n_context` views of a scene are its context, the others its queries, each query rendered from
+  the context images and the cameras of all views through the conditioning `config.model.camera`
+  (`conditionings.CONDITIONINGS`). Trained on L_rec (eq. 9, as the decoders); "rep" holds the
+  conditioning's parameters (`CameraConditioning.init`: the learned pose system of (d), (e); {}
+  for the fixed encodings) and its objective adds the conditioning's rotation loss
+  (`pose_loss`).
+
+  Attributes:
+    conditioning: the camera conditioning.
+    posed: the transformer tied to it (`mvt.PosedMVT`).
+  """
+
+  reads_context = True
+
+  def __init__(self, config, spec, num_scenes: int | None = None):
+    del num_scenes  # the context views give the scene
+    self.conditioning = conditionings.from_config(config, spec)
+    module = mvt.SIZES[config.model.size](dtype=compute_dtype(config))
+    self.posed = mvt.PosedMVT(module, self.conditioning)
+    # The learned conditionings' own pose system (one DOF per column) is the run's.
+    super().__init__(config, self.conditioning.spec or spec, module)
+    self.n_context = int(config.data.n_context)
+
+  @property
+  def reads_pose_vectors(self) -> bool:
+    return self.conditioning.vector_input
+
+  @classmethod
+  def check(cls, config, spec):
+    """An unknown model.size or model.camera, rep.kind other than 'grid' (the learned
+    conditionings' pose system), a conditioning the data or the pose system cannot feed, or a
+    relative transform wider than a head."""
+    m = config.model
+    if m.size not in mvt.SIZES:
+      raise ConfigError(f"unknown model.size {m.size!r}; choose one of {tuple(mvt.SIZES)}")
+    if pose_encodings.ENCODINGS[pose_encodings.rep_kind(config)] is not pose_encodings.GridEncoding:
+      raise ConfigError(
+        "task='mvt' reads the learned pose system through model.camera (learned_abs, "
+        f"learned_rel): rep.kind must be 'grid', got {config.rep.kind!r}"
+      )
+    try:
+      conditioning = conditionings.from_config(config, spec)
+    except ValueError as e:
+      raise ConfigError(f"--config.model.camera={m.camera!r}: {e}") from None
+    if not conditioning.relative:
+      return
+    module = mvt.SIZES[m.size]()
+    grid = mvt.PatchGrid(module.patch, module.patch, module.patch)
+    poses = jax.ShapeDtypeStruct((1, 1, spec.pose_dim), jnp.float32)
+    rep = jax.eval_shape(conditioning.init, jax.random.key(0))
+    codes = jax.eval_shape(lambda r, p: conditioning.view_codes(r, p, grid), rep, poses)
+    *_, k, b, _ = codes.transform.D.shape
+    try:
+      relative_attention.HeadLayout.of(module.width // module.heads, k, b)
+    except ValueError as e:
+      raise ConfigError(
+        f"--config.model.camera={m.camera!r} with model.size={m.size!r}: {e} (learned_rel: "
+        "the number of DOFs * rep.n_blocks * rep.block_size must fit in a head)"
+      ) from None
+
+  def init(self, key, batch):
+    images = to_float_images(jnp.asarray(batch["image"]))
+    poses = jnp.asarray(batch["pose"])
+    c = self.n_context
+    return jax.jit(self.posed.init)(key, images[:, :c], poses[:, :c], poses[:, c:])
+
+  def _init_module(self, key, images, vecs, scenes):
+    raise NotImplementedError("MVTSynthesizer.init builds the parameters")
+
+  def _codes(self, params_rep, poses, grid, *, mode, keys, transform=None):
+    """ViewCodes of poses (S, V, P): the conditioning's, or for one that reads the pose vectors
+    v(p), `per_dof` quantised by `mode` / `keys` and passed through `transform` first."""
+    if not self.conditioning.vector_input:
+      if transform is not None:
+        raise ValueError(_NO_VECTORS.format(type(self.conditioning).__name__))
+      return self.conditioning.view_codes(params_rep, poses, grid)
+    vecs = self.per_dof(params_rep, poses, mode=mode, keys=keys)
+    vecs = vecs if transform is None else transform(vecs)
+    return self.conditioning.codes_of_vectors(P.concat(vecs, self.spec), grid)
+
+  def _apply(self, params, ctx_images, ctx_poses, query_poses, *, mode, keys, transform=None):
+    grid = self.posed.grid(ctx_images)
+    c = self._codes(params["rep"], ctx_poses, grid, mode=mode, keys=keys[0])
+    q = self._codes(params["rep"], query_poses, grid, mode=mode, keys=keys[1], transform=transform)
+    pred, _ = self.module.apply({"params": params["model"]}, ctx_images, c, q)
+    return pred
+
+  def loss(self, params, batch, key, step):
+    del step
+    _, k_quant = jax.random.split(key)
+    keys = scene_keys(k_quant, batch["pose"].shape[0])
+    images, poses, c = to_float_images(batch["image"]), batch["pose"], self.n_context
+    pred = self._apply(
+      params,
+      images[:, :c],
+      poses[:, :c],
+      poses[:, c:],
+      mode=self.config.rep.quantisation,
+      keys=(keys, keys),
+    )
+    err = (pred - images[:, c:]) ** 2
+    rec = jnp.mean(jnp.sum(err, axis=(-3, -2, -1)))
+    return rec, {"rec": rec, "mse": jnp.mean(err)}
+
+  def predict(self, params, batch, *, mode="nearest", keys=(None, None), transform=None, **_):
+    ctx = to_float_images(batch["context_image"])
+    return self._apply(
+      params,
+      ctx,
+      batch["context_pose"],
+      batch["target_pose"],
+      mode=mode,
+      keys=keys,
+      transform=transform,
+    )
+
+  def pose_loss(self, params_rep, batch, key):
+    """The conditioning's own loss (`CameraConditioning.pose_loss`: loss.rot_weight sum_l
+    L_rot,l of eq. 9 for the learned ones, zero otherwise)."""
+    del batch
+    return self.conditioning.pose_loss(key, params_rep)
+
+
+_NO_VECTORS = (
+  "the noise test perturbs the per-DOF pose vectors v(p) (paper section 4.3); the {} "
+  "conditioning feeds the transformer no such vectors (only model.camera='learned_abs' does)"
+)
+
+
 def _query_vectors(model: Synthesizer, params, batch, mode, keys, transform) -> Array:
   vecs = model.per_dof(params["rep"], batch["target_pose"], mode=mode, keys=keys)
   return P.concat(vecs if transform is None else transform(vecs), model.spec)
@@ -413,8 +554,13 @@ def _field(config, path: str):
   return config.get(section, {}).get(name) if section else config.get(name)
 
 
-TASKS: dict[str, type[Synthesizer]] = {"gqn": GQNDecoder, "table": TableDecoder}
-"""config.task -> camrep's decoder of that task."""
+TASKS: dict[str, type[Synthesizer]] = {
+  "gqn": GQNDecoder,
+  "table": TableDecoder,
+  "mvt": MVTSynthesizer,
+}
+"""config.task -> camrep's model of that task ("mvt": the multi-view transformer,
+configs/lvsm.py)."""
 
 
 def task_model(config) -> type[Synthesizer]:
