@@ -10,7 +10,8 @@ import sys
 import pytest
 
 from camrep.comparison import command, launch, plan
-from camrep.synthesis import components, config_schema
+from camrep.runtime import frame as frame_lib
+from camrep.synthesis import config_schema
 from tests.test_tables import _summary, _write
 
 
@@ -203,7 +204,7 @@ def test_converge_synthesis_to_its_plateau(tmp_path, capsys):
       kind = type(node[field])
       node[field] = v if kind is str else float(v) if kind is float else int(v)
     config_schema.validate(c, overridden=set(plateau))
-    assert components.stopping_rule(c).active
+    assert frame_lib.stopping_rule(c).active
   # Curves: one job per column over its synthesis workdirs that exist.
   for name in ("car_seed0", "car_seed1", "car_mlp_seed0", "gqn_seed0"):
     os.makedirs(os.path.join(out, "synthesis", name))

@@ -17,7 +17,7 @@ from camrep import settings
 from camrep.data import batches, fingerprint, sources
 from camrep.data import pipeline as pipeline_lib
 from camrep.data.errors import DataError
-from camrep.runtime import stopping
+from camrep.runtime import frame as frame_lib
 from camrep.runtime.runconfig import ConfigError
 from camrep.synthesis import synthesizers
 
@@ -42,25 +42,12 @@ def check_config(config) -> None:
     synthesizers.task_model(config).check(config, pose_spec(config))
   if config.total_steps < 1:
     raise ConfigError(f"total_steps must be >= 1, got {config.total_steps}")
-  rule = stopping_rule(config)
+  rule = frame_lib.stopping_rule(config)
   if rule.active and config.eval_every_steps <= 0:
     raise ConfigError(
       f"--config.stop.min_improvement={rule.min_improvement:g}: the plateau rule is checked at "
       "the held-out evaluations; set --config.eval_every_steps > 0"
     )
-
-
-def stopping_rule(config) -> stopping.Rule:
-  """The plateau rule of `config.stop` (off when the config has no such section: a workdir
-  written before it existed).
-
-  Raises:
-    ConfigError: a value out of range (min_improvement < 0, window outside (0, 1), ...).
-  """
-  try:
-    return stopping.rule_from_config(config.get("stop"))
-  except ValueError as e:
-    raise ConfigError(str(e)) from None
 
 
 def pose_spec(config) -> P.PoseSystemSpec:
