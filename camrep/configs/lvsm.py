@@ -19,7 +19,7 @@ capture", step 1): `--config.data.source=llff --config.data.dir=DIR
     MVTQuick (patch 8, width 128, 4 layers, 4 heads; 0.85-1.05 M parameters), 8 scenes x (3
     context + 2 query) views per step, Adam 1e-3 with a cosine decay for both groups, 2000
     steps: ~1 step/s on a 2-core CPU at load ~4 (~35 min). Measured with
-    --config.total_steps=300 (seed 0, 16 held-out rooms): held-out-view PSNR prope 17.98 dB,
+    --config.total_steps=300 (seed 0, 64 held-out views): held-out-view PSNR prope 17.98 dB,
     learned_rel 17.63, none 17.45, against 16.95 dB for the mean of the 3 context views; one
     seed this early ranks nothing.
   python -m camrep.main --config=configs/lvsm.py:medium --workdir=/tmp/lvsm_m \
