@@ -454,41 +454,31 @@ class MVTSynthesizer(Synthesizer):
     vecs = vecs if transform is None else transform(vecs)
     return self.conditioning.codes_of_vectors(P.concat(vecs, self.spec), grid)
 
-  def _apply(self, params, ctx_images, ctx_poses, query_poses, *, mode, keys, transform=None):
-    grid = self.posed.grid(ctx_images)
-    c = self._codes(params["rep"], ctx_poses, grid, mode=mode, keys=keys[0])
-    q = self._codes(params["rep"], query_poses, grid, mode=mode, keys=keys[1], transform=transform)
-    pred, _ = self.module.apply({"params": params["model"]}, ctx_images, c, q)
-    return pred
-
   def loss(self, params, batch, key, step):
     del step
     _, k_quant = jax.random.split(key)
     keys = scene_keys(k_quant, batch["pose"].shape[0])
-    images, poses, c = to_float_images(batch["image"]), batch["pose"], self.n_context
-    pred = self._apply(
-      params,
-      images[:, :c],
-      poses[:, :c],
-      poses[:, c:],
-      mode=self.config.rep.quantisation,
-      keys=(keys, keys),
+    images, c = to_float_images(batch["image"]), self.n_context
+    grid = self.posed.grid(images)
+    # All views of a scene at once, quantised with the scene's key (as the decoders' `loss`).
+    codes = self._codes(
+      params["rep"], batch["pose"], grid, mode=self.config.rep.quantisation, keys=keys
     )
+    ctx_codes = jax.tree.map(lambda a: a[:, :c], codes)
+    query_codes = jax.tree.map(lambda a: a[:, c:], codes)
+    pred, _ = self.module.apply({"params": params["model"]}, images[:, :c], ctx_codes, query_codes)
     err = (pred - images[:, c:]) ** 2
     rec = jnp.mean(jnp.sum(err, axis=(-3, -2, -1)))
     return rec, {"rec": rec, "mse": jnp.mean(err)}
 
   def predict(self, params, batch, *, mode="nearest", keys=(None, None), transform=None, **_):
     ctx = to_float_images(batch["context_image"])
-    return self._apply(
-      params,
-      ctx,
-      batch["context_pose"],
-      batch["target_pose"],
-      mode=mode,
-      keys=keys,
-      transform=transform,
-    )
+    grid = self.posed.grid(ctx)
+    rep = params["rep"]
+    c = self._codes(rep, batch["context_pose"], grid, mode=mode, keys=keys[0])
+    q = self._codes(rep, batch["target_pose"], grid, mode=mode, keys=keys[1], transform=transform)
+    pred, _ = self.module.apply({"params": params["model"]}, ctx, c, q)
+    return pred
 
   def pose_loss(self, params_rep, batch, key):
     """The conditioning's own loss (`CameraConditioning.pose_loss`: loss.rot_weight sum_l
