@@ -101,14 +101,40 @@ def capture_columns(runs: str) -> tuple[Column, ...]:
   )
 
 
-def row(
+# Representations that are neither a target under comparison nor ours: controls of the same
+# protocol (an untrained pose system, ours' grid with frozen generators), each compared with the
+# column's best hand-designed representation in a row of its own. Unknown names show as given.
+CONTROL_LABELS = {
+  "untrained": "untrained pose system",
+  "frozen": "frozen generators",
+}
+NOT_CONTROLS = frozenset((*stats.HAND_DESIGNED, "ours", "mlp"))
+
+
+@dataclasses.dataclass
+class Row:
+  """One compared pair of a column before the table's Holm adjustment."""
+
+  label: str
+  paper: str
+  best_cell: str
+  cell: str
+  comparison: stats.SeedComparison | None
+  seeds: str
+  lr_seeds: str
+  edges: str
+  capped: str
+
+
+def rows(
   runs: str,
   column: Column,
   *,
   skip_damaged: bool = False,
   results: Sequence[dict] | None = None,
-) -> list[str] | None:
-  """The lead table's row of `column`, or None when RUNS holds none of its runs.
+) -> list[Row]:
+  """The rows of `column` (ours, then each control, against the best hand-designed
+  representation chosen on validation), [] when RUNS holds none of its runs.
 
   Args:
     runs: RUNS.
@@ -120,72 +146,91 @@ def row(
     pattern = os.path.join(runs, column.directory, "*", "*")
     results = C.load_results([pattern], skip_damaged=skip_damaged)
   if not results:
-    return None
+    return []
   by_rep = {rep: sel for (_, rep), sel in C.select(results).items()}
-  values = {}  # the column's statistic of each representation: which hand-designed one is best
-  for rep, sel in by_rep.items():
-    m = stats.seed_matrix(sel.runs, column.error)
-    if m is not None:
-      values[rep] = stats.statistic(m[0], m[1] if column.by_scene else None, column.reduce)
-  best = stats.best_hand_designed(values)
-  shown = [rep for rep in ("ours", best) if rep in by_rep]
-  cells = {
-    rep: stats.cell_interval(
-      by_rep[rep].runs, column.error, column.reduce, by_scene=column.by_scene
-    )
-    for rep in shown
-  }
+  best = C.best_on_validation(by_rep, column.error, column.reduce)
   fmt = lambda iv: stats.fmt_interval(iv, digits=C.digits_for(iv.value)) if iv else "–"
-  comp = None
-  if "ours" in by_rep and best is not None:
-    comp = stats.compare_runs(
-      by_rep["ours"].runs,
-      by_rep[best].runs,
-      column.error,
-      column.reduce,
-      baseline=best,
-      by_scene=column.by_scene,
+
+  def cell(rep):
+    if rep not in by_rep:
+      return None
+    return stats.cell_interval(
+      by_rep[rep].runs, column.error, column.reduce, by_scene=column.by_scene, method="seed_t"
     )
+
   paper = "–"
   if column.paper_ours is not None and column.paper_best is not None:
     name, value = column.paper_best
     paper = f"{column.paper_ours:g} vs {value:g} ({C.ROW_LABELS.get(name, name)})"
-  edges, capped = [], []
-  for rep in shown:
-    sel = by_rep[rep]
-    if C.grid_edge(sel):
-      edges.append(f"{rep}: {C.grid_edge(sel)} ({C.fmt_lr(sel.lr)})")
-    n = sum(1 for run in sel.runs if not (run.get("stopping") or {}).get("stopped_early", True))
-    capped.append(f"{rep} {n}/{len(sel.runs)}")
-  seeds = sorted({len(s.runs) for s in by_rep.values()})
-  return [
-    column.label,
-    paper,
-    f"{fmt(cells.get(best))} ({best})" if best else "–",
-    fmt(cells.get("ours")),
-    stats.fmt_interval(comp.ratio, digits=2) if comp else "–",
-    f"**{comp.verdict}**" if comp else "–",
-    "/".join(map(str, seeds)),
-    "; ".join(edges) or "no",
-    ", ".join(capped) or "–",
-  ]
+  best_cell = f"{fmt(cell(best))} ({best})" if best else "–"
+  controls = sorted(r for r in by_rep if r not in NOT_CONTROLS)
+  out = []
+  for rep in [r for r in ("ours", *controls) if r in by_rep]:
+    comp = None
+    if best is not None:
+      comp = stats.seed_compare_runs(
+        by_rep[rep].runs,
+        by_rep[best].runs,
+        column.error,
+        column.reduce,
+        baseline=best,
+        by_scene=column.by_scene,
+      )
+    shown = [r for r in (rep, best) if r in by_rep]
+    edges, capped, lr_seeds = [], [], []
+    for r in shown:
+      sel = by_rep[r]
+      if C.grid_edge(sel):
+        edges.append(f"{r}: {C.grid_edge(sel)} ({C.fmt_lr(sel.lr)})")
+      n = sum(1 for run in sel.runs if not (run.get("stopping") or {}).get("stopped_early", True))
+      capped.append(f"{r} {n}/{len(sel.runs)}")
+      scored = "all" if sel.on_all_seeds else "seed " + ",".join(map(str, sel.scored_seeds))
+      lr_seeds.append(f"{r}: {scored}")
+    label = column.label if rep == "ours" else f"{column.label}: {CONTROL_LABELS.get(rep, rep)}"
+    out.append(
+      Row(
+        label,
+        paper if rep == "ours" else "–",
+        best_cell,
+        fmt(cell(rep)),
+        comp,
+        "/".join(map(str, sorted({len(by_rep[r].runs) for r in shown}))),
+        "; ".join(lr_seeds),
+        "; ".join(edges) or "no",
+        ", ".join(capped) or "–",
+      )
+    )
+  return out
 
 
 HEADER = (
   "column",
   "paper: ours vs best hand-designed",
-  "camrep: best hand-designed",
+  "camrep: best hand-designed (chosen on validation)",
   "camrep: ours",
-  "ours / best [95%]",
-  "verdict",
+  "ours / best, seed-level t [95%]",
+  "hierarchical bootstrap, corrected [95%]",
+  "p (Holm-adjusted, m = {m})",
+  "verdict (Holm, family-wise 5%)",
   "seeds",
+  "lr chosen on validation of",
   "chosen lr at grid edge",
   "runs at their step cap",
 )
 
+NOTE = (
+  "Cells: mean over seeds [95% t interval over the per-seed statistics, S - 1 df]; the ratio: "
+  "geometric mean of the per-seed ratios ours / best on the same test views [95% seed-level t "
+  "interval of the log ratio]; beside it the two-level bootstrap over seeds and views with its "
+  "standard error times sqrt(S / (S - 1)) and t quantiles. Verdict: better / worse where the "
+  "Holm-adjusted p of the seed-level t test (mean log ratio 0) is below 0.05 over the m = {m} "
+  "comparisons of this table, else tie. Best hand-designed: the lowest validation statistic at "
+  "its chosen lr (no test error is read to choose it or any lr)."
+)
+
 
 def build(runs: str, *, skip_damaged: bool = False) -> str:
-  """The Markdown table of every column RUNS holds runs of.
+  """The Markdown table of every column RUNS holds runs of, with its note.
 
   Raises:
     FileNotFoundError: RUNS holds no regression runs.
@@ -200,10 +245,33 @@ def build(runs: str, *, skip_damaged: bool = False) -> str:
   by_directory = {d: [] for d in directories}
   for r in C.load_results(patterns, skip_damaged=skip_damaged):
     by_directory[os.path.relpath(r["_path"], runs).split(os.sep)[0]].append(r)
-  rows = [r for c in columns if (r := row(runs, c, results=by_directory[c.directory])) is not None]
-  if not rows:
+  found = [r for c in columns for r in rows(runs, c, results=by_directory[c.directory])]
+  if not found:
     raise FileNotFoundError(f"no regression runs with results.json under {runs}")
-  return C.markdown_table(HEADER, rows)
+  p = [r.comparison.p if r.comparison else float("nan") for r in found]
+  adjusted = stats.holm(p)
+  m = int(sum(1 for x in p if x == x))
+  table = []
+  for r, adj in zip(found, adjusted, strict=True):
+    c = r.comparison
+    table.append(
+      [
+        r.label,
+        r.paper,
+        r.best_cell,
+        r.cell,
+        stats.fmt_interval(c.ratio, digits=2) if c else "–",
+        stats.fmt_interval(c.bootstrap, digits=2) if c and c.bootstrap else "–",
+        f"{adj:.3f}" if adj == adj else "–",
+        f"**{c.verdict(adj)}**" if c else "–",
+        r.seeds,
+        r.lr_seeds,
+        r.edges,
+        r.capped,
+      ]
+    )
+  header = [h.format(m=m) for h in HEADER]
+  return C.markdown_table(header, table) + "\n\n" + NOTE.format(m=m)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
