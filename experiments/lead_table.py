@@ -34,6 +34,8 @@ import os
 import sys
 from collections.abc import Sequence
 
+import numpy as np
+
 from camrep.regression import stats
 from camrep.regression import tables as C
 
@@ -115,6 +117,9 @@ NOT_CONTROLS = frozenset((*stats.HAND_DESIGNED, "ours", "mlp"))
 class Row:
   """One compared pair of a column before the table's Holm adjustment."""
 
+  column: Column
+  representation: str  # ours or a control, against the best hand-designed
+  data: str  # the data kind of ours' runs (`data_kind`)
   label: str
   paper: str
   best_cell: str
@@ -189,6 +194,9 @@ def rows(
     label = column.label if rep == "ours" else f"{column.label}: {CONTROL_LABELS.get(rep, rep)}"
     out.append(
       Row(
+        column,
+        rep,
+        data_kind(by_rep[rep].runs[0]),
         label,
         paper if rep == "ours" else "–",
         best_cell,
@@ -229,8 +237,22 @@ NOTE = (
 )
 
 
-def build(runs: str, *, skip_damaged: bool = False) -> str:
-  """The Markdown table of every column RUNS holds runs of, with its note.
+def data_kind(run: dict) -> str:
+  """What a run's data is, in the claims' terms: a procedural family, a render (NeRF-synthetic
+  Blender scenes) or a real capture (LLFF photographs, or another prepared real source)."""
+  d = run.get("data", {})
+  source = d.get("source")
+  if source == "nerf":
+    return "render (NeRF-synthetic)"
+  if source == "llff":
+    return "real capture (LLFF)"
+  if source:
+    return f"real data ({source})"
+  return f"procedural family ({d.get('family', '?')})"
+
+
+def compared(runs: str, *, skip_damaged: bool = False) -> tuple[list[Row], np.ndarray]:
+  """Every row RUNS holds runs of, and the Holm-adjusted p values over all of them.
 
   Raises:
     FileNotFoundError: RUNS holds no regression runs.
@@ -249,8 +271,19 @@ def build(runs: str, *, skip_damaged: bool = False) -> str:
   if not found:
     raise FileNotFoundError(f"no regression runs with results.json under {runs}")
   p = [r.comparison.p if r.comparison else float("nan") for r in found]
-  adjusted = stats.holm(p)
-  m = int(sum(1 for x in p if x == x))
+  return found, stats.holm(p)
+
+
+def build(runs: str, *, skip_damaged: bool = False) -> str:
+  """The Markdown table of every column RUNS holds runs of, with its note.
+
+  Raises:
+    FileNotFoundError: RUNS holds no regression runs.
+    camrep.regression.tables.TableError: a damaged run (without skip_damaged), or two runs of
+      one cell.
+  """
+  found, adjusted = compared(runs, skip_damaged=skip_damaged)
+  m = int(sum(1 for x in adjusted if x == x))
   table = []
   for r, adj in zip(found, adjusted, strict=True):
     c = r.comparison

@@ -263,6 +263,25 @@ def seed_t_interval(values: np.ndarray, level: float = LEVEL) -> tuple[float, fl
   return m, m - half, m + half, p
 
 
+def welch_interval(
+  a: np.ndarray, b: np.ndarray, level: float = LEVEL
+) -> tuple[float, float, float]:
+  """(mean(a) - mean(b), lo, hi): Welch's t interval of a difference of means of two
+  independent samples (Welch-Satterthwaite degrees of freedom); NaN bounds when a sample has
+  one value."""
+  a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+  d = float(a.mean() - b.mean())
+  if len(a) < 2 or len(b) < 2:
+    return d, math.nan, math.nan
+  va, vb = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
+  se = math.sqrt(va + vb)
+  if se == 0:
+    return d, d, d
+  df = (va + vb) ** 2 / (va**2 / (len(a) - 1) + vb**2 / (len(b) - 1))
+  half = t_quantile(0.5 + level / 2, df) * se
+  return d, d - half, d + half
+
+
 def per_seed_statistics(
   errors: np.ndarray, scenes: np.ndarray | None = None, reduce: str = "mean"
 ) -> np.ndarray:
