@@ -72,7 +72,7 @@ def comparison_cells(selections, columns) -> list[str]:
       cells.append("–")
       continue
     comp = stats.seed_compare_runs(
-      ours.runs, selections[setting, best].runs, error, baseline=best, bootstrap=False
+      ours.runs, selections[setting, best].runs, error, baseline=best, population=False
     )
     cells.append(stats.fmt_seed_comparison(comp))
   return cells

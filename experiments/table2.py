@@ -88,7 +88,7 @@ def comparison_cells(selections, reps) -> list[str]:
         "median",
         baseline=best,
         by_scene=True,
-        bootstrap=False,
+        population=False,
       )
     parts.append(f"{'position' if i == 0 else 'rotation'} {stats.fmt_seed_comparison(comp)}")
   return ["; ".join(parts) if rep == "ours" else "" for rep in reps]

@@ -192,18 +192,18 @@ def test_seed_ratio_is_the_t_interval_of_per_seed_log_ratios():
   scale changes nothing."""
   base = _errors(0, (3, 50))
   c = np.array([1.2, 1.25, 1.3])
-  r = stats.seed_ratio(c[:, None] * base, base, baseline="quat", bootstrap=False)
+  r = stats.seed_ratio(c[:, None] * base, base, baseline="quat", population=False)
   m, lo, hi, p = stats.seed_t_interval(np.log(c))
   assert r.per_seed == pytest.approx(tuple(c))
   assert (r.ratio.value, r.ratio.lo, r.ratio.hi) == pytest.approx(tuple(np.exp([m, lo, hi])))
-  assert r.p == pytest.approx(p) and r.verdict() == "worse" and r.bootstrap is None
-  swapped = stats.seed_ratio(base, c[:, None] * base, bootstrap=False)
+  assert r.p == pytest.approx(p) and r.verdict() == "worse" and r.population is None
+  swapped = stats.seed_ratio(base, c[:, None] * base, population=False)
   assert swapped.ratio.lo == pytest.approx(1 / r.ratio.hi) and swapped.p == pytest.approx(r.p)
   assert swapped.verdict() == "better" and swapped.verdict(p_adjusted=0.2) == "tie"
-  scaled = stats.seed_ratio(7 * c[:, None] * base, 7 * base, bootstrap=False)
+  scaled = stats.seed_ratio(7 * c[:, None] * base, 7 * base, population=False)
   assert scaled.ratio.hi == pytest.approx(r.ratio.hi)
   one = stats.seed_ratio(base[:1], base[:1])
-  assert one.verdict() == "–" and np.isnan(one.bootstrap.lo)
+  assert one.verdict() == "–" and np.isnan(one.population.lo)
 
 
 def test_corrected_bootstrap_is_wider_than_the_percentile_bootstrap_at_three_seeds():
@@ -228,3 +228,22 @@ def test_variance_components_recover_known_variances():
   assert sum(c.shares()) == pytest.approx(1.0)
   with pytest.raises(ValueError, match=">= 2 seeds"):
     stats.variance_components(e[:1])
+
+
+def test_seed_view_ratio_adds_the_views_variance_to_the_seed_level_interval():
+  """The population interval shares the seed-level centre; where the views barely change the
+  ratio (ours = c_s x base, view by view) it is the seed-level t interval up to 1%; where every
+  seed gives the same ratio on every view draw it has no width; where the views do change the
+  ratio (10 seeds, 30 views) it is wider than the seed-level interval; NaN for one seed."""
+  base = _errors(0, (3, 50))
+  c = np.array([1.2, 1.25, 1.3])
+  r = stats.seed_ratio(c[:, None] * base, base)
+  assert r.population.value == pytest.approx(r.ratio.value)
+  assert (r.population.lo, r.population.hi) == pytest.approx((r.ratio.lo, r.ratio.hi), rel=1e-2)
+  flat = stats.seed_view_ratio(2 * base, base)
+  assert (flat.lo, flat.value, flat.hi) == pytest.approx((2.0, 2.0, 2.0))
+  ours, other = _errors(1, (10, 30)), _errors(2, (10, 30))
+  seed_only = stats.seed_ratio(ours, other, population=False).ratio
+  both = stats.seed_view_ratio(ours, other)
+  assert both.lo < seed_only.lo and seed_only.hi < both.hi
+  assert np.isnan(stats.seed_view_ratio(ours[:1], other[:1]).lo)
