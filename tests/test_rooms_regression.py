@@ -21,9 +21,7 @@ from camrep.configs import regression as regression_config
 from camrep.regression import config_schema, driver, learner, scoring
 from camrep.regression import views as views_lib
 
-# 300 steps each: running the step dominates, and the optimised program does it in half the CPU
-# time of the quickly compiled one, compile included.
-pytestmark = [pytest.mark.slow, pytest.mark.optimized]
+pytestmark = pytest.mark.slow
 
 
 def _small_quick_config(**family):
