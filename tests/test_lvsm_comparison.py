@@ -125,7 +125,7 @@ def test_the_plan_lists_every_conditioning_seed_and_column_with_estimates(tmp_pa
   assert len(runs) == n
   for camera in plan.cameras:
     assert f"    {camera} " in text  # its parameter count
-    for column, cfg in (("rooms", "lvsm.py:quick"), ("car", "lvsm.py:car")):
+    for column, cfg in (("rooms", "lvsm.py:quick"), ("car", "lvsm.py:object")):
       wd = os.path.join(out, "lvsm", column, f"{camera}_seed2")
       assert any(f"--config=configs/{cfg}" in r and f"--workdir={wd} " in r for r in runs)
   assert sum("--config.data.source=nerf" in r for r in runs) == n // 3

@@ -25,7 +25,7 @@ capture", step 1): `--config.data.source=llff --config.data.dir=DIR
   python -m camrep.main --config=configs/lvsm.py:medium --workdir=/tmp/lvsm_m \
       --config.model.camera=learned_rel
     MVTMedium (width 384, 8 layers, 6 heads, ~14.5 M parameters), 20,000 steps; one GPU.
-  python -m camrep.main --config=configs/lvsm.py:car --workdir=/tmp/lvsm_car \
+  python -m camrep.main --config=configs/lvsm.py:object --workdir=/tmp/lvsm_car \
       --config.model.camera=prope
     `:quick` on the procedural car setting (the `object` family at 64 px as
     configs/shapenet_car.py:quick: 64 cars x 24 training views, azimuth + polar pose).
@@ -41,14 +41,15 @@ from camrep.configs import common, gqn
 
 
 def get_config(arg: str | None = None):
-  variant = common.parse_arg(arg, (*common.VARIANTS, "car"))
+  variant = common.parse_arg(arg, (*common.VARIANTS, "object"))
   if not variant:
     raise ValueError(
       "the lvsm config has no paper size (no paper trains this model): choose :quick, :medium, "
-      ":car or :smoke"
+      ":object or :smoke"
     )
-  car = variant == "car"
-  variant = "quick" if car else variant
+  # `:object`: `:quick` on the car setting's procedural family.
+  on_objects = variant == "object"
+  variant = "quick" if on_objects else variant
   c = gqn.get_config(variant)
   c.task = "mvt"
   del c.model.gamma_init_one  # the transformer has no AdaIN
@@ -78,7 +79,7 @@ def get_config(arg: str | None = None):
     c.rep.n_blocks = 2  # 3 x 2 x 2 = 12 of MVTTiny's 16 head dims
     c.data.n_context = 2
     c.evals.context_counts = (1, 3)
-  if car:  # the car setting's procedural family, as configs/shapenet_car.py:quick
+  if on_objects:  # the car setting's procedural family, as configs/shapenet_car.py:quick
     c.data.source = "object"
     c.data.family = ml_collections.ConfigDict(
       dict(image_size=64, num_train_scenes=64, num_test_scenes=8, train_views=24, test_views=4)
