@@ -135,7 +135,7 @@ def _fake_psnr(monkeypatch, psnrs):
   """The held-out evaluation replaced by `psnrs` in turn (written to metrics.jsonl as usual)."""
   values = iter(psnrs)
 
-  def evaluate_and_log(writer, predict, batches, params, step, *, grid_scenes, log):
+  def evaluate_and_log(writer, predict, batches, params, step, *, grid_scenes, log, **_):
     scalars = {"eval/psnr": float(next(values))}
     writer.write_scalars(step, scalars)
     return scalars

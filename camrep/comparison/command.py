@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from camrep.comparison import archive as archive_lib
 from camrep.comparison import launch as launch_lib
 from camrep.comparison import plan as plan_lib
+from camrep.comparison import transformer
 from camrep.regression import tables
 from camrep.runtime import cli
 from camrep.runtime import progress as progress_lib
@@ -28,7 +29,12 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
   p = argparse.ArgumentParser(
     prog="python -m camrep.comparison", description=__doc__.splitlines()[0]
   )
-  p.add_argument("--size", choices=sorted(sizes), default="quick")
+  p.add_argument(
+    "--size",
+    choices=sorted(sizes) + sorted(transformer.plans()),
+    default="quick",
+    help="a regression plan, or a transformer plan (lvsm_*: camera conditionings, configs/lvsm.py)",
+  )
   p.add_argument("--out", required=True, help="output directory (synthesis/, regression/, ...)")
   p.add_argument("--dry_run", action="store_true", help="print the commands and estimates only")
   p.add_argument("--settings", default=",".join(plan_lib.SETTINGS), help="comma-separated subset")
@@ -103,6 +109,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     if path and os.path.exists(path) and not os.path.isdir(path):
       p.error(f"{flag} {path} is a file, not a directory")
   args.data = _data(p, args.data)
+  if args.size in transformer.plans():
+    args.plan = transformer.plans()[args.size]
+    return args
   plan = sizes[args.size]
   if args.extend_grid is not None:
     if args.extend_grid < 0 or not plan.stop:
@@ -213,6 +222,8 @@ def run(argv: Sequence[str] | None = None) -> int:
       f"the comparison runs from a camrep checkout (configs/, experiments/); {launch_lib.ROOT} "
       "is not one (install camrep with `pip install -e .` from a clone)"
     )
+  if isinstance(args.plan, transformer.TransformerPlan):
+    return run_transformer(args)
   launch = make_launch(args)
   if args.dry_run:
     try:
@@ -252,6 +263,34 @@ def run(argv: Sequence[str] | None = None) -> int:
   print(
     f"finished in {took}; tables in {launch.out}/table1.md and {launch.out}/table2.md", flush=True
   )
+  return 0
+
+
+def run_transformer(args: argparse.Namespace) -> int:
+  """A transformer plan (`camrep.comparison.transformer`): its dry run, or its launch."""
+  launch = transformer.make_launch(args.plan, args.out, python=args.python, data=args.data)
+  if args.dry_run:
+    transformer.print_plan(launch, commands=True, at_once=args.jobs)
+    return 0
+  lock = _lock(launch.out)
+  old_handler = signal.signal(signal.SIGTERM, _interrupt)
+  t0 = time.perf_counter()
+  try:
+    transformer.print_plan(launch, commands=False, at_once=args.jobs)
+    deadline = time.monotonic() + 3600 * args.max_hours if args.max_hours > 0 else None
+    failed = transformer.execute(launch, at_once=args.jobs, deadline=deadline)
+  except KeyboardInterrupt:
+    took = progress_lib.format_duration(time.perf_counter() - t0)
+    print(f"\n{interrupted_message(took, '')}", file=sys.stderr, flush=True)
+    return 130
+  finally:
+    signal.signal(signal.SIGTERM, old_handler)
+    lock.release()
+  took = progress_lib.format_duration(time.perf_counter() - t0)
+  if failed:
+    print(f"finished in {took} with {len(failed)} failures: {', '.join(failed)}", flush=True)
+    return 1
+  print(f"finished in {took}; table in {launch.out}/lvsm_table.md", flush=True)
   return 0
 
 

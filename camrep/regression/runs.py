@@ -55,6 +55,8 @@ CONFIG_FIELDS = (
   "rep.kind",
   "model.kind",
   "model.width",
+  "model.camera",
+  "data.n_context",
   "data.source",
   "data.dir",
   "data.preset",

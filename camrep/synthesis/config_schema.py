@@ -178,6 +178,11 @@ SCHEMA: dict[str, V.Field] = {
   "evals.num_scenes": _F(V.POSITIVE, resume=_M),
   "evals.batch_scenes": _F(V.POSITIVE, resume=_M),
   "evals.grid_scenes": _F(V.POSITIVE, resume=_M),
+  "evals.context_counts": _F(
+    V.Rule("positive_tuple"),
+    _U(lambda c: not synthesizers.reads_context(c), "per-scene tables read no context views"),
+    resume=_M,
+  ),
   "evals.baseline_views": _F(
     V.POSITIVE,
     _U(

@@ -89,6 +89,15 @@ def define_flags(fv: flags.FlagValues, argv: Sequence[str] = ()) -> None:
     "seed", 0, "Seed of the noise and quantisation draws.", lower_bound=0, flag_values=fv
   )
   flags.DEFINE_enum(
+    "noise_on",
+    None,
+    noise_lib.NOISE_ON,
+    "Where the noise goes: the query's pose vectors v(p) (the paper's test; the decoders' "
+    "default) or the query pose before conditioning (the multi-view transformer's default: "
+    "the same for every camera conditioning).",
+    flag_values=fv,
+  )
+  flags.DEFINE_enum(
     "quantisation",
     None,
     P.QUANTISATION_MODES,
@@ -157,12 +166,15 @@ def _evaluate(fv: flags.FlagValues, out: str, alphas, what, log) -> int:
         f"{run_.config.model.get('kind', 'decoder')!r}); the flag is for GQN's generator only"
       )
     run_.config.model.draw_temperature = fv.draw_temperature
-  if not run_.model.reads_pose_vectors:
+  on = fv.noise_on or run_.model.noise_on
+  needs_vectors = sorted({"gram"} & what | ({"noise"} & what if on == "vectors" else set()))
+  if needs_vectors and not run_.model.reads_pose_vectors:
     raise cli.UsageError(
-      f"--what={','.join(sorted(what))}: the run in {fv.workdir} (model.camera "
+      f"--what={','.join(needs_vectors)} (--noise_on={on}): the run in {fv.workdir} (model.camera "
       f"{run_.config.model.get('camera')!r}) feeds its model no per-DOF pose vectors v(p): the "
-      "noise test perturbs them (paper section 4.3) and the Gram maps show them; of the "
-      "multi-view transformer's conditionings only learned_abs has them"
+      "Gram maps show them and --noise_on=vectors perturbs them; of the multi-view "
+      "transformer's conditionings only learned_abs has them (--noise_on=pose noises the pose "
+      "itself, for every conditioning)"
     )
   log(f"restored step {run_.step} of {fv.workdir} ({components.setting(run_.config)})")
   result = None
@@ -173,8 +185,11 @@ def _evaluate(fv: flags.FlagValues, out: str, alphas, what, log) -> int:
       alphas=alphas,
       quantisation=fv.quantisation,
       progress=log,
+      on=on,
     )
-    log(f"\nquantisation {result['quantisation']}, {result['num_images']} images")
+    log(
+      f"\nnoise on the {on}, quantisation {result['quantisation']}, {result['num_images']} images"
+    )
     log(f"{'alpha':>7} {'PSNR':>8} {'SSIM':>7}")
     for a, p, s in zip(result["alphas"], result["psnr"], result["ssim"], strict=True):
       log(f"{a:7.3f} {p:8.3f} {s:7.4f}")

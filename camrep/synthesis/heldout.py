@@ -1,5 +1,10 @@
 """Held-out-view evaluation of view synthesis (paper section 4.2): PSNR / SSIM of predicted
 held-out views against a trivial baseline, on a fixed evaluation set built once per run.
+
+Models that render from context views (the GQN layout) are also evaluated with other numbers of
+context views than they train with, `config.evals.context_counts` (generalisation to more context
+views, PRoPE's test): the same scenes and targets, the first n training views as context, written
+as eval/psnr_context{n} and eval/ssim_context{n} beside eval/psnr.
 """
 
 from __future__ import annotations
@@ -19,17 +24,18 @@ Array = jax.Array
 
 
 def eval_batches(
-  model: synthesizers.Synthesizer, train_pipe, test_pipe
+  model: synthesizers.Synthesizer, train_pipe, test_pipe, *, n_context: int | None = None
 ) -> list[dict[str, np.ndarray]]:
   """Held-out-view evaluation set of `model.config.evals`: per scene, the first test view as
-  target and the first training views as context (the model's `n_context` views; per-scene
-  tables: up to evals.baseline_views views whose mean image is the baseline)."""
+  target and the first training views as context (`n_context` views, default the model's
+  `n_context`; per-scene tables: up to evals.baseline_views views whose mean image is the
+  baseline)."""
   ev = model.config.evals
   test_ids = np.intersect1d(test_pipe.all_scene_ids, train_pipe.all_scene_ids)
   if len(test_ids) == 0:
     raise DataError(None, "no scene has both training and held-out views to evaluate on")
   ids = test_ids[: ev.num_scenes]
-  c = model.n_context
+  c = model.n_context if n_context is None else n_context
   if c is None:  # baseline only: the mean of (up to baseline_views of) the scene's training views
     c = min(ev.baseline_views, min(train_pipe.num_scene_views(s) for s in ids))
   out = []
@@ -104,12 +110,40 @@ def evaluate(predict, params, batches) -> tuple[dict[str, float], dict[str, np.n
   return scalars, first
 
 
+def context_counts(model: synthesizers.Synthesizer) -> tuple[int, ...]:
+  """The context counts `config.evals.context_counts` evaluates a model at besides its own
+  (sorted, without `model.n_context`); () for models without context views or without the
+  field."""
+  if model.n_context is None:
+    return ()
+  counts = model.config.evals.get("context_counts", ()) or ()
+  return tuple(sorted({int(n) for n in counts} - {model.n_context}))
+
+
+def context_metric(name: str, n: int) -> str:
+  """The scalar of `name` ("psnr", "ssim") with n context views: "eval/{name}_context{n}"."""
+  return f"eval/{name}_context{n}"
+
+
+def context_sweep(predict, params, sweep: dict[int, list]) -> dict[str, float]:
+  """eval/psnr_context{n}, eval/ssim_context{n} of each evaluation set {n: batches}."""
+  out = {}
+  for n, batches in sweep.items():
+    scalars, _ = evaluate(predict, params, batches)
+    out[context_metric("psnr", n)] = scalars["eval/psnr"]
+    out[context_metric("ssim", n)] = scalars["eval/ssim"]
+  return out
+
+
 def evaluate_and_log(
-  writer, predict, batches, params, step: int, *, grid_scenes: int, log
+  writer, predict, batches, params, step: int, *, grid_scenes: int, log, sweep=None
 ) -> dict[str, float]:
   """`evaluate` written as eval/* scalars plus the eval/grid image of the first `grid_scenes`
-  scenes; `log` gets one line."""
+  scenes; `log` gets one line. `sweep` {n: batches}: the same scenes with n context views
+  (`context_sweep`), written in the same row."""
   scalars, first = evaluate(predict, params, batches)
+  if sweep:
+    scalars.update(context_sweep(predict, params, sweep))
   writer.write_scalars(step, scalars)
   g = grid_scenes
   grid = grids.view_synthesis_grid(
@@ -122,7 +156,10 @@ def evaluate_and_log(
 
 def make_evaluate(model: synthesizers.Synthesizer, train_pipe, test_pipe, writer, *, log):
   """evaluate(params, step) -> eval scalars: `evaluate_and_log` on the evaluation set of
-  `eval_batches`, built here once for the whole run."""
+  `eval_batches` and its `context_counts` variants, built here once for the whole run."""
+  sweep = {
+    n: eval_batches(model, train_pipe, test_pipe, n_context=n) for n in context_counts(model)
+  }
   return functools.partial(
     evaluate_and_log,
     writer,
@@ -130,4 +167,5 @@ def make_evaluate(model: synthesizers.Synthesizer, train_pipe, test_pipe, writer
     eval_batches(model, train_pipe, test_pipe),
     grid_scenes=model.config.evals.grid_scenes,
     log=log,
+    sweep=sweep,
   )

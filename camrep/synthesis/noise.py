@@ -12,6 +12,18 @@ settings (the authors' test) and by rounding for Gibson and 7-Scenes; the traini
 always rounds ("nearest"), so alpha = 0 with quantisation="nearest" reproduces its PSNR. The
 images are the training loop's held-out-view evaluation set (`heldout.eval_batches`): per scene
 the first test view as the query, and for GQN the first n_context training views as context.
+
+Noise on the pose (`NOISE_ON` "pose", the multi-view transformer's default): the query pose
+itself gets the noise before any conditioning sees it, so every camera conditioning (raymaps,
+GTA, PRoPE, the learned absolute and relative encodings, the control without cameras) is tested
+on the same perturbed poses: column c of every query pose gets independent N(0, (alpha beta_c)^2)
+noise, beta_c the std of column c over the grid of its DOF in one-column form
+(`camera_conditioning.columnwise`: rooms x, y, yaw; car azimuth, polar), the pose-space analogue
+of the vectors' beta. The noise keys are those of the vector test (`image_keys`), so runs with
+the same seed see the same noisy poses. Periodic angles wrap where the conditioning reads them
+(the learned grid wraps, the cameras' trigonometry does); positions pushed past a DOF's range
+clamp in the learned grid and extrapolate in the cameras. A learned absolute system quantises the
+noisy pose like an exact one (`quantisation`).
 """
 
 from __future__ import annotations
@@ -30,6 +42,7 @@ import numpy as np
 from camrep import metrics as metrics_lib
 from camrep import pose as P
 from camrep import pose_encodings
+from camrep.models import camera_conditioning
 from camrep.runtime import plots
 from camrep.runtime import progress as progress_lib
 from camrep.synthesis import components, heldout, synthesizers
@@ -38,6 +51,10 @@ from camrep.synthesis.restore import Run
 Array = jax.Array
 
 DEFAULT_LEVELS = 13
+
+NOISE_ON = ("vectors", "pose")
+"""Where the noise goes: the query's per-DOF pose vectors v(p) (the paper's test) or the query
+pose before conditioning (every conditioning of the multi-view transformer)."""
 
 
 ALPHA_STEP = 0.025
@@ -85,6 +102,29 @@ def pose_vectors(
   return pose_encodings.GridEncoding(spec).embed_images(params_rep, poses, mode=mode, keys=keys)
 
 
+def pose_betas(spec: P.PoseSystemSpec) -> np.ndarray:
+  """beta per pose column (P,): the std of the column over its DOF's grid, of the system in
+  one-column form (`camera_conditioning.columnwise`), so that a setting's pose columns get the
+  same betas whichever pose system a run learns."""
+  out = []
+  for d in camera_conditioning.columnwise(spec).dofs:
+    out.append(float(np.std(np.asarray(d.candidates(d.spacing), np.float64))))
+  return np.asarray(out)
+
+
+def add_pose_noise(poses: Array, keys: Array, *, alpha: Array | float, betas: Array) -> Array:
+  """p + alpha * beta * z per pose column, z ~ N(0, 1) independent: (E, V, P) -> (E, V, P).
+
+  Args:
+    poses: (E, V, P) exact poses.
+    keys: (E,) per-image keys; image e draws from keys[e].
+    alpha: noise level.
+    betas: (P,) per column (`pose_betas`).
+  """
+  z = jax.vmap(lambda k: jax.random.normal(k, poses.shape[1:]))(keys).astype(poses.dtype)
+  return poses + alpha * jnp.asarray(betas, poses.dtype) * z
+
+
 def add_noise(
   vectors: Mapping[str, Array],
   spec: P.PoseSystemSpec,
@@ -122,11 +162,13 @@ def image_keys(key: Array, image_ids: Array) -> tuple[Array, Array, Array]:
   return keys[:, 0], keys[:, 1], keys[:, 2]
 
 
-def make_noisy_predict(model: synthesizers.Synthesizer, mode: str):
+def make_noisy_predict(model: synthesizers.Synthesizer, mode: str, on: str = "vectors"):
   """jit(params, batch, key, alpha, betas, image_ids) -> (psnr (E,), ssim (E,), pred).
 
-  The query pose vectors get `add_noise` with the `image_keys` of each image; context poses
-  (GQN's encoder input) are embedded with the same quantisation but not noised.
+  on="vectors": the query pose vectors get `add_noise` with the `image_keys` of each image;
+  on="pose": the query poses get `add_pose_noise` with the same keys, before the model reads
+  them. Context poses (GQN's encoder input, the transformer's context cameras) are embedded
+  with the same quantisation but not noised.
 
   Args (of the returned function):
     params: {"model", "rep"}.
@@ -134,7 +176,7 @@ def make_noisy_predict(model: synthesizers.Synthesizer, mode: str):
       context_pose (E, C, P), target_image (E, 1, H, W, 3), target_pose (E, 1, P), scene (E,).
     key: the level's key.
     alpha: scalar noise level.
-    betas: {name: (d,)}.
+    betas: {name: (d,)} (on="vectors") or (P,) (on="pose").
     image_ids: (E,) int32 global image indices.
 
   Returns (of the returned function):
@@ -142,11 +184,18 @@ def make_noisy_predict(model: synthesizers.Synthesizer, mode: str):
   """
   if mode not in P.QUANTISATION_MODES:
     raise ValueError(f"unknown quantisation {mode!r}; choose one of {P.QUANTISATION_MODES}")
+  if on not in NOISE_ON:
+    raise ValueError(f"unknown noise target {on!r}; choose one of {NOISE_ON}")
 
   def predict(params, b, key, alpha, betas, image_ids):
     k_ctx, k_query, k_noise = image_keys(key, image_ids)
-    noise = lambda v: add_noise(v, model.spec, k_noise, alpha=alpha, betas=betas)
-    pred = model.predict(params, b, mode=mode, keys=(k_ctx, k_query), transform=noise)
+    keys = (k_ctx, k_query)
+    if on == "pose":
+      noisy = add_pose_noise(b["target_pose"], k_noise, alpha=alpha, betas=betas)
+      pred = model.predict(params, {**b, "target_pose": noisy}, mode=mode, keys=keys)
+    else:
+      noise = lambda v: add_noise(v, model.spec, k_noise, alpha=alpha, betas=betas)
+      pred = model.predict(params, b, mode=mode, keys=keys, transform=noise)
     target = synthesizers.to_float_images(b["target_image"])
     return metrics_lib.psnr(pred, target), metrics_lib.ssim(pred, target), pred
 
@@ -161,8 +210,10 @@ def noise_robustness(
   quantisation: str | None = None,
   batches: list[dict[str, np.ndarray]] | None = None,
   progress: Callable[[str], None] | None = None,
+  on: str | None = None,
 ) -> dict[str, Any]:
-  """Mean per-image PSNR and SSIM of held-out views against pose-vector noise (the authors' code).
+  """Mean per-image PSNR and SSIM of held-out views against pose noise (the authors' code on the
+  pose vectors; or on the pose before conditioning).
 
   Args:
     run: a loaded run.
@@ -172,19 +223,28 @@ def noise_robustness(
       `default_quantisation(run.config)`.
     batches: the evaluation set; default `heldout.eval_batches(model, train_pipe, test_pipe)`.
     progress: called with one line per level (e.g. `print`).
+    on: `NOISE_ON`; default the model's `noise_on` ("vectors" for the decoders, "pose" for the
+      multi-view transformer).
 
   Returns:
     {"alphas": (L,), "psnr": (L,), "ssim": (L,) means over images; "psnr_per_image",
-     "ssim_per_image": (L, N); "beta": {dof: (d,)}; "quantisation": str; "step": int;
-     "num_images": N}.
+     "ssim_per_image": (L, N); "beta": {dof: (d,)} (on="vectors") or {column: (1,)}
+     (on="pose"); "on": str; "quantisation": str; "step": int; "num_images": N}.
   """
   alphas = default_alphas() if alphas is None else np.asarray(alphas, np.float64).ravel()
   mode = quantisation or default_quantisation(run.config)
+  on = on or run.model.noise_on
   if batches is None:
     batches = heldout.eval_batches(run.model, run.train_pipe, run.test_pipe)
-  betas = grid_betas(run.params["rep"], run.spec, run.model)
-  betas_j = {n: jnp.asarray(b) for n, b in betas.items()}
-  predict = make_noisy_predict(run.model, mode)
+  if on == "pose":
+    per_column = pose_betas(run.spec)
+    columns = camera_conditioning.columnwise(run.spec).names
+    betas = {c: per_column[i : i + 1] for i, c in enumerate(columns)}
+    betas_j = jnp.asarray(per_column, jnp.float32)
+  else:
+    betas = grid_betas(run.params["rep"], run.spec, run.model)
+    betas_j = {n: jnp.asarray(b) for n, b in betas.items()}
+  predict = make_noisy_predict(run.model, mode, on)
   dev_batches = [{k: jnp.asarray(v) for k, v in b.items()} for b in batches]
   offsets = np.cumsum([0] + [len(b["scene"]) for b in batches])
   psnr_all, ssim_all = [], []
@@ -216,6 +276,7 @@ def noise_robustness(
     "psnr_per_image": psnr_all,
     "ssim_per_image": ssim_all,
     "beta": betas,
+    "on": on,
     "quantisation": mode,
     "step": run.step,
     "num_images": int(psnr_all.shape[1]),
@@ -244,6 +305,7 @@ def write_noise(out: str, run: Run, result: Mapping[str, Any]) -> list[str]:
     "workdir": os.path.abspath(run.workdir),
     "step": int(result["step"]),
     "setting": components.setting(run.config).name,
+    "noise_on": result.get("on", "vectors"),
     "quantisation": result["quantisation"],
     "num_images": int(result["num_images"]),
     "alphas": [round(float(a), 10) for a in result["alphas"]],

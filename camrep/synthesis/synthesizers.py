@@ -116,6 +116,8 @@ class Synthesizer(abc.ABC):
     temperature: latent temperature of `predict` for a generative model, else None.
     reads_pose_vectors: the model reads the pose encoding's per-DOF vectors, which `predict`'s
       `transform` perturbs (the noise test) and the Gram maps show.
+    noise_on: where the noise test perturbs the query pose by default (`noise.NOISE_ON`): its
+      per-DOF vectors ("vectors", the paper's test) or the pose before conditioning ("pose").
     variants: further predictions of the held-out evaluation, {name: temperature}.
   """
 
@@ -124,6 +126,7 @@ class Synthesizer(abc.ABC):
   variants: Mapping[str, float] = {}
   reads_context = False
   reads_pose_vectors = True
+  noise_on = "vectors"
 
   @classmethod
   def check(cls, config, spec: P.PoseSystemSpec) -> None:
@@ -387,6 +390,8 @@ class MVTSynthesizer(Synthesizer):
   """
 
   reads_context = True
+  # Every conditioning takes the noise test's noise the same way: on the query pose.
+  noise_on = "pose"
 
   def __init__(self, config, spec, num_scenes: int | None = None):
     del num_scenes  # the context views give the scene

@@ -25,6 +25,7 @@ import numpy as np
 from typing_extensions import override
 
 from camrep.data.feed import pipeline as pipeline_lib
+from camrep.models import layers
 from camrep.runtime import frame as frame_lib
 from camrep.runtime import session as session_lib
 from camrep.runtime import stopping
@@ -126,7 +127,8 @@ def train_and_evaluate(
 
   Writes to `workdir`: config.json, record.json (`components.run_record`, checked at resume),
   config_history.jsonl, metrics.jsonl, checkpoints/, images/, tensorboard/, and
-  final_metrics.json ({"complete": true, "step": total_steps, ...}) once the run is complete.
+  final_metrics.json ({"complete": true, "step": total_steps, "num_params": {group: n}, ...})
+  once the run is complete.
   The same command on a complete workdir changes nothing; with a larger `total_steps` (named in
   `allow_changes`) it extends the run. With the plateau rule on (`config.stop.min_improvement >
   0`) the run may complete before `total_steps`, and final_metrics.json records why
@@ -196,6 +198,8 @@ def train_and_evaluate(
     if fit.complete:
       last = last if fit.step > start else session_lib.last_logged(workdir)
       record = dict(last)
+      # Parameters per optimiser group (the comparisons state them beside their scores).
+      record["num_params"] = {g: layers.param_count(p) for g, p in state.params.items()}
       if rule.active:
         record["stopping"] = fit.stopping_record(rule, config.total_steps, score=SCORE)
       frame.finish(fit.step, record)

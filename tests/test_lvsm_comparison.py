@@ -1,0 +1,147 @@
+"""The transformer comparison's plan (`python -m camrep.comparison --size lvsm_quick`) and its
+reader (experiments/lvsm_table.py) on synthetic run records."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from camrep.comparison import command, transformer
+from camrep.regression import stats
+from camrep.synthesis import conditionings
+from experiments import lvsm_table
+
+ALPHAS = [0.0, 0.1, 0.2, 0.3]
+
+
+def _run(root, column, camera, seed, psnr, *, drop=1.0, source="rooms", data_dir="", noise=True):
+  wd = root / column / f"{camera}_seed{seed}"
+  (wd / "eval").mkdir(parents=True)
+  config = {
+    "task": "mvt",
+    "seed": seed,
+    "model": {"camera": camera},
+    "data": {"source": source, "dir": data_dir, "n_context": 2},
+  }
+  (wd / "config.json").write_text(json.dumps(config))
+  final = {
+    "step": 100,
+    "complete": True,
+    "eval/psnr": psnr,
+    "eval/ssim": 0.5,
+    "eval/psnr_context1": psnr - 1.0,
+    "eval/psnr_context4": psnr + 0.5,
+    "train/steps_per_sec": 4.0,
+    "num_params": {"model": 1000 + (50 if camera == "raymap" else 0), "rep": 0},
+  }
+  (wd / "final_metrics.json").write_text(json.dumps(final))
+  (wd / "metrics.jsonl").write_text(json.dumps({"step": 100, "eval/psnr": psnr}) + "\n")
+  if noise:
+    curve = [psnr - drop * a / ALPHAS[-1] for a in ALPHAS]
+    (wd / "eval" / "noise.json").write_text(
+      json.dumps({"alphas": ALPHAS, "psnr": curve, "ssim": [0.5] * 4, "noise_on": "pose"})
+    )
+  return wd
+
+
+def _rows(md: str, column: str) -> dict[str, list[str]]:
+  section = md.split(f"## {column}")[1].split("\n## ")[0]
+  rows = [line for line in section.splitlines() if line.startswith("|")][2:]
+  return {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[1:-1]] for r in rows}
+
+
+def test_the_reader_builds_the_table_and_figure_with_verdicts_against_raymap(tmp_path, capsys):
+  jitter = [0.0, 0.1, -0.1]
+  for s, j in enumerate(jitter):
+    _run(tmp_path, "rooms", "raymap", s, 18.0 + j, drop=2.0)
+    _run(tmp_path, "rooms", "prope", s, 19.0 + j + 0.05 * s, drop=1.0)  # better, smaller drop
+    _run(tmp_path, "rooms", "none", s, 17.0 + j, drop=0.0)
+    _run(tmp_path, "rooms", "gta", s, 18.0 + (0.3, -0.3, 0.0)[s], drop=2.0)  # a tie
+    _run(tmp_path, "car", "raymap", s, 20.0, source="object")
+    _run(tmp_path, "car", "prope", s, 20.0 + j, source="object", noise=False)
+  _run(tmp_path, "rooms", "learned_rel", 0, 25.0)  # one seed: no verdict
+  _run(tmp_path, "cap", "raymap", 0, 15.0, source="llff", data_dir="/data/chair/")
+  md_path, png = tmp_path / "t.md", tmp_path / "f.png"
+  rc = lvsm_table.main(["--runs", str(tmp_path), "--out", str(md_path), "--png", str(png)])
+  assert rc == 0, capsys.readouterr().err
+  md = md_path.read_text()
+  assert png.exists() and png.with_suffix(".pdf").exists()
+  rooms = _rows(md, "rooms")
+  assert list(rooms)[0] == "raymap"  # the baseline first
+  header = [c.strip() for c in md.split("## rooms")[1].splitlines()[2].split("|")[1:-1]]
+  col = {h: i for i, h in enumerate(header)}
+  assert "ctx 2 (trained)" in col and "ctx 1" in col and "ctx 4" in col
+  # Values: the paired differences' seed-level interval, computed the same way here.
+  diff = [1.0 + 0.05 * s for s in range(3)]
+  iv = stats.interval(np.asarray(diff)[:, None])
+  assert rooms["prope"][col["PSNR - raymap"]] == f"{iv.value:+.2f} [{iv.lo:+.2f}, {iv.hi:+.2f}]"
+  assert rooms["prope"][col["PSNR - raymap"] + 1] == "better"
+  assert rooms["none"][col["PSNR - raymap"] + 1] == "worse"
+  assert rooms["gta"][col["PSNR - raymap"] + 1] == "tie"
+  assert rooms["learned_rel"][col["PSNR - raymap"] + 1] == "-"
+  assert rooms["learned_rel"][col["seeds"]] == "1"
+  # The noise drop: smaller is better (prope 1 dB, raymap 2 dB, none 0 dB).
+  assert rooms["prope"][col["noise drop"]].startswith("1.00")
+  assert rooms["prope"][-2] == "better" and rooms["none"][-2] == "better"
+  assert rooms["gta"][-2] == "tie"
+  assert (
+    rooms["prope"][col["ctx 1"]]
+    == f"{np.mean([19.0 + j + 0.05 * s - 1 for s, j in enumerate(jitter)]):.2f}"
+  )
+  assert (
+    rooms["raymap"][col["params"]] == "1,050" and rooms["prope"][col["params"]] == "1,000 (-50)"
+  )
+  assert rooms["prope"][col["s / step"]] == "0.250"
+  # The car column has no noise tests for prope; the capture column is named by its data.
+  car = _rows(md, "car")
+  assert car["prope"][col["noise drop"]] == "-"
+  assert "## llff:chair" in md
+
+
+def test_the_reader_refuses_two_runs_of_one_cell(tmp_path, capsys):
+  _run(tmp_path / "a", "rooms", "raymap", 0, 18.0)
+  _run(tmp_path / "b", "rooms", "raymap", 0, 18.0)
+  assert lvsm_table.main(["--runs", str(tmp_path)]) == 2
+  assert "two runs of rooms/raymap seed 0" in capsys.readouterr().err
+
+
+def test_the_plan_lists_every_conditioning_seed_and_column_with_estimates(tmp_path, capsys):
+  plan = transformer.plans()["lvsm_quick"]
+  assert set(plan.cameras) == set(conditionings.CONDITIONINGS) and len(plan.seeds) >= 3
+  capture = tmp_path / "chair_prepared"
+  capture.mkdir()
+  out = tmp_path / "cmp"
+  argv = ["--size", "lvsm_quick", "--out", str(out), "--dry_run"]
+  rc = command.main([*argv, "--data", f"car_chair=nerf:{capture}"])
+  text = capsys.readouterr().out
+  assert rc == 0
+  n = len(plan.cameras) * len(plan.seeds) * 3
+  assert f"= {n} view-synthesis runs, {n} noise tests" in text
+  lines = [line for line in text.splitlines() if line.startswith("[~")]
+  runs = [line for line in lines if "camrep.main" in line]
+  assert len(runs) == n
+  for camera in plan.cameras:
+    assert f"    {camera} " in text  # its parameter count
+    for column, cfg in (("rooms", "lvsm.py:quick"), ("car", "lvsm.py:object")):
+      wd = os.path.join(out, "lvsm", column, f"{camera}_seed2")
+      assert any(f"--config=configs/{cfg}" in r and f"--workdir={wd} " in r for r in runs)
+  assert sum("--config.data.source=nerf" in r for r in runs) == n // 3
+  noise = [line for line in lines if "--what=noise --noise_on=pose" in line]
+  assert len(noise) == n
+  assert any("experiments/lvsm_table.py" in line and "--baseline raymap" in line for line in lines)
+  # Without a capture, the plan names the one it expects.
+  assert command.main(argv) == 0
+  assert "no capture column: add --data car_chair=nerf:" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("column", ["rooms", "car"])
+def test_parameter_counts_share_the_trunk(column):
+  counts = transformer.parameter_counts(transformer.plans()["lvsm_quick"], column)
+  trunk = counts["prope"]["model"]
+  for camera in ("none", "gta", "gta_so3", "prope", "learned_rel"):
+    assert counts[camera]["model"] == trunk, camera
+  assert counts["raymap"]["model"] > trunk and counts["learned_abs"]["model"] > trunk
+  assert counts["learned_rel"]["rep"] > 0 and counts["prope"]["rep"] == 0
