@@ -85,6 +85,9 @@ def base() -> ml_collections.ConfigDict:
   # The decoder's pose input: "grid" (the paper's learned system), or for comparisons "lowdim"
   # (GQN's low-dimensional pose vector) or "mlp" (the supplement's MLP embedding per DOF).
   c.rep.kind = "grid"
+  # Control: the generators B stay at their initial values (only the grid vectors learn);
+  # regressed as representation "frozen_gen".
+  c.rep.freeze_generators = False
   c.rep.n_blocks = 6
   c.rep.block_size = 16
   # exp(B t): "taylor2" (authors), "spectral" (exact, cheap), "expm" (reference).

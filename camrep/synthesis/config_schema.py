@@ -129,6 +129,7 @@ SCHEMA: dict[str, V.Field] = {
   "model.z_channels": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW), retired=3),
   "model.draw_temperature": _F(V.NONNEG, _U(_convdraw, _NOT_CONVDRAW), resume=_M, retired=1.0),
   "rep.kind": _F(V.one_of(pose_encodings.SYNTHESIS_KINDS)),
+  "rep.freeze_generators": _F(V.ANY, _U(_grid, _NOT_GRID)),
   "rep.n_blocks": _F(V.POSITIVE),
   "rep.block_size": _F(V.POSITIVE),
   "rep.exp_method": _F(V.one_of(lie.EXP_METHODS)),
