@@ -228,7 +228,7 @@ def synthesis_jobs(
       argv.append("--config.rep.freeze_generators=True")
     elif kind and kind != "convdraw":
       argv.append(f"--config.rep.kind={kind}")
-    if kind != "convdraw":
+    if kind != "convdraw" and not data_flags(cap or setting, data):  # procedural data only
       argv += list(plan.synthesis_extra.get(setting, ()))
     argv += data_flags(cap or setting, data)
     if cap is not None:

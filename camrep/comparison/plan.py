@@ -59,8 +59,9 @@ class Plan:
       over all seeds, never on one seed's), as `--full_grid` asks.
     controls: the control targets added to every column (plans.toml's `controls`, where the
       size says `controls = true`).
-    synthesis_extra: per setting, --config flags its view-synthesis runs add (e.g. 7-Scenes
-      over all seven scenes' trajectories where the :quick config learns from two).
+    synthesis_extra: per setting, --config flags its view-synthesis runs on procedural data add
+      (the plateau rule on the validation split; 7-Scenes over all seven scenes' trajectories
+      where the :quick config learns from two).
     vectorise: the regression runs of one column and representation trained as one program
       (`camrep.regression.vectorised`: phase 1 one over the lrs, phase 2 one over the later seeds):
       {"step_speedup": member-steps per second of the program over the runs one after another,

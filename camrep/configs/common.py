@@ -150,6 +150,11 @@ def base() -> ml_collections.ConfigDict:
   c.stop.min_steps = 0
 
   c.evals = ml_collections.ConfigDict()
+  # The split of the held-out-view evaluation, whose PSNR the plateau rule (`stop`) reads:
+  # "test", or "validation" (held-out views of the training scenes apart from test, where the
+  # source has them: the procedural object, area and scene6dof families), so that the first
+  # stage never stops on the images a regression is tested on.
+  c.evals.split = "test"
   c.evals.num_scenes = 64  # held-out-view evaluation: scenes (one target view each)
   c.evals.batch_scenes = 16
   c.evals.grid_scenes = 4
