@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import subprocess
 import sys
 
 import pytest
@@ -13,6 +14,8 @@ from camrep.comparison import command, launch, plan
 from camrep.runtime import frame as frame_lib
 from camrep.synthesis import config_schema
 from tests.test_tables import _summary, _write
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_dry_run(tmp_path, capsys):
@@ -348,7 +351,13 @@ def test_protocol_plan(tmp_path, capsys):
     assert "--config.rep.freeze_generators=True" not in syn[f"{col}_seed3"].argv
   seven = syn["seven_scenes_seed0"].argv
   assert any(a.startswith("--config.data.family.scenes=") and "stairs" in a for a in seven)
-  assert "--config.data.scenes_per_device=7" in seven
+  assert "--config.data.scenes_per_device=7" in seven and "--config.evals.split=validation" in seven
+  # The command line parses (every field exists) up to the config's checks: a bad value added
+  # last is the first error.
+  bad = subprocess.run(
+    [*seven, "--config.evals.split=bogus"], cwd=ROOT, capture_output=True, text=True, timeout=300
+  )
+  assert bad.returncode == 2 and "--config.evals.split='bogus'" in bad.stderr, bad.stderr
   # The same lr grid size for every representation in every size of the plans.
   for size in plan.plans().values():
     assert all(len(v) >= 2 for v in size.lrs.values())
