@@ -84,14 +84,17 @@ def test_capture_validation_interpolates_and_is_disjoint_from_test(capture):
 def test_a_capture_run_with_the_old_validation_split_refuses_to_resume(tmp_path, capture):
   wd = tmp_path / "run"
   wd.mkdir()
+  c = _config(capture)
+  now = driver.data_record(c)
+  assert now["version"] == 2 and now["validation"] == "interleaved"
   workdir_lib.write_record(str(wd), {"version": 1, "data": {}})
   with pytest.raises(runconfig.ConfigError, match="old validation split of a capture"):
-    driver.check_validation_record(str(wd))
+    driver.check_validation_record(str(wd), now)
+  driver.check_validation_record(str(wd), {"version": 1})  # not a capture: nothing to say
   workdir_lib.write_record(str(wd), {"version": 2, "validation": "interleaved", "data": {}})
-  driver.check_validation_record(str(wd))  # a run of the new split resumes
+  driver.check_validation_record(str(wd), now)  # a run of the new split resumes
   # Through the driver: the refusal comes before anything is trained.
   (wd / "record.json").write_text(json.dumps({"version": 1, "data": {}}))
-  c = _config(capture)
   c.total_steps = 1
   with pytest.raises(runconfig.ConfigError, match="old validation split"):
     driver.run(c, str(wd), log=lambda s: None)

@@ -458,16 +458,28 @@ def read_results(workdir: str) -> dict[str, Any] | None:
     return json.load(f)
 
 
-def check_validation_record(workdir: str) -> None:
-  """Refuses to resume a capture run whose record.json (version 1) predates the interleaved
-  validation split (`views.split_validation`): its validation errors, and so its stopping and
-  its lr's selection, read the last 10% of each capture's views.
+def data_record(config) -> dict[str, Any]:
+  """record.json's data part of a run: {"version", "data": `views.data_record`}; a captures
+  dataset's, whose validation split interleaves (`views.split_validation`), is version 2 with
+  "validation": "interleaved" (version 1: the last 10% of each capture's views)."""
+  record = {"version": 1, "data": views_lib.data_record(config)}
+  if views_lib.is_real(config) and views_lib.interleaved_validation(
+    views_lib.open_dataset(config)[1]
+  ):
+    record = {**record, "version": 2, "validation": "interleaved"}
+  return record
+
+
+def check_validation_record(workdir: str, record: Mapping[str, Any]) -> None:
+  """Refuses to resume a capture run (`record`: this start's `data_record`, version 2) whose
+  record.json (version 1) predates the interleaved validation split: its validation errors, and
+  so its stopping and its lr's selection, read the last 10% of each capture's views.
 
   Raises:
     ConfigError: naming the way out.
   """
   old = workdir_lib.read_record(workdir)
-  if old is not None and old.get("version") == 1:
+  if record.get("version") == 2 and old is not None and old.get("version") == 1:
     raise ConfigError(
       f"cannot resume in {workdir}: it was trained with the old validation split of a capture "
       "(the last 10% of each capture's views, extrapolated), and validation is now every k-th "
@@ -568,12 +580,8 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
   ) as frame:
     if frame.already_complete(rule) is not None and (done := read_results(workdir)) is not None:
       return done
-    record = {"version": 1, "data": views_lib.data_record(config)}
-    if views_lib.is_real(config) and views_lib.interleaved_validation(
-      views_lib.open_dataset(config)[1]
-    ):
-      record = {**record, "version": 2, "validation": "interleaved"}
-      check_validation_record(workdir)
+    record = data_record(config)
+    check_validation_record(workdir, record)
     setup = prepare(config, log=log)
     frame.check_record({**record, **pose_record(setup)})
     predict_fn = jax.jit(learner.predict_poses)
