@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from camrep.configs import seven_scenes, shapenet_car
-from camrep.data import families, sources
+from camrep.data import sources
+from camrep.data.procedural import families
 from camrep.runtime import runconfig
 from camrep.synthesis import config_schema, train
 
