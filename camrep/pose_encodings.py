@@ -22,6 +22,10 @@ rotation and direction losses, eqs. 6-9).
   logq               log quaternion (MapNet's)                                      regression
   rot6d              first two columns of the rotation matrix (Zhou et al. 2019)    regression
   svd9d              the rotation matrix, SVD-projected (Levinson et al. 2020)      regression
+  grid_untrained     control: the learned grid of a view-synthesis run at its        regression
+  ("untrained")      random initialisation (what learning added, taken away)
+  grid_frozen_gen    control: the learned grid of a run that held its generators B   regression
+  ("frozen_gen")     at their initial values (`rep.freeze_generators`)
 
 The hand-designed encodings carry the position raw in a "position" head (none for a setting
 without position) and the orientation in an "orientation" head; rot6d and svd9d are continuous
@@ -144,6 +148,8 @@ class PoseEncoding(abc.ABC):
   regularised: ClassVar[bool] = False
   quantised: ClassVar[bool] = False
   per_dof: ClassVar[bool] = True
+  initial_state: ClassVar[bool] = False
+  frozen_generators: ClassVar[bool] = False
 
   setting: settings_lib.Setting
   spec: P.PoseSystemSpec | None
@@ -152,6 +158,12 @@ class PoseEncoding(abc.ABC):
   def table_name(cls) -> str:
     """`regression_name`, else `name`."""
     return cls.regression_name or cls.name
+
+  @classmethod
+  def trained_by(cls) -> type[PoseEncoding]:
+    """The view-synthesis pose input (`config.rep.kind`) of a run whose parameters a regression
+    of this encoding reads: itself, or the learned grid for its controls."""
+    return cls
 
   @classmethod
   @abc.abstractmethod
@@ -365,6 +377,44 @@ class GridEncoding(PoseEncoding):
   @override
   def spread(self, params):
     return {n: P.grid_std(params, self.spec, n) for n in self.spec.names}
+
+
+@dataclasses.dataclass(frozen=True)
+class UntrainedGridEncoding(GridEncoding):
+  """Control target: the learned grid of a view-synthesis run at its random initialisation
+  (grid vectors and generators i.i.d. normal, `camrep.pose.init`), frozen and regressed exactly
+  as "ours". Against "ours" it says what view synthesis' learning adds beyond the target's form
+  (unit vectors per DOF, arg-min decoding)."""
+
+  name = "grid_untrained"
+  regression_name = "untrained"
+  title = "learned pose system at its initialisation (control)"
+  synthesis_input = False
+  initial_state = True
+
+  @override
+  @classmethod
+  def trained_by(cls):
+    return GridEncoding
+
+
+@dataclasses.dataclass(frozen=True)
+class FrozenGeneratorsGridEncoding(GridEncoding):
+  """Control target: the learned grid of a view-synthesis run trained with its generators B held
+  at their initial values (`rep.freeze_generators`: only the grid vectors and the decoder
+  learn), regressed exactly as "ours". Against "ours" it says what learning the pose shift's
+  matrix representation (eq. 3) adds."""
+
+  name = "grid_frozen_gen"
+  regression_name = "frozen_gen"
+  title = "learned pose system with frozen generators (control)"
+  synthesis_input = False
+  frozen_generators = True
+
+  @override
+  @classmethod
+  def trained_by(cls):
+    return GridEncoding
 
 
 def gqn_lowdim_constants(family: Mapping) -> tuple[float, float]:
@@ -792,6 +842,8 @@ ENCODINGS: dict[str, type[PoseEncoding]] = {
     LogQEncoding,
     Rot6dEncoding,
     Svd9dEncoding,
+    UntrainedGridEncoding,
+    FrozenGeneratorsGridEncoding,
   )
 }
 """name -> encoding class, every encoding of both stages."""
@@ -801,7 +853,8 @@ SYNTHESIS_KINDS = tuple(n for n, c in ENCODINGS.items() if c.synthesis_input)
 
 REPRESENTATIONS = tuple(c.table_name() for c in ENCODINGS.values() if c.regression_target)
 """The regression targets (`config.representation`), as regression configs and records name
-them: ours (the learned grid), mlp and the hand-designed ones."""
+them: ours (the learned grid), mlp, the hand-designed ones and the learned grid's controls
+(untrained, frozen_gen)."""
 
 
 def get(name: str) -> type[PoseEncoding]:

@@ -115,7 +115,7 @@ def capture_columns(runs: str) -> tuple[Column, ...]:
 # column's best hand-designed representation in a row of its own. Unknown names show as given.
 CONTROL_LABELS = {
   "untrained": "untrained pose system",
-  "frozen": "frozen generators",
+  "frozen_gen": "frozen generators",
 }
 NOT_CONTROLS = frozenset((*stats.HAND_DESIGNED, "ours", "mlp"))
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import subprocess
 import sys
 
 import pytest
@@ -13,6 +14,8 @@ from camrep.comparison import command, launch, plan
 from camrep.runtime import frame as frame_lib
 from camrep.synthesis import config_schema
 from tests.test_tables import _summary, _write
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_dry_run(tmp_path, capsys):
@@ -308,3 +311,77 @@ def test_vectorised_regressions(tmp_path, capsys):
     assert not plan.plans()[size].vectorise
     small = command.make_launch(command.parse_args(["--size", size, "--out", out, "--dry_run"]))
     assert all(not j.members and "--config.seed=0" in j.argv for j in small.first)
+
+
+def test_protocol_plan(tmp_path, capsys):
+  """--size protocol: 10 seeds a cell, every seed at every lr, the same lrs for every
+  representation of a column and no extension, the control targets in every column (capture
+  columns too) reading the right view-synthesis runs, 7-Scenes synthesis over all seven scenes."""
+  cap = tmp_path / "chair"
+  cap.mkdir()
+  out = str(tmp_path / "cmp")
+  args = ["--size", "protocol", "--out", out, "--dry_run", "--data", f"car_chair=nerf:{cap}"]
+  assert command.main(args) == 0
+  text = capsys.readouterr().out
+  assert text.startswith("protocol comparison") and "estimated" in text.splitlines()[0]
+  the_launch = command.make_launch(command.parse_args(args))
+  p = the_launch.plan
+  assert len(p.seeds) >= 10 and p.full_grid and p.extend_grid == 0 and not the_launch.later
+  cells = {}
+  for j in the_launch.first:  # the full grid: every seed at every lr, one program a group
+    col, rep = launch._group(j)
+    lrs = tuple(float(x) for x in launch.flag_value(j.argv, "--lrs").split(","))
+    assert lrs == p.lrs[launch.setting_of(col)]
+    assert launch.flag_value(j.argv, "--seeds") == ",".join(map(str, p.seeds))
+    cells.setdefault(col, set()).add(rep)
+  for col, reps in cells.items():
+    assert {"ours", "untrained", "frozen_gen"} <= reps, col
+  syn = {j.name.removeprefix("synthesis_"): j for j in the_launch.synth}
+  for j in the_launch.first:
+    col, rep = launch._group(j)
+    reads = {os.path.basename(w) for w in launch.synthesis_reads(j)}
+    if rep in ("ours", "untrained"):
+      assert reads == {f"{col}_seed{k}" for k in p.seeds}
+    elif rep == "frozen_gen":
+      assert reads == {f"{col}_frozen_gen_seed{k}" for k in p.seeds}
+    assert reads <= set(syn)
+  for col in cells:
+    frozen = syn[f"{col}_frozen_gen_seed3"].argv
+    assert "--config.rep.freeze_generators=True" in frozen and "--config.seed=3" in frozen
+    assert "--config.rep.freeze_generators=True" not in syn[f"{col}_seed3"].argv
+  seven = syn["seven_scenes_seed0"].argv
+  assert any(a.startswith("--config.data.family.scenes=") and "stairs" in a for a in seven)
+  assert "--config.data.scenes_per_device=7" in seven and "--config.evals.split=validation" in seven
+  # The command line parses (every field exists) up to the config's checks: a bad value added
+  # last is the first error.
+  bad = subprocess.run(
+    [*seven, "--config.evals.split=bogus"], cwd=ROOT, capture_output=True, text=True, timeout=300
+  )
+  assert bad.returncode == 2 and "--config.evals.split='bogus'" in bad.stderr, bad.stderr
+  # The same lr grid size for every representation in every size of the plans.
+  for size in plan.plans().values():
+    assert all(len(v) >= 2 for v in size.lrs.values())
+  # The noise figures' other pose inputs: the area (gibson) and the car's low-dim vector too.
+  noise = ["--size", "protocol", "--out", out, "--dry_run", "--noise_runs"]
+  assert command.main([*noise, "--settings", "gibson,car"]) == 0
+  text = capsys.readouterr().out
+  for name in ("gibson_lowdim_seed0", "gibson_mlp_seed0", "car_lowdim_seed0"):
+    assert f"--workdir={out}/synthesis/{name} " in text
+  assert "car_convdraw" not in text and "noise_gibson" in text
+
+
+def test_plan_refuses_convdraw_where_there_is_no_context(monkeypatch):
+  data = {
+    "settings": {
+      s: {**v, "representations": list(v["representations"])}
+      for s, v in plan._read()["settings"].items()
+    }
+  }
+  data["settings"]["car"]["noise_inputs"] = ["lowdim", "convdraw"]
+  monkeypatch.setattr(plan, "_read", lambda: data)
+  plan.settings.cache_clear()
+  try:
+    with pytest.raises(ValueError, match="convdraw.*reads context views"):
+      plan.settings()
+  finally:
+    plan.settings.cache_clear()

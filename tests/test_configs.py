@@ -85,8 +85,12 @@ def test_configs_resolve_as_before():
   configs' `stop` section (defaults: off) was added to their entries, the ConvDRAW fields
   (`synthesis.config_schema.RETIRED`) were deleted from every config but gqn_convdraw when they
   moved from `common.base()` to `gqn_convdraw.py`, and the run frame's `steps_per_dispatch` (10
-  at paper size, 1 in every variant) was added to every entry, and the lvsm config (no paper
-  size) entered with its variants as written, later with its evals.context_counts (nothing else
+  at paper size, 1 in every variant) was added to every entry, the lvsm config (no paper
+  size) entered with its variants as written, later with its evals.context_counts,
+  `rep.freeze_generators` (False: the frozen-generators control's switch) was added to every
+  entry with a `rep` section and `evals.split` ("test": the split of the held-out evaluation and
+  the plateau rule) to every entry, and seven_scenes:quick states its family's scenes (the small
+  preset's chess and heads, the same data) (nothing else
   changed). A
   workdir's config.json is compared with the requested config on resume
   (`runconfig.check_changes`), so a field that changed or disappeared here would refuse to resume

@@ -272,7 +272,7 @@ def test_control_rows_and_holm_over_every_comparison(tmp_path):
     _run(root, "car", "mlp", 1e-3, seed, {"rotation_error_deg": _errors(3.0, seed)})
     noisy = _errors(4.0, seed) * (1 + 0.05 * rng.standard_normal())
     _run(root, "car", "untrained", 1e-3, seed, {"rotation_error_deg": noisy})
-    _run(root, "car", "frozen", 1e-3, seed, {"rotation_error_deg": _errors(8.0, seed)})
+    _run(root, "car", "frozen_gen", 1e-3, seed, {"rotation_error_deg": _errors(8.0, seed)})
   text = lead_table.build(root)
   rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[1:-1]] for r in _rows(text)}
   assert list(rows) == [

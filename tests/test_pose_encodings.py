@@ -40,7 +40,8 @@ def _config(kind, source="rooms", family=None):
 
 def test_one_registry_of_every_encoding():
   assert tuple(E.ENCODINGS) == (
-    "grid", "mlp", "lowdim", "euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d"
+    "grid", "mlp", "lowdim", "euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d",
+    "grid_untrained", "grid_frozen_gen",
   )  # fmt: skip
   assert E.SYNTHESIS_KINDS == ("grid", "mlp", "lowdim")
   for name, cls in E.ENCODINGS.items():
@@ -50,8 +51,11 @@ def test_one_registry_of_every_encoding():
   assert E.get("ours") is E.GridEncoding and E.get("mlp") is E.MlpEncoding
   with pytest.raises(ValueError, match="unknown pose encoding 'spline'"):
     E.get("spline")
-  # Only the learned grid has a loss of its own (its generators tie nearby poses together).
-  assert [n for n, c in E.ENCODINGS.items() if c.regularised] == ["grid"]
+  # Only the learned grid has a loss of its own (its generators tie nearby poses together); its
+  # controls are the same grid, regressed from other states of a view-synthesis run.
+  regularised = [n for n, c in E.ENCODINGS.items() if c.regularised]
+  assert regularised == ["grid", "grid_untrained", "grid_frozen_gen"]
+  assert all(issubclass(E.ENCODINGS[n], E.GridEncoding) for n in regularised)
 
 
 @pytest.mark.parametrize("name", list(E.ENCODINGS))

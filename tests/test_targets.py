@@ -397,12 +397,11 @@ def test_homoscedastic_gradient_wrt_s():
 
 def test_one_encoding_class_per_representation():
   assert T.REPRESENTATIONS == (
-    "ours", "mlp", "euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d"
+    "ours", "mlp", "euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d",
+    "untrained", "frozen_gen",
   )  # fmt: skip
-  assert set(T.LEARNED) == {"ours", "mlp"} and set(T.BASELINES) == set(T.REPRESENTATIONS) - {
-    "ours",
-    "mlp",
-  }
+  learned = {"ours", "mlp", "untrained", "frozen_gen"}
+  assert set(T.LEARNED) == learned and set(T.BASELINES) == set(T.REPRESENTATIONS) - learned
   for name in T.REPRESENTATIONS:
     cls = pose_encodings.get(name)
     assert cls.table_name() == name and cls.loss in T.LOSSES and cls.regression_target

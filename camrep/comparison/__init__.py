@@ -7,6 +7,7 @@
       --data seven_scenes=PREPARED_DIR --out DIR       # Table 2 from prepared real 7-Scenes
   python -m camrep.comparison --size converge --out DIR --archive results/converge \\
       --max_hours 2 [--data car_chair=nerf:PREPARED_DIR ...] [--noise_runs] [--crossed car]
+  python -m camrep.comparison --size protocol --out DIR [--noise_runs] [--dry_run]
 
 Run from a checkout (its configs/ and experiments/). The plans, one per `--size`, are data in
 camrep/comparison/plans.toml (seeds, learning-rate grids, caps, the inputs of the estimates).
@@ -17,8 +18,11 @@ aside as <name>.damaged, and trained again):
 
   1. view-synthesis runs (`python -m camrep.main --config=configs/<setting>.py[:variant]`) into
      DIR/synthesis/<name>: each setting's learned pose system; the car's (and each capture
-     column's) MLP embedding (`--config.rep.kind=mlp`); with --noise_runs GQN's other pose
-     inputs (lowdim, mlp) and its own generator (configs/gqn_convdraw.py, not at medium size);
+     column's) MLP embedding (`--config.rep.kind=mlp`); where the plan adds the control targets,
+     each column's learned system with frozen generators (<column>_frozen_gen,
+     `--config.rep.freeze_generators=True`); with --noise_runs each setting's other pose inputs
+     (plans.toml `noise_inputs`: GQN's lowdim, mlp and its own generator, configs/gqn_convdraw.py,
+     not at medium size; the car's lowdim; the area's lowdim and mlp);
   2. regression runs (`python -m camrep.regression
      --config=configs/regression.py:SETTING[,variant]`)
      into DIR/regression/<column>/<representation>/<lr>_seed<k>: phase 1 trains seed 0 at every
@@ -44,6 +48,13 @@ by regression seed k of ours; the launch goes seed by seed (vectorised: every se
 synthesis before phase 2). `--crossed COLUMN` adds, after phase
 2, every regression seed of ours on every other synthesis seed's pose system (DIR/crossed/,
 never tabled with the paired runs), then experiments/seed_spread.py -> DIR/seed_spread_<column>.md.
+
+`--size protocol`: the converge rules and caps with 10 seeds a cell, every seed at every lr
+(`full_grid`: the lr chosen on the validation mean over all seeds), the same lrs for every
+representation of a column (no extension), the control targets "untrained" (ours' own
+synthesis run at its initialisation) and "frozen_gen" in every column, view synthesis stopped on
+the families' validation split (`--config.evals.split=validation`; procedural columns), and
+7-Scenes synthesis over all seven scenes' trajectories.
 
 `--archive DIR`: each finished run's compact record (`camrep.comparison.archive`) is written into
 DIR as soon as the run ends, and a launch starts by restoring the records DIR holds; a restored

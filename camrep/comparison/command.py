@@ -20,7 +20,7 @@ from camrep.runtime import cli
 from camrep.runtime import progress as progress_lib
 from camrep.runtime import workdir as workdir_lib
 
-NOISE_KINDS = ("lowdim", "mlp", "convdraw")
+NOISE_KINDS = plan_lib.NOISE_INPUTS
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -50,12 +50,14 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
   p.add_argument(
     "--noise_runs",
     action="store_true",
-    help="also train the GQN noise figure's other pose inputs (--noise_kinds)",
+    help="also train the noise figures' other pose inputs (a setting's noise_inputs in "
+    "camrep/comparison/plans.toml, those of --noise_kinds)",
   )
   p.add_argument(
     "--noise_kinds",
     default=",".join(NOISE_KINDS),
-    help="with --noise_runs: which GQN pose inputs / generators (ConvDRAW not at medium size)",
+    help="with --noise_runs: which other pose inputs / generators (ConvDRAW: GQN's layout only, "
+    "not at medium size)",
   )
   p.add_argument(
     "--data",
@@ -160,7 +162,7 @@ def make_launch(args: argparse.Namespace) -> launch_lib.Launch:
       representations=args.representations,
       data=args.data,
       python=args.python,
-      full_grid=args.full_grid,
+      full_grid=args.full_grid or args.plan.full_grid,
       vectorise=not args.no_vectorise,
       skip_figures=args.skip_figures,
       noise_kinds=args.noise_kinds,

@@ -204,9 +204,11 @@ class Launch:
 def synthesis_jobs(
   out: str, plan: plan_lib.Plan, names: Sequence[str], py: str, data: dict | None = None
 ) -> list[Job]:
-  """View-synthesis runs "<setting>[_<kind>][_seed<k>]" (the learned system, or another pose
-  input `--config.rep.kind=<kind>`; a capture column's "car_<NAME>[_mlp]"), into
-  DIR/synthesis/<name>, on the prepared real data `data` names."""
+  """View-synthesis runs "<setting>[_<kind>][_seed<k>]" (the learned system, another pose input
+  `--config.rep.kind=<kind>`, or "frozen_gen": the learned system with
+  `--config.rep.freeze_generators=True`; a capture column's "car_<NAME>[_<kind>]"), into
+  DIR/synthesis/<name>, on the prepared real data `data` names, with the plan's extra flags of
+  the setting (`Plan.synthesis_extra`)."""
   jobs = []
   for full in names:
     name, _, seed = full.partition("_seed")
@@ -214,7 +216,7 @@ def synthesis_jobs(
     kind = name[len(setting) + 1 :]
     cap = capture_of(name, data)
     if cap is not None:  # a capture column: the car setting on the capture, one instance a step
-      kind = name[len(cap) + 1 :]  # "" (the learned system) or "mlp"
+      kind = name[len(cap) + 1 :]  # "" (the learned system), "mlp" or "frozen_gen"
     wd = os.path.join(out, "synthesis", full)
     config = (
       "configs/gqn_convdraw.py"  # GQN's own generator, fed GQN's 7-D pose vector
@@ -222,8 +224,12 @@ def synthesis_jobs(
       else plan_lib.settings()[setting]["synthesis_config"]
     )
     argv = [py, "-m", "camrep.main", f"--config={config}{plan.suffix}", f"--workdir={wd}"]
-    if kind and kind != "convdraw":
+    if kind == plan_lib.FROZEN_GENERATORS:
+      argv.append("--config.rep.freeze_generators=True")
+    elif kind and kind != "convdraw":
       argv.append(f"--config.rep.kind={kind}")
+    if kind != "convdraw" and not data_flags(cap or setting, data):  # procedural data only
+      argv += list(plan.synthesis_extra.get(setting, ()))
     argv += data_flags(cap or setting, data)
     if cap is not None:
       argv.append("--config.data.scenes_per_device=1")
@@ -267,10 +273,9 @@ def regression_job(
   ]
   syn = os.path.join(out, "synthesis", column)
   pair = f"_seed{seed}" if plan.paired_synthesis else ""
-  if rep == "ours":
-    argv.append(f"--config.synthesis_workdir={syn}{pair}")
-  elif rep == "mlp":
-    argv.append(f"--config.synthesis_workdir={syn}_mlp{pair}")
+  suffix = plan_lib.synthesis_suffix(rep)
+  if suffix is not None:  # ours and its controls, mlp: the run of their pose input
+    argv.append(f"--config.synthesis_workdir={syn}{suffix}{pair}")
   name = f"regression_{column}_{rep}_{tag}_seed{seed}"
   return Job(name, argv, wd, plan.regression_s[setting], "regression")
 
@@ -545,19 +550,25 @@ def make_launch(
   reps = {
     c: tuple(
       r
-      for r in plan_lib.settings()[setting_of(c)]["representations"]
+      for r in plan_lib.settings()[setting_of(c)]["representations"] + plan.controls
       if not representations or r in representations
     )
     for c in columns
   }
   out = os.path.abspath(out)
-  names = [c for c in columns if "ours" in reps[c]]
-  # The MLP embedding's own synthesis runs, for the car and each capture column.
-  names += [f"{c}_mlp" for c in columns if "mlp" in reps[c]]
+  # The runs whose pose inputs the regressions read: the learned grid (ours, untrained), the MLP
+  # embedding's own (car and each capture column), the grid with frozen generators.
+  names = []
+  for c in columns:
+    for rep in reps[c]:
+      suffix = plan_lib.synthesis_suffix(rep)
+      if suffix is not None and c + suffix not in names:
+        names.append(c + suffix)
   kinds = [k for k in noise_kinds or () if k != "convdraw" or plan.has_convdraw()]
-  noisy = [c for c in columns if plan_lib.settings().get(c, {}).get("noise_inputs")]
-  for s in noisy if noise_kinds else []:
-    names += [n for n in [s, *(f"{s}_{k}" for k in kinds)] if n not in names]
+  for s in columns if noise_kinds else []:
+    inputs = plan_lib.settings().get(s, {}).get("noise_inputs", ())
+    if inputs:  # the noise figure's other pose inputs of the setting
+      names += [n for n in [s, *(f"{s}_{k}" for k in kinds if k in inputs)] if n not in names]
   if plan.paired_synthesis:  # one synthesis run per seed, paired with the regression seed
     names = [f"{n}_seed{k}" for n in names for k in plan.seeds]
   data = {c: d for c, d in data.items() if c in columns}

@@ -25,6 +25,12 @@ from camrep.data import sources
 
 PLANS_FILE = pathlib.Path(__file__).with_name("plans.toml")
 SETTINGS = settings_lib.names()
+NOISE_INPUTS = ("lowdim", "mlp", "convdraw")
+"""The noise figure's other pose inputs (`noise_inputs` of a setting, `--noise_kinds`): GQN's
+low-dimensional vector, the MLP embedding, GQN's own generator (ConvDRAW, GQN's layout only)."""
+FROZEN_GENERATORS = "frozen_gen"
+"""The view-synthesis run kind "<column>_frozen_gen": the learned grid with
+`--config.rep.freeze_generators=True` (the "frozen_gen" control's pose system)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,6 +55,13 @@ class Plan:
     synthesis_caps: view-synthesis steps per setting under the rule; a setting not named keeps
       its config's own total_steps and no rule.
     convdraw_steps: GQN's ConvDRAW length, its schedules stretched to it (0: its config's own).
+    full_grid: every seed at every lr of its grid (the lr then chosen on the validation mean
+      over all seeds, never on one seed's), as `--full_grid` asks.
+    controls: the control targets added to every column (plans.toml's `controls`, where the
+      size says `controls = true`).
+    synthesis_extra: per setting, --config flags its view-synthesis runs on procedural data add
+      (the plateau rule on the validation split; 7-Scenes over all seven scenes' trajectories
+      where the :quick config learns from two).
     vectorise: the regression runs of one column and representation trained as one program
       (`camrep.regression.vectorised`: phase 1 one over the lrs, phase 2 one over the later seeds):
       {"step_speedup": member-steps per second of the program over the runs one after another,
@@ -72,6 +85,9 @@ class Plan:
   synthesis_caps: dict[str, int] = dataclasses.field(default_factory=dict)
   convdraw_steps: int = 0
   vectorise: dict[str, float] = dataclasses.field(default_factory=dict)
+  full_grid: bool = False
+  controls: tuple[str, ...] = ()
+  synthesis_extra: dict[str, tuple[str, ...]] = dataclasses.field(default_factory=dict)
 
   @property
   def suffix(self) -> str:
@@ -113,8 +129,39 @@ def settings() -> dict[str, dict[str, Any]]:
     bad = set(s["representations"]) - set(pose_encodings.REPRESENTATIONS)
     if bad:
       raise ValueError(f"{PLANS_FILE}: {name}: unknown representations {sorted(bad)}")
+    kinds = set(s.get("noise_inputs", ()))
+    bad = kinds - set(NOISE_INPUTS)
+    if bad:
+      raise ValueError(
+        f"{PLANS_FILE}: {name}: unknown noise_inputs {sorted(bad)}; choose from {NOISE_INPUTS}"
+      )
+    if "convdraw" in kinds and not settings_lib.get(name).context_views:
+      raise ValueError(
+        f"{PLANS_FILE}: {name}: GQN's generator (convdraw) reads context views (task gqn); "
+        f"the {name} setting has none"
+      )
   # In plans.toml's order: the order of the tables' columns.
-  return {n: {**s, "representations": tuple(s["representations"])} for n, s in data.items()}
+  return {
+    n: {
+      **s,
+      "representations": tuple(s["representations"]),
+      "noise_inputs": tuple(s.get("noise_inputs", ())),
+    }
+    for n, s in data.items()
+  }
+
+
+def synthesis_suffix(representation: str) -> str | None:
+  """The suffix of the view-synthesis run ("<column><suffix>[_seed<k>]") whose pose input a
+  regression of `representation` reads, None for one that reads none: "" for the learned grid
+  and its untrained control, "_mlp" for the MLP embedding, "_frozen_gen" for the grid learned
+  with frozen generators."""
+  cls = pose_encodings.get(representation)
+  if not cls.learned:
+    return None
+  kind = cls.trained_by()
+  suffix = "" if kind is pose_encodings.GridEncoding else f"_{kind.name}"
+  return suffix + (f"_{FROZEN_GENERATORS}" if cls.frozen_generators else "")
 
 
 @functools.cache
@@ -137,6 +184,9 @@ def _plan(name: str, d: Mapping[str, Any]) -> Plan:
     paired_synthesis=bool(d.get("paired_synthesis", False)),
     extend_grid=int(d.get("extend_grid", 0)),
     vectorise=_floats(d.get("vectorise", {})),
+    full_grid=bool(d.get("full_grid", False)),
+    controls=tuple(_read()["controls"]) if d.get("controls", False) else (),
+    synthesis_extra={s: tuple(v) for s, v in d.get("synthesis_extra", {}).items()},
   )
   if "seconds" in d:
     sec = d["seconds"]

@@ -85,6 +85,9 @@ def base() -> ml_collections.ConfigDict:
   # The decoder's pose input: "grid" (the paper's learned system), or for comparisons "lowdim"
   # (GQN's low-dimensional pose vector) or "mlp" (the supplement's MLP embedding per DOF).
   c.rep.kind = "grid"
+  # Control: the generators B stay at their initial values (only the grid vectors learn);
+  # regressed as representation "frozen_gen".
+  c.rep.freeze_generators = False
   c.rep.n_blocks = 6
   c.rep.block_size = 16
   # exp(B t): "taylor2" (authors), "spectral" (exact, cheap), "expm" (reference).
@@ -147,6 +150,11 @@ def base() -> ml_collections.ConfigDict:
   c.stop.min_steps = 0
 
   c.evals = ml_collections.ConfigDict()
+  # The split of the held-out-view evaluation, whose PSNR the plateau rule (`stop`) reads:
+  # "test", or "validation" (held-out views of the training scenes apart from test, where the
+  # source has them: the procedural object, area and scene6dof families), so that the first
+  # stage never stops on the images a regression is tested on.
+  c.evals.split = "test"
   c.evals.num_scenes = 64  # held-out-view evaluation: scenes (one target view each)
   c.evals.batch_scenes = 16
   c.evals.grid_scenes = 4

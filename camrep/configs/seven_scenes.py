@@ -52,6 +52,9 @@ def get_config(arg: str | None = None):
   c.eval_every_steps = 4000
   if variant in ("quick", "medium"):
     common.quick(c)
+    # The small preset's scenes, stated so that --config.data.family.scenes can name others (the
+    # comparison's protocol size trains on all seven).
+    c.data.family.scenes = ("chess", "heads")
     c.data.family.train_stride = 20
     c.data.family.test_stride = 100
     c.data.scenes_per_device = 2

@@ -45,6 +45,21 @@ def _reads_synthesis(c) -> bool:
   return pose_encodings.get(c.representation).needs_synthesis
 
 
+def _encoding(c):
+  try:
+    return pose_encodings.get(c.representation)
+  except ValueError:  # an unknown representation: the field's own rule names it
+    return pose_encodings.PoseEncoding
+
+
+def _learned(c) -> bool:
+  return _encoding(c).learned
+
+
+def _quantised(c) -> bool:
+  return _encoding(c).quantised
+
+
 _NOT_REAL = "used with real data (data.source and data.dir) only"
 
 
@@ -63,14 +78,14 @@ SCHEMA: dict[str, V.Field] = {
   "synthesis_workdir": _F(
     V.optional(V.Rule("dir")),
     _U(
-      lambda c: c.representation in ("ours", "mlp"),
-      "only representations 'ours' and 'mlp' read a view-synthesis workdir",
+      _learned,
+      "only the learned representations (ours, its controls, mlp) read a view-synthesis workdir",
     ),
   ),
   "allow_incomplete_synthesis": _F(
     V.ANY,
     _U(
-      lambda c: c.representation in ("ours", "mlp") and bool(c.synthesis_workdir),
+      lambda c: _learned(c) and bool(c.synthesis_workdir),
       "only a run that reads a view-synthesis workdir (synthesis_workdir) checks its state",
     ),
     resume=_FREE,
@@ -95,14 +110,14 @@ SCHEMA: dict[str, V.Field] = {
   "model.width": _F(V.POSITIVE),
   "model.refine_steps": _F(
     V.NONNEG,
-    _U(lambda c: c.representation == "ours", "used by representation='ours' only"),
+    _U(_quantised, "used by the learned grid ('ours' and its controls) only"),
     resume=_M,
   ),
   "model.resnet_stages": _F(V.Rule("positive_tuple")),
   "model.fc_dim": _F(V.POSITIVE),
   "model.resnet_weights": _F(V.optional(V.Rule("file"))),
   "model.equalise_params": _F(
-    V.ANY, _U(lambda c: c.representation != "ours", "used by the baselines only, not 'ours'")
+    V.ANY, _U(lambda c: not _quantised(c), "used by the baselines only, not 'ours'")
   ),
   "optax.lr": _F(V.POSITIVE),
   "optax.weight_decay": _F(V.optional(V.NONNEG)),

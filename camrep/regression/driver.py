@@ -458,6 +458,37 @@ def read_results(workdir: str) -> dict[str, Any] | None:
     return json.load(f)
 
 
+def data_record(config) -> dict[str, Any]:
+  """record.json's data part of a run: {"version", "data": `views.data_record`}; a captures
+  dataset's, whose validation split interleaves (`views.split_validation`), is version 2 with
+  "validation": "interleaved" (version 1: the last 10% of each capture's views)."""
+  record = {"version": 1, "data": views_lib.data_record(config)}
+  if views_lib.is_real(config) and views_lib.interleaved_validation(
+    views_lib.open_dataset(config)[1]
+  ):
+    record = {**record, "version": 2, "validation": "interleaved"}
+  return record
+
+
+def check_validation_record(workdir: str, record: Mapping[str, Any]) -> None:
+  """Refuses to resume a capture run (`record`: this start's `data_record`, version 2) whose
+  record.json (version 1) predates the interleaved validation split: its validation errors, and
+  so its stopping and its lr's selection, read the last 10% of each capture's views.
+
+  Raises:
+    ConfigError: naming the way out.
+  """
+  old = workdir_lib.read_record(workdir)
+  if record.get("version") == 2 and old is not None and old.get("version") == 1:
+    raise ConfigError(
+      f"cannot resume in {workdir}: it was trained with the old validation split of a capture "
+      "(the last 10% of each capture's views, extrapolated), and validation is now every k-th "
+      "training view (interleaved as the test views are): its stopping and lr selection read "
+      "the old split. Train it again in a new --workdir (or move this one aside); its finished "
+      'results keep their meaning, named by results.json "data.validation"'
+    )
+
+
 def pose_record(setup: Setup) -> dict[str, Any]:
   """What record.json holds of a run's pose system: its spec (learned representations) and the
   digest of the parameters it read (a resume must read the same ones)."""
@@ -549,7 +580,8 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
   ) as frame:
     if frame.already_complete(rule) is not None and (done := read_results(workdir)) is not None:
       return done
-    record = {"version": 1, "data": views_lib.data_record(config)}
+    record = data_record(config)
+    check_validation_record(workdir, record)
     setup = prepare(config, log=log)
     frame.check_record({**record, **pose_record(setup)})
     predict_fn = jax.jit(learner.predict_poses)

@@ -4,7 +4,9 @@ tie it to a view-synthesis workdir trained on the same data.
   representation_params  (spec, params, info) of `config.representation`: nothing for the
                          baselines; a learned encoding's from `config.synthesis_workdir` when
                          that run trained the same encoding ("ours": the learned grid system,
-                         required), else a frozen randomly initialised one ("mlp": `MlpEncoding`)
+                         required; the controls "untrained": that run's initial grid,
+                         "frozen_gen": a run that froze its generators), else a frozen randomly
+                         initialised one ("mlp": `MlpEncoding`)
   load_pose_system       restores a view-synthesis workdir's pose input (the synthesis
                          `load_run`, which reads no data), checked against the setting and,
                          given the regression's config, its data
@@ -133,12 +135,15 @@ def check_same_world(workdir: str, syn_config, config) -> None:
 
 
 def load_pose_system(
-  workdir: str, setting: settings_lib.Setting | str, *, config=None
+  workdir: str, setting: settings_lib.Setting | str, *, config=None, initial: bool = False
 ) -> dict[str, Any]:
   """The frozen pose input of a view-synthesis workdir, checked against the setting (and, with
-  the regression's `config`, against its data: `check_same_data`).
+  the regression's `config`, against its data: `check_same_data`, and the encoding it regresses:
+  `check_trained_encoding`).
 
-  Restores the latest checkpoint with the synthesis `load_run` (which reads no data).
+  Restores the latest checkpoint with the synthesis `load_run` (which reads no data); with
+  `initial`, the run's pose input as its init gave it (`Synthesizer.init_pose` of its root key),
+  the checkpoint only checked to exist and to match the model.
 
   Returns:
     {"spec": PoseSystemSpec, "rep": pose-input params, "kind": "grid" / "mlp" / "lowdim",
@@ -164,7 +169,7 @@ def load_pose_system(
   kind = syn_config.rep.get("kind", "grid")
   if config is not None:
     check_same_data(workdir, syn_config, config)
-    _check_trained_encoding(workdir, config.representation, kind)
+    check_trained_encoding(workdir, config.representation, syn_config)
   spec = components.pose_spec(syn_config)
   try:
     with ckpt_lib.Checkpointer(workdir, read_only=True) as ck:
@@ -185,6 +190,11 @@ def load_pose_system(
       "configs/shapenet_car.py, ...)"
     )
   rep = jax.tree.map(jnp.asarray, run.params["rep"])
+  if initial:
+    from camrep.synthesis import step as step_lib
+
+    # Jitted as the run's own init (`step.init_fn`): the same bits (eager differs by 1e-10).
+    rep = jax.jit(run.model.init_pose)(step_lib.root_keys(run.config)[0])
   return {
     "spec": spec,
     "rep": rep,
@@ -206,14 +216,36 @@ def params_digest(params) -> str:
   return "sha256:" + h.hexdigest()
 
 
-def _check_trained_encoding(workdir: str, representation: str, kind: str) -> None:
+def check_trained_encoding(workdir: str, representation: str, syn_config) -> None:
   """Refuses a view-synthesis run that did not train the encoding a representation must read
-  from one (`PoseEncoding.needs_synthesis`: the learned grid, "ours")."""
+  from one (`PoseEncoding.needs_synthesis`: the learned grid, "ours", and its controls), or that
+  froze its generators where the representation needs them learned, or the reverse
+  (`PoseEncoding.frozen_generators`).
+
+  Raises:
+    ConfigError: as above.
+  """
   cls = pose_encodings.get(representation)
-  if cls.needs_synthesis and pose_encodings.get(kind) is not cls:
+  kind = syn_config.rep.get("kind", "grid")
+  if not cls.needs_synthesis:
+    return
+  trained = cls.trained_by()
+  if pose_encodings.get(kind) is not trained:
     raise ConfigError(
       f"synthesis_workdir {workdir} was trained with another pose system, rep.kind={kind!r}; "
-      f'"{cls.table_name()}" needs the learned grid system (rep.kind="{cls.name}")'
+      f'"{cls.table_name()}" needs the learned grid system (rep.kind="{trained.name}")'
+    )
+  frozen = bool(syn_config.rep.get("freeze_generators", False))
+  if frozen != cls.frozen_generators:
+    held = "held its generators at their initial values" if frozen else "learned its generators"
+    want = (
+      "a run with --config.rep.freeze_generators=True"
+      if cls.frozen_generators
+      else 'a run that learned them ("frozen_gen" regresses a run with frozen generators)'
+    )
+    raise ConfigError(
+      f"synthesis_workdir {workdir} {held} (rep.freeze_generators={frozen}); "
+      f'"{cls.table_name()}" needs {want}'
     )
 
 
@@ -229,16 +261,19 @@ def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
   setting = settings_lib.get(config.setting)
   system = None
   if config.synthesis_workdir:
-    system = load_pose_system(config.synthesis_workdir, setting, config=config)
+    system = load_pose_system(
+      config.synthesis_workdir, setting, config=config, initial=cls.initial_state
+    )
   if system is None and cls.needs_synthesis:
     raise ConfigError(
       f'representation "{cls.table_name()}" regresses the learned pose system of a '
       "view-synthesis run: pass --config.synthesis_workdir=DIR"
     )
   if system is not None:
-    _check_trained_encoding(system["workdir"], config.representation, system["kind"])
-    if pose_encodings.get(system["kind"]) is cls:
+    if pose_encodings.get(system["kind"]) is cls.trained_by():
       info = {k: system[k] for k in ("workdir", "step", "digest")}
+      if cls.initial_state:
+        info["state"] = "initial"  # the run's step-0 pose system; "step" names its checkpoint
       return system["spec"], system["rep"], {"source": "synthesis", **info}
   spec = system["spec"] if system else setting.pose_spec()
   key = jax.random.fold_in(jax.random.key(config.seed), 1)

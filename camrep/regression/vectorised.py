@@ -307,7 +307,8 @@ def _prepare(todo: Sequence[Member], *, log) -> tuple[dict, Callable]:
   program; the shared evaluation batches and the jitted prediction."""
   data = None
   for m in todo:
-    record = {"version": 1, "data": views_lib.data_record(m.config)}
+    record = driver.data_record(m.config)
+    driver.check_validation_record(m.workdir, record)
     if data is not None and record["data"] != todo[0].record["data"]:
       raise ConfigError(
         f"member {m.label}: its data differ from those of {todo[0].label}; train it alone"

@@ -182,14 +182,33 @@ def load_split(family, split: str, *, cache_dir: str = "") -> ViewSet:
   return ViewSet(index, images.__getitem__)
 
 
+def validation_every(fraction: float) -> int:
+  """k of an interleaved validation split: every k-th training view, k = round(1 / fraction)
+  (at least 2)."""
+  return max(2, round(1.0 / fraction))
+
+
+def interleaved_description(fraction: float) -> str:
+  """How an interleaved validation split is chosen, in words (results.json, record.json)."""
+  k = validation_every(fraction)
+  return (
+    f"every {k}th training view of each capture by view id (views {k // 2}, {k // 2 + k}, ..., "
+    "never the last), between training views as the held-out test views are; disjoint from test"
+  )
+
+
 def split_validation(
-  setting: settings_lib.Setting, views: ViewSet, fraction: float
+  setting: settings_lib.Setting, views: ViewSet, fraction: float, *, interleaved: bool = False
 ) -> tuple[ViewSet, ViewSet]:
   """(train, validation) parts of the training split (see the module docstring).
 
   A setting whose examples are scenes (`Setting.context_views`, gqn): the last
   ceil(fraction * n_scenes) scenes by id; the others: per scene the last
-  ceil(fraction * n_views) views by view id (at least one view stays in training).
+  ceil(fraction * n_views) views by view id (at least one view stays in training), or with
+  `interleaved` (captures, whose test views are every 8th of a capture's views: validation must
+  interpolate as test does, not extrapolate past the last views) every k-th view by view id from
+  view k // 2 on, never the last (`validation_every`; else the middle view; one view alone stays
+  in training).
   """
   val = np.zeros(len(views), bool)
   ids = views.scene_ids()
@@ -198,12 +217,24 @@ def split_validation(
     if k >= len(ids):
       raise ConfigError(f"validation would take all {len(ids)} training scenes")
     val = np.isin(views.scenes, ids[-k:])
+  elif interleaved:
+    k = validation_every(fraction)
+    for s in ids:
+      rows = views.scene_rows(s)  # by view id
+      picked = rows[k // 2 : len(rows) - 1 : k]  # never the first or the last view
+      val[picked if len(picked) else rows[len(rows) // 2 :][:1]] = len(rows) > 1
   else:
     for s in ids:
       rows = views.scene_rows(s)
       k = min(max(1, math.ceil(fraction * len(rows))), len(rows) - 1)
       val[rows[len(rows) - k :]] = True
   return views.subset(~val), views.subset(val)
+
+
+def interleaved_validation(meta: dict[str, Any]) -> bool:
+  """Whether a prepared dataset's validation split interleaves (`split_validation`): a captures
+  dataset (`records.capture_facts`), whose held-out test views lie between its training views."""
+  return bool(records.capture_facts(meta))
 
 
 @dataclasses.dataclass
@@ -440,7 +471,8 @@ def make_real_data(config) -> Data:
       )
     heldout = full_train.subset(np.isin(full_train.scenes, ids[-k:]))
     full_train = full_train.subset(~np.isin(full_train.scenes, ids[-k:]))
-  train, val = split_validation(setting, full_train, d.validation_fraction)
+  interleaved = interleaved_validation(meta)
+  train, val = split_validation(setting, full_train, d.validation_fraction, interleaved=interleaved)
   if len(train) == 0 or len(val) == 0:
     raise ConfigError(f"{path}: the training split is too small to carve a validation part")
   evals = {"validation": EvalSet(val, val if gqn else None)}
@@ -474,6 +506,8 @@ def make_real_data(config) -> Data:
     "validation": (
       f"last {d.validation_fraction:g} of the remaining training scenes"
       if gqn
+      else interleaved_description(d.validation_fraction)
+      if interleaved
       else f"last {d.validation_fraction:g} of each training scene's views (by view id"
       + setting.validation_note
       + ")"

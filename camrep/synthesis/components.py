@@ -157,7 +157,8 @@ def make_pipeline(
 
 
 def make_pipelines(config):
-  """(training batches of this process's shard for its local devices, held-out views)."""
+  """(training batches of this process's shard for its local devices, held-out views of
+  `evals.split`: "test", or "validation", which the plateau rule then reads instead of test)."""
   train_pipe = make_pipeline(
     config,
     "train",
@@ -165,7 +166,8 @@ def make_pipelines(config):
     process_index=jax.process_index(),
     process_count=jax.process_count(),
   )
-  return train_pipe, make_pipeline(config, "test", num_devices=1, for_eval=True)
+  split = config.evals.get("split", "test")
+  return train_pipe, make_pipeline(config, split, num_devices=1, for_eval=True)
 
 
 def num_train_scenes(pipe) -> int:

@@ -130,6 +130,7 @@ SCHEMA: dict[str, V.Field] = {
   "model.z_channels": _F(V.POSITIVE, _U(_convdraw, _NOT_CONVDRAW), retired=3),
   "model.draw_temperature": _F(V.NONNEG, _U(_convdraw, _NOT_CONVDRAW), resume=_M, retired=1.0),
   "rep.kind": _F(V.one_of(pose_encodings.SYNTHESIS_KINDS)),
+  "rep.freeze_generators": _F(V.ANY, _U(_grid, _NOT_GRID)),
   "rep.n_blocks": _F(V.POSITIVE),
   "rep.block_size": _F(V.POSITIVE),
   "rep.exp_method": _F(V.one_of(lie.EXP_METHODS)),
@@ -175,6 +176,7 @@ SCHEMA: dict[str, V.Field] = {
     resume=_M,
   ),
   "optax.pose_steps": _F(V.NONNEG),
+  "evals.split": _F(V.one_of(("test", "validation"))),
   "evals.num_scenes": _F(V.POSITIVE, resume=_M),
   "evals.batch_scenes": _F(V.POSITIVE, resume=_M),
   "evals.grid_scenes": _F(V.POSITIVE, resume=_M),
@@ -241,7 +243,14 @@ def data_image_shape(config) -> tuple[tuple[int, int], str]:
 
 
 def check_data(config) -> None:
-  """The model's image size against the data's (before any data is read or step compiled)."""
+  """The evaluation split against the data's splits, the model's image size against the data's
+  (before any data is read or step compiled)."""
+  split = config.evals.get("split", "test")
+  if config.data.source in sources.SOURCES and split not in sources.get(config.data.source).splits:
+    raise ConfigError(
+      f"--config.evals.split={split}: data.source {config.data.source!r} has no {split!r} split "
+      f"(it has {list(sources.get(config.data.source).splits)}); use --config.evals.split=test"
+    )
   if not sources.is_procedural(config.data.source) and not config.data.dir:
     return  # components.make_pipeline names the missing prepared directory
   (h, w), where = data_image_shape(config)

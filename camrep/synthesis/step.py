@@ -70,10 +70,23 @@ def learning_rate(config, lr: float):
 
 
 def make_optimizers(config) -> Optimizers:
-  """Separate Adams per group (TF defaults eps 1e-8, b1 0.9, b2 0.999, as the authors)."""
+  """Separate Adams per group (TF defaults eps 1e-8, b1 0.9, b2 0.999, as the authors). With
+  `rep.freeze_generators` the rep group's generators ("*_coeffs" leaves: B, B0, C) get zero
+  updates (`optax.set_to_zero`), so they keep their initial values; the grid vectors learn."""
   o = config.optax
   adam = lambda lr: optax.adam(learning_rate(config, lr), b1=0.9, b2=0.999, eps=1e-8)
-  return Optimizers(model=adam(o.lr_model), rep=adam(o.lr_rep))
+  rep = adam(o.lr_rep)
+  if config.rep.get("freeze_generators", False):
+    rep = optax.multi_transform({"learned": rep, "frozen": optax.set_to_zero()}, _generator_labels)
+  return Optimizers(model=adam(o.lr_model), rep=rep)
+
+
+def _generator_labels(params):
+  """ "frozen" for the generators' leaves (keys ending in "_coeffs", `camrep.dofs`), else
+  "learned"."""
+  return jax.tree_util.tree_map_with_path(
+    lambda path, _: "frozen" if str(path[-1].key).endswith("_coeffs") else "learned", params
+  )
 
 
 def create_train_state(

@@ -141,12 +141,18 @@ class Synthesizer(abc.ABC):
 
   def init(self, key: Array, batch: Mapping[str, Array]) -> Params:
     """Initial parameters {"model", "rep"} shaped from one device's training batch."""
-    k_model, k_rep = jax.random.split(key)
-    rep = self.pose_encoding.init(k_rep)
+    k_model, _ = jax.random.split(key)
+    rep = self.init_pose(key)
     images = to_float_images(jnp.asarray(batch["image"]))
     vecs = self.vectors(rep, jnp.asarray(batch["pose"]))
     variables = self._init_module(k_model, images, vecs, jnp.asarray(batch["scene"]))
     return {"model": variables["params"], "rep": rep}
+
+  def init_pose(self, key: Array) -> Params:
+    """The pose input's initial parameters, `init(key, ...)["rep"]` without the model's (the
+    "untrained" control target reads them; jitted, as `step.init_fn` runs `init`, for the same
+    bits)."""
+    return self.pose_encoding.init(jax.random.split(key)[1])
 
   @abc.abstractmethod
   def _init_module(self, key: Array, images: Array, vecs: Array, scenes: Array) -> dict:

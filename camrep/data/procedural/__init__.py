@@ -17,7 +17,10 @@ records (`camrep.data.records`) with the same pose conventions as its real count
 Splits: "train"; "test" = different poses of the training scenes (a different random stream,
 or the 7-Scenes test trajectories); "test_scenes" = whole held-out scenes (rooms and object),
 whose scene ids continue after the training ids (num_train_scenes, num_train_scenes + 1, ...),
-so a per-scene table indexed by id never aliases a held-out scene.
+so a per-scene table indexed by id never aliases a held-out scene; "validation" (object, area,
+and scene6dof with train_stride >= 2) = held-out views of the training scenes apart from "test"
+(its own random stream, or the training trajectory's frames between the training frames), read
+by view synthesis' plateau rule with `--config.evals.split=validation`.
 
 Determinism: scene `s` is built from `np.random.default_rng([seed, family, s])` and view `v`
 of split `k` from `np.random.default_rng([seed, family, s, k, v])`, so any record can be

@@ -163,7 +163,7 @@ class ObjectFamily(SampledPoseFamily):
 
   name = "object"
   scene_independent_cameras = True
-  splits = ("train", "test", "test_scenes")
+  splits = ("train", "test", "test_scenes", "validation")
   budgets = dict(max_boxes=6, max_spheres=6, max_cylinders=1, max_planes=1)
 
   def _build(self, scene: int) -> Layout:
@@ -246,7 +246,7 @@ class AreaFamily(SampledPoseFamily):
   """
 
   name = "area"
-  splits = ("train", "test")
+  splits = ("train", "test", "validation")
   budgets = dict(max_boxes=16, max_spheres=6, max_cylinders=6, max_planes=1)
 
   def _num_train_scenes(self) -> int:
@@ -317,7 +317,7 @@ class Scene6DofFamily(ProceduralFamily):
   """
 
   name = "scene6dof"
-  splits = ("train", "test")
+
   # Each scene's trajectory has its own length: `num_views` needs `scene`.
   fixed_view_count = False
   budgets = dict(max_boxes=16, max_spheres=6, max_cylinders=6, max_planes=1)
@@ -328,6 +328,13 @@ class Scene6DofFamily(ProceduralFamily):
     if unknown:
       raise ValueError(f"unknown 7-Scenes scenes {sorted(unknown)}; choose from {SEVEN_SCENES}")
     self._tables: dict[tuple[str, str], np.ndarray] = {}
+
+  @property
+  def splits(self) -> tuple[str, ...]:
+    """("train", "test") and, with `train_stride` >= 2, "validation": the training trajectory's
+    frames halfway between the training frames (never trained on, never test: view synthesis'
+    stopping rule reads them). At stride 1 every frame trains: no validation split."""
+    return ("train", "test", "validation") if self.config.train_stride >= 2 else ("train", "test")
 
   def _num_train_scenes(self) -> int:
     return len(self.config.scenes)
@@ -362,6 +369,10 @@ class Scene6DofFamily(ProceduralFamily):
   def poses(self, split: str, scene: int) -> np.ndarray:
     """The 6-DOF poses of the scene's subsampled `split` trajectory (see `seven_scenes`)."""
     self._check_scene(split, scene)
+    if split == "validation":  # between the training frames of the training trajectory
+      stride = self.config.train_stride
+      c2w = self._table(scene, "train")[stride // 2 :: stride]
+      return seven_scenes.c2w_to_dofs(c2w, self.t_min(scene)).astype(np.float32)
     stride = self.config.train_stride if split == "train" else self.config.test_stride
     c2w = self._table(scene, split)[::stride]
     return seven_scenes.c2w_to_dofs(c2w, self.t_min(scene)).astype(np.float32)

@@ -18,8 +18,9 @@ from camrep.data.procedural import render
 
 FAMILY_CODE = {"rooms": 1, "object": 2, "area": 3, "scene6dof": 4}
 """Per family: its key in every generator seed (`seeded_rng(seed, FAMILY_CODE[name], ...)`)."""
-SPLIT_CODE = {"train": 0, "test": 1, "test_scenes": 2}
-"""Per split: its key in the per-view generator seeds."""
+SPLIT_CODE = {"train": 0, "test": 1, "test_scenes": 2, "validation": 3}
+"""Per split: its key in the per-view generator seeds. "validation": held-out views of the
+training scenes drawn apart from "test" (view synthesis' stopping rule reads them, never test)."""
 
 
 def seeded_rng(*keys: int) -> np.random.Generator:
@@ -127,7 +128,7 @@ class ProceduralFamily(abc.ABC):
     """Poses of a scene's views in a split.
 
     Args:
-      split: "train", "test" or "test_scenes".
+      split: "train", "test", "test_scenes" or "validation" (the families that have it).
       scene: global scene id in that split.
 
     Returns:
@@ -279,7 +280,7 @@ class SampledPoseFamily(ProceduralFamily):
     """Views per scene of a split (config train_views / test_views; `scene` is ignored)."""
     del scene
     self._check_split(split)
-    return self.config.test_views if split == "test" else self.config.train_views
+    return self.config.test_views if split in ("test", "validation") else self.config.train_views
 
   def poses(self, split: str, scene: int) -> np.ndarray:
     """Poses of a scene's views in a split: (V, P) float32 (see `ProceduralFamily.poses`)."""
