@@ -12,8 +12,10 @@ group are its seeds. Per column, one table row per conditioning:
   PSNR, SSIM    held-out-view means (eval/psnr, eval/ssim at the run's end), mean over seeds with
                 the seed-level 95% interval (`seed_interval`);
   vs baseline   the paired difference PSNR(camera) - PSNR(baseline) over the seeds both have
-                (paired by seed number), its interval and verdict: "better" when the interval
-                lies above 0, "worse" below, "tie" otherwise; "-" with fewer than 2 paired seeds;
+                (paired by seed number), its seed-level interval and verdict: the one-sample t
+                test of the paired differences, Holm-adjusted over the column's conditionings
+                (family-wise 5%), "better"/"worse" by the sign of the mean difference, "tie"
+                otherwise; "-" with fewer than 2 paired seeds;
   context n     held-out PSNR with n context views (eval/psnr_context{n}; the trained count is
                 eval/psnr), mean over seeds;
   noise drop    PSNR(alpha = 0) - PSNR(alpha max) of the noise test on the query pose, mean over
@@ -22,9 +24,9 @@ group are its seeds. Per column, one table row per conditioning:
   s / step      the cost of a training step: 1 / train/steps_per_sec of the run's last logged row,
                 mean over seeds (machine and load as the runs had them).
 
-Intervals (one place, `seed_interval`): `camrep.regression.stats.interval` over the seeds (the
-per-seed values as an (S, 1) matrix: a bootstrap over seeds; with 3 seeds its 95% interval is
-close to the seeds' range). Swap `seed_interval` for a t interval when the library has one.
+Intervals (one place, `seed_interval`): the t interval of the per-seed values (S - 1 degrees of
+freedom, `camrep.regression.stats.seed_t_interval`), as the lead table's seed-level intervals;
+the noise-drop verdicts are a second Holm family per column.
 
 The figure (`--png`, with a PDF twin): per column, held-out PSNR against the noise level alpha
 and against the number of context views, one curve per conditioning (mean over seeds, band from
@@ -56,21 +58,35 @@ CONTEXT = re.compile(r"^eval/psnr_context(\d+)$")
 PROCEDURAL = {"rooms": "rooms", "object": "car"}
 
 
-def seed_interval(values: Sequence[float]) -> stats.Interval:
-  """The mean of per-seed values with its 95% interval over seeds (the one interval call)."""
-  return stats.interval(np.asarray(values, np.float64)[:, None])
+def seed_interval(values: Sequence[float]) -> tuple[stats.Interval, float]:
+  """The mean of (S,) per-seed values with its 95% t interval over seeds, and the two-sided p of
+  mean 0 (the one interval call; NaN bounds and p for one seed)."""
+  x = np.asarray(values, np.float64)
+  m, lo, hi, p = stats.seed_t_interval(x)
+  return stats.Interval(m, lo, hi, len(x), 1), p
 
 
-def paired(ours: Mapping[int, float], base: Mapping[int, float], *, higher_is_better: bool):
-  """(interval of the mean paired difference ours - base, verdict, seeds) over the seeds both
-  have; (None, "-", n) with fewer than 2."""
+def paired(ours: Mapping[int, float], base: Mapping[int, float]):
+  """(interval of the mean paired difference ours - base, its p) over the seeds both have;
+  (None, NaN) with fewer than 2."""
   seeds = sorted(set(ours) & set(base))
   if len(seeds) < 2:
-    return None, "-", len(seeds)
-  iv = seed_interval([ours[s] - base[s] for s in seeds])
-  good, bad = (iv.lo > 0, iv.hi < 0) if higher_is_better else (iv.hi < 0, iv.lo > 0)
-  verdict = "better" if good else "worse" if bad else "tie"
-  return iv, verdict, len(seeds)
+    return None, math.nan
+  return seed_interval([ours[s] - base[s] for s in seeds])
+
+
+def verdicts(results, *, higher_is_better: bool) -> list[str]:
+  """Holm-adjusted verdicts of one family of `paired` results (module docstring)."""
+  adjusted = stats.holm([p for _, p in results])
+  out = []
+  for (iv, _), p in zip(results, adjusted, strict=True):
+    if iv is None:
+      out.append("-")
+    elif not p < 0.05 or iv.value == 0:
+      out.append("tie")
+    else:
+      out.append("better" if (iv.value > 0) == higher_is_better else "worse")
+  return out
 
 
 def column_of(config: Mapping[str, Any]) -> str:
@@ -158,6 +174,20 @@ def column_table(cells: Mapping[str, Mapping[int, dict]], baseline: str) -> str:
   header = ["camera", "params", "seeds", "PSNR", "SSIM", f"PSNR - {baseline}", "verdict"]
   header += [f"ctx {n}" + (" (trained)" if n in trained else "") for n in ctx]
   header += ["noise drop", f"drop - {baseline}", "verdict", "s / step"]
+  base_psnr = {s: r["psnr"] for s, r in base.items()}
+  base_drops = {s: d for s, r in base.items() if (d := _drop(r["noise"])) is not None}
+  drops_of = {
+    c: {s: d for s, r in cells[c].items() if (d := _drop(r["noise"])) is not None} for c in order
+  }
+  others = [c for c in order if c != baseline]
+  diffs = {c: paired({s: r["psnr"] for s, r in cells[c].items()}, base_psnr) for c in others}
+  ddiffs = {c: paired(drops_of[c], base_drops) for c in others}
+  verdict_of = dict(
+    zip(others, verdicts([diffs[c] for c in others], higher_is_better=True), strict=True)
+  )
+  dverdict_of = dict(
+    zip(others, verdicts([ddiffs[c] for c in others], higher_is_better=False), strict=True)
+  )
   rows = []
   for camera in order:
     seeds = cells[camera]
@@ -169,24 +199,20 @@ def column_table(cells: Mapping[str, Mapping[int, dict]], baseline: str) -> str:
       ptxt = f"{params:,}"
     else:
       ptxt = f"{params:,} ({params - base_params:+,})"
-    psnr = {s: r["psnr"] for s, r in seeds.items()}
-    diff, verdict, _ = paired(psnr, {s: r["psnr"] for s, r in base.items()}, higher_is_better=True)
-    row = [camera, ptxt, str(len(recs)), _fmt(seed_interval(list(psnr.values())))]
-    row += [_fmt(seed_interval([r["ssim"] for r in recs]), 3)]
+    row = [camera, ptxt, str(len(recs)), _fmt(seed_interval([r["psnr"] for r in recs])[0])]
+    row += [_fmt(seed_interval([r["ssim"] for r in recs])[0], 3)]
     row += [
-      "-" if camera == baseline else _fmt(diff, sign=True),
-      "" if camera == baseline else verdict,
+      "-" if camera == baseline else _fmt(diffs[camera][0], sign=True),
+      "" if camera == baseline else verdict_of[camera],
     ]
     for n in ctx:
       vals = [r["psnr"] if n == r["n_context"] else r["contexts"].get(n) for r in recs]
       vals = [v for v in vals if v is not None]
       row.append(f"{np.mean(vals):.2f}" if vals else "-")
-    drops = {s: d for s, r in seeds.items() if (d := _drop(r["noise"])) is not None}
-    base_drops = {s: d for s, r in base.items() if (d := _drop(r["noise"])) is not None}
-    ddiff, dverdict, _ = paired(drops, base_drops, higher_is_better=False)
-    row.append(_fmt(seed_interval(list(drops.values()))) if drops else "-")
-    row += ["-" if camera == baseline else _fmt(ddiff, sign=True)]
-    row += ["" if camera == baseline else (dverdict if drops else "-")]
+    drops = drops_of[camera]
+    row.append(_fmt(seed_interval(list(drops.values()))[0]) if drops else "-")
+    row += ["-" if camera == baseline else _fmt(ddiffs[camera][0], sign=True)]
+    row += ["" if camera == baseline else (dverdict_of[camera] if drops else "-")]
     secs = [r["s_per_step"] for r in recs if math.isfinite(r["s_per_step"])]
     row.append(f"{np.mean(secs):.3f}" if secs else "-")
     rows.append(row)
@@ -202,8 +228,9 @@ def markdown(grouped, baseline: str) -> str:
   lines = [
     "# Camera conditionings of the multi-view transformer",
     "",
-    f"Mean over seeds [seed-level 95% interval]; verdicts: the paired difference to {baseline} "
-    "(by seed) with its interval above 0 (better), below 0 (worse), else tie; '-' with fewer "
+    f"Mean over seeds [seed-level 95% t interval]; verdicts: the paired difference to {baseline} "
+    "(by seed), its t test Holm-adjusted over the column's conditionings (family-wise 5%): "
+    "better or worse by its sign where the adjusted p < 0.05, else tie; '-' with fewer "
     "than 2 paired seeds. noise drop: PSNR(alpha 0) - PSNR(alpha max) of the noise test on the "
     "query pose (smaller is better). s / step: 1 / train/steps_per_sec at the run's end.",
   ]

@@ -76,7 +76,8 @@ def test_the_reader_builds_the_table_and_figure_with_verdicts_against_raymap(tmp
   assert "ctx 2 (trained)" in col and "ctx 1" in col and "ctx 4" in col
   # Values: the paired differences' seed-level interval, computed the same way here.
   diff = [1.0 + 0.05 * s for s in range(3)]
-  iv = stats.interval(np.asarray(diff)[:, None])
+  m, lo, hi, _ = stats.seed_t_interval(np.asarray(diff))
+  iv = stats.Interval(m, lo, hi, 3, 1)
   assert rooms["prope"][col["PSNR - raymap"]] == f"{iv.value:+.2f} [{iv.lo:+.2f}, {iv.hi:+.2f}]"
   assert rooms["prope"][col["PSNR - raymap"] + 1] == "better"
   assert rooms["none"][col["PSNR - raymap"] + 1] == "worse"
