@@ -29,8 +29,8 @@ The config is checked and resolved once (`config_schema.validate`: its setting, 
 data source and hyper-parameters, `config_schema.Resolved`); the run's parts take those objects.
 
 Data (`views.make_data`), all from the setting's procedural family (the resolved data source),
-rendered once and held in memory (prepared once as an
-ArrayRecord dataset in `data.cache_dir` when set), batched by the view-synthesis pipeline:
+rendered once and held in memory (prepared once as an ArrayRecord dataset in `data.cache_dir`
+when set), batched by the view-synthesis pipeline:
 
   train       the family's "train" split minus the validation part;
   validation  held out of "train" to choose the learning rate and for nothing else: gqn the last

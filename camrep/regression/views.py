@@ -531,7 +531,7 @@ class Batching:
       else a single view.
     batch_size: training scenes (scenes) or views a step (`data.batch_size`).
     eval_batch_size: query views an evaluation batch (`evals.batch_size`).
-    n_context, n_query: context and query views of a scene (scenes only).
+    n_context, n_query: context and query views of a scene (scenes only; 0 otherwise).
     seed: the run's seed (the training batch order).
     num_threads: grain reader threads (0: read in the calling thread).
     prefetch: batches read ahead by the threads.
@@ -549,13 +549,13 @@ class Batching:
   @classmethod
   def of(cls, config, setting: settings_lib.Setting) -> Batching:
     """The batching of a regression config of `setting`."""
-    d = config.data
+    d, scenes = config.data, setting.context_views
     return cls(
-      scenes=setting.context_views,
+      scenes=scenes,
       batch_size=int(d.batch_size),
       eval_batch_size=int(config.evals.batch_size),
-      n_context=int(d.n_context),
-      n_query=int(d.n_query),
+      n_context=int(d.n_context) if scenes else 0,  # the other settings' configs have none
+      n_query=int(d.n_query) if scenes else 0,
       seed=int(config.seed),
       num_threads=int(d.get("num_threads", 0)),
       prefetch=int(d.get("prefetch", 2)),
