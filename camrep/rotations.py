@@ -1,6 +1,6 @@
 """Rotations of 3-space: quaternions, matrices, rotation vectors, 6-D and 9-D forms, Euler angles.
 
-Shared by the data readers (7-Scenes poses, `camrep.data.seven_scenes`) and the regression
+Shared by the data readers (7-Scenes poses, `camrep.data.readers.seven_scenes`) and the regression
 targets (`camrep.regression.targets`). Every function is pure and batched over leading axes, and
 runs on two backends, chosen by its first argument:
 

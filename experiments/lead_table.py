@@ -12,18 +12,25 @@ rotation) and per capture column (two rows: its mean and its median over test vi
 
   - paper: the paper's "ours" and its best hand-designed representation in that column (Table 1;
     Table 2's PoseNet + log q [MapNet] for 7-Scenes), real data at paper size, for reference;
-  - camrep, best hand-designed: the hand-designed representation with the lowest test statistic
-    in the column (as experiments/table1.py chooses it), with its interval;
-  - camrep, ours: with its interval;
-  - ours / best: the ratio of the two paired on the same seeds and test views, its 95% interval
-    and the verdict (better / tie / worse: interval below / containing / above 1);
-  - seeds, whether either chosen learning rate sits at its grid's edge, and how many of the
-    ours and best runs reached their step cap instead of being stopped by the plateau rule
-    (results.json "stopping"; runs without a rule count as stopped).
+  - camrep, best hand-designed: the hand-designed representation with the lowest validation
+    statistic at its chosen lr (`camrep.regression.tables.best_on_validation`: no test error is
+    read by any choice), with its interval;
+  - camrep, ours: with its interval (t over the per-seed statistics);
+  - ours / best: the geometric mean of the per-seed ratios on the same test views with its
+    seed-level 95% t interval (`camrep.regression.stats.seed_ratio`), and beside it the same
+    interval widened by the test views' sampling (`stats.seed_view_ratio`);
+  - p, Holm-adjusted over every comparison of the table (m of them, in the header), and the
+    verdict: better / worse where it is below 0.05, else tie;
+  - seeds, the seeds each chosen lr's validation score averaged ("all", or e.g. "seed 0" where
+    the grid's other lrs ran seed 0 only), whether either chosen learning rate sits at its
+    grid's edge, and how many of the runs reached their step cap instead of being stopped by
+    the plateau rule (results.json "stopping"; runs without a rule count as stopped).
 
-Intervals and ratios as in `camrep.regression.stats` (two-level bootstrap over seeds and test
-views; per-scene medians averaged over scenes for 7-Scenes). A column whose runs lack per-view
-errors (errors_<split>.npz) or its ours or baselines is listed with "–". Runs in a few seconds.
+Controls (representations other than the hand-designed ones, ours and the MLP: an untrained pose
+system, frozen generators) get a row each against the same best hand-designed representation.
+Statistics per-scene medians averaged over scenes for 7-Scenes. A column whose runs lack
+per-view errors (errors_<split>.npz) or its ours or baselines is listed with "–". Runs in
+seconds; a note under the table states the method.
 """
 
 from __future__ import annotations
@@ -33,6 +40,8 @@ import dataclasses
 import os
 import sys
 from collections.abc import Sequence
+
+import numpy as np
 
 from camrep.regression import stats
 from camrep.regression import tables as C
@@ -101,14 +110,43 @@ def capture_columns(runs: str) -> tuple[Column, ...]:
   )
 
 
-def row(
+# Representations that are neither a target under comparison nor ours: controls of the same
+# protocol (an untrained pose system, ours' grid with frozen generators), each compared with the
+# column's best hand-designed representation in a row of its own. Unknown names show as given.
+CONTROL_LABELS = {
+  "untrained": "untrained pose system",
+  "frozen": "frozen generators",
+}
+NOT_CONTROLS = frozenset((*stats.HAND_DESIGNED, "ours", "mlp"))
+
+
+@dataclasses.dataclass
+class Row:
+  """One compared pair of a column before the table's Holm adjustment."""
+
+  column: Column
+  representation: str  # ours or a control, against the best hand-designed
+  data: str  # the data kind of ours' runs (`data_kind`)
+  label: str
+  paper: str
+  best_cell: str
+  cell: str
+  comparison: stats.SeedComparison | None
+  seeds: str
+  lr_seeds: str
+  edges: str
+  capped: str
+
+
+def rows(
   runs: str,
   column: Column,
   *,
   skip_damaged: bool = False,
   results: Sequence[dict] | None = None,
-) -> list[str] | None:
-  """The lead table's row of `column`, or None when RUNS holds none of its runs.
+) -> list[Row]:
+  """The rows of `column` (ours, then each control, against the best hand-designed
+  representation chosen on validation), [] when RUNS holds none of its runs.
 
   Args:
     runs: RUNS.
@@ -120,72 +158,109 @@ def row(
     pattern = os.path.join(runs, column.directory, "*", "*")
     results = C.load_results([pattern], skip_damaged=skip_damaged)
   if not results:
-    return None
+    return []
   by_rep = {rep: sel for (_, rep), sel in C.select(results).items()}
-  values = {}  # the column's statistic of each representation: which hand-designed one is best
-  for rep, sel in by_rep.items():
-    m = stats.seed_matrix(sel.runs, column.error)
-    if m is not None:
-      values[rep] = stats.statistic(m[0], m[1] if column.by_scene else None, column.reduce)
-  best = stats.best_hand_designed(values)
-  shown = [rep for rep in ("ours", best) if rep in by_rep]
-  cells = {
-    rep: stats.cell_interval(
-      by_rep[rep].runs, column.error, column.reduce, by_scene=column.by_scene
-    )
-    for rep in shown
-  }
+  best = C.best_on_validation(by_rep, column.error, column.reduce)
   fmt = lambda iv: stats.fmt_interval(iv, digits=C.digits_for(iv.value)) if iv else "–"
-  comp = None
-  if "ours" in by_rep and best is not None:
-    comp = stats.compare_runs(
-      by_rep["ours"].runs,
-      by_rep[best].runs,
-      column.error,
-      column.reduce,
-      baseline=best,
-      by_scene=column.by_scene,
+
+  def cell(rep):
+    if rep not in by_rep:
+      return None
+    return stats.cell_interval(
+      by_rep[rep].runs, column.error, column.reduce, by_scene=column.by_scene, method="seed_t"
     )
+
   paper = "–"
   if column.paper_ours is not None and column.paper_best is not None:
     name, value = column.paper_best
     paper = f"{column.paper_ours:g} vs {value:g} ({C.ROW_LABELS.get(name, name)})"
-  edges, capped = [], []
-  for rep in shown:
-    sel = by_rep[rep]
-    if C.grid_edge(sel):
-      edges.append(f"{rep}: {C.grid_edge(sel)} ({C.fmt_lr(sel.lr)})")
-    n = sum(1 for run in sel.runs if not (run.get("stopping") or {}).get("stopped_early", True))
-    capped.append(f"{rep} {n}/{len(sel.runs)}")
-  seeds = sorted({len(s.runs) for s in by_rep.values()})
-  return [
-    column.label,
-    paper,
-    f"{fmt(cells.get(best))} ({best})" if best else "–",
-    fmt(cells.get("ours")),
-    stats.fmt_interval(comp.ratio, digits=2) if comp else "–",
-    f"**{comp.verdict}**" if comp else "–",
-    "/".join(map(str, seeds)),
-    "; ".join(edges) or "no",
-    ", ".join(capped) or "–",
-  ]
+  best_cell = f"{fmt(cell(best))} ({best})" if best else "–"
+  controls = sorted(r for r in by_rep if r not in NOT_CONTROLS)
+  out = []
+  for rep in [r for r in ("ours", *controls) if r in by_rep]:
+    comp = None
+    if best is not None:
+      comp = stats.seed_compare_runs(
+        by_rep[rep].runs,
+        by_rep[best].runs,
+        column.error,
+        column.reduce,
+        baseline=best,
+        by_scene=column.by_scene,
+      )
+    shown = [r for r in (rep, best) if r in by_rep]
+    edges, capped, lr_seeds = [], [], []
+    for r in shown:
+      sel = by_rep[r]
+      if C.grid_edge(sel):
+        edges.append(f"{r}: {C.grid_edge(sel)} ({C.fmt_lr(sel.lr)})")
+      n = sum(1 for run in sel.runs if not (run.get("stopping") or {}).get("stopped_early", True))
+      capped.append(f"{r} {n}/{len(sel.runs)}")
+      scored = "all" if sel.on_all_seeds else "seed " + ",".join(map(str, sel.scored_seeds))
+      lr_seeds.append(f"{r}: {scored}")
+    label = column.label if rep == "ours" else f"{column.label}: {CONTROL_LABELS.get(rep, rep)}"
+    out.append(
+      Row(
+        column,
+        rep,
+        data_kind(by_rep[rep].runs[0]),
+        label,
+        paper if rep == "ours" else "–",
+        best_cell,
+        fmt(cell(rep)),
+        comp,
+        "/".join(map(str, sorted({len(by_rep[r].runs) for r in shown}))),
+        "; ".join(lr_seeds),
+        "; ".join(edges) or "no",
+        ", ".join(capped) or "–",
+      )
+    )
+  return out
 
 
 HEADER = (
   "column",
   "paper: ours vs best hand-designed",
-  "camrep: best hand-designed",
+  "camrep: best hand-designed (chosen on validation)",
   "camrep: ours",
-  "ours / best [95%]",
-  "verdict",
+  "ours / best, seed-level t [95%]",
+  "ours / best, seeds (t) + views (bootstrap) [95%]",
+  "p (Holm-adjusted, m = {m})",
+  "verdict (Holm, family-wise 5%)",
   "seeds",
+  "lr chosen on validation of",
   "chosen lr at grid edge",
   "runs at their step cap",
 )
 
+NOTE = (
+  "Cells: mean over seeds [95% t interval over the per-seed statistics, S - 1 df]; the ratio: "
+  "geometric mean of the per-seed ratios ours / best on the same test views [95% seed-level t "
+  "interval of the log ratio: this test set's value]; beside it the same interval widened by "
+  "the test views' sampling (its variance from resampling the views, every seed kept; "
+  "Welch-Satterthwaite df: the population of views). Verdict: better / worse where the "
+  "Holm-adjusted p of the seed-level t test (mean log ratio 0) is below 0.05 over the m = {m} "
+  "comparisons of this table, else tie. Best hand-designed: the lowest validation statistic at "
+  "its chosen lr (no test error is read to choose it or any lr)."
+)
 
-def build(runs: str, *, skip_damaged: bool = False) -> str:
-  """The Markdown table of every column RUNS holds runs of.
+
+def data_kind(run: dict) -> str:
+  """What a run's data is, in the claims' terms: a procedural family, a render (NeRF-synthetic
+  Blender scenes) or a real capture (LLFF photographs, or another prepared real source)."""
+  d = run.get("data", {})
+  source = d.get("source")
+  if source == "nerf":
+    return "render (NeRF-synthetic)"
+  if source == "llff":
+    return "real capture (LLFF)"
+  if source:
+    return f"real data ({source})"
+  return f"procedural family ({d.get('family', '?')})"
+
+
+def compared(runs: str, *, skip_damaged: bool = False) -> tuple[list[Row], np.ndarray]:
+  """Every row RUNS holds runs of, and the Holm-adjusted p values over all of them.
 
   Raises:
     FileNotFoundError: RUNS holds no regression runs.
@@ -200,10 +275,44 @@ def build(runs: str, *, skip_damaged: bool = False) -> str:
   by_directory = {d: [] for d in directories}
   for r in C.load_results(patterns, skip_damaged=skip_damaged):
     by_directory[os.path.relpath(r["_path"], runs).split(os.sep)[0]].append(r)
-  rows = [r for c in columns if (r := row(runs, c, results=by_directory[c.directory])) is not None]
-  if not rows:
+  found = [r for c in columns for r in rows(runs, c, results=by_directory[c.directory])]
+  if not found:
     raise FileNotFoundError(f"no regression runs with results.json under {runs}")
-  return C.markdown_table(HEADER, rows)
+  p = [r.comparison.p if r.comparison else float("nan") for r in found]
+  return found, stats.holm(p)
+
+
+def build(runs: str, *, skip_damaged: bool = False) -> str:
+  """The Markdown table of every column RUNS holds runs of, with its note.
+
+  Raises:
+    FileNotFoundError: RUNS holds no regression runs.
+    camrep.regression.tables.TableError: a damaged run (without skip_damaged), or two runs of
+      one cell.
+  """
+  found, adjusted = compared(runs, skip_damaged=skip_damaged)
+  m = int(sum(1 for x in adjusted if x == x))
+  table = []
+  for r, adj in zip(found, adjusted, strict=True):
+    c = r.comparison
+    table.append(
+      [
+        r.label,
+        r.paper,
+        r.best_cell,
+        r.cell,
+        stats.fmt_interval(c.ratio, digits=2) if c else "–",
+        stats.fmt_interval(c.population, digits=2) if c and c.population else "–",
+        f"{adj:.3f}" if adj == adj else "–",
+        f"**{c.verdict(adj)}**" if c else "–",
+        r.seeds,
+        r.lr_seeds,
+        r.edges,
+        r.capped,
+      ]
+    )
+  header = [h.format(m=m) for h in HEADER]
+  return C.markdown_table(header, table) + "\n\n" + NOTE.format(m=m)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -12,17 +12,29 @@ import pytest
 # and pytest removes it with its other old base directories).
 _CACHE_ENV = "CAMREP_TEST_JAX_CACHE"
 
+# Set to 0 to compile every test with XLA's optimisations on, as in production; the default is 1.
+_FAST_ENV = "JAX_DISABLE_MOST_OPTIMIZATIONS"
+
 
 @pytest.hookimpl(trylast=True)
 def pytest_configure(config):
-  """Turns on JAX's persistent compilation cache, shared by the xdist workers and every
-  subprocess the tests start (`python -m camrep.main` runs inherit it through the environment).
+  """Compiles with most XLA optimisations off, and turns on JAX's persistent compilation
+  cache; both reach the xdist workers and every subprocess the tests start (`python -m
+  camrep.main` runs) through the environment.
+
+  Nearly every test runs a tiny model once, so XLA's compile dominates its time; the
+  optimisation passes multiply that compile several-fold and change the numbers only by
+  round-off. Tests that need production compilation carry `@pytest.mark.optimized` (see
+  pyproject.toml); `_compile_as_marked` turns the optimisations back on for them and their
+  subprocesses.
 
   Dozens of tests compile the same smoke-size steps, many in fresh processes; a cache hit skips
   XLA's compile (a `gqn.py:smoke` run: 16.7 s cold, 7.2 s warm) and returns the same executable,
   so results are bit-identical (the resume and multi-process tests compare them). The key covers
   the program, the devices and the compile options (`jax_disable_most_optimizations` included).
   """
+  os.environ.setdefault(_FAST_ENV, "1")
+  jax.config.update("jax_disable_most_optimizations", os.environ[_FAST_ENV] != "0")
   where = os.environ.get(_CACHE_ENV)
   if where == "0":
     return
@@ -57,11 +69,27 @@ def _release_compiled_programs():
   gc.collect()
 
 
+@pytest.fixture(autouse=True)
+def _compile_as_marked(request, monkeypatch):
+  """Turns XLA's optimisations on for a test marked `optimized` and for the subprocesses it
+  starts (see `pytest_configure`); restored afterwards."""
+  if request.node.get_closest_marker("optimized") is None:
+    yield
+    return
+  old = jax.config.read("jax_disable_most_optimizations")
+  jax.config.update("jax_disable_most_optimizations", False)
+  monkeypatch.setenv(_FAST_ENV, "0")
+  try:
+    yield
+  finally:
+    jax.config.update("jax_disable_most_optimizations", old)
+
+
 @pytest.fixture(scope="module")
 def fast_compile():
-  """Turns off most XLA optimisations for one module (compile time dominates its tiny models,
-  and they would double it); restored afterwards. Use with
-  `pytestmark = pytest.mark.usefixtures("fast_compile")`."""
+  """Turns off most XLA optimisations for one module, whatever the session's setting (the
+  suite's default already does unless `JAX_DISABLE_MOST_OPTIMIZATIONS=0`); restored afterwards.
+  Use with `pytestmark = pytest.mark.usefixtures("fast_compile")`."""
   old = jax.config.read("jax_disable_most_optimizations")
   jax.config.update("jax_disable_most_optimizations", True)
   yield

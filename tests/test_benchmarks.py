@@ -107,7 +107,7 @@ def test_the_host_loop_stubs_the_renderer_and_the_step():
   rendered, the batches have the layout's shape, and the host's time a step is measured."""
   from camrep.bench import host
   from camrep.configs import gqn
-  from camrep.data import pipeline as pipeline_lib
+  from camrep.data.feed import pipeline as pipeline_lib
 
   config = gqn.get_config("smoke")
   config.data.in_memory = False

@@ -15,7 +15,8 @@ import scipy.linalg
 
 from camrep import lie
 from camrep import pose as P
-from camrep.data import procedural, render
+from camrep.data import procedural
+from camrep.data.procedural import render
 from camrep.models import camera_conditioning as cc
 from camrep.models import relative_attention as ra
 from tests.utils import x64

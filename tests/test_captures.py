@@ -21,9 +21,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from camrep.data import pipeline, prepare, records, srn, storage
-from camrep.data.captures import cameras, colmap, llff, nerf, normalize
-from camrep.data.captures.cameras import (
+from camrep.data import prepare, records
+from camrep.data.errors import DataError
+from camrep.data.feed import pipeline, storage
+from camrep.data.readers import srn
+from camrep.data.readers.captures import cameras, colmap, llff, nerf, normalize
+from camrep.data.readers.captures.cameras import (
   CountMismatchError,
   DistortionError,
   DuplicateFrameError,
@@ -32,8 +35,7 @@ from camrep.data.captures.cameras import (
   NotRigidError,
   UnknownCameraModelError,
 )
-from camrep.data.captures.collection import CaptureSource
-from camrep.data.errors import DataError
+from camrep.data.readers.captures.collection import CaptureSource
 from experiments import table1
 
 pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]

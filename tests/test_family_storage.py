@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from camrep.data import procedural, storage
+from camrep.data import procedural
+from camrep.data.feed import storage
 
 pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 

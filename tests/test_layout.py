@@ -7,7 +7,13 @@ Layers, lowest first (a module may import its own layer and those below):
   1  camrep.dofs, camrep.pose                  the pose system's DOFs and the system
   2  camrep.settings                           the paper's settings (poses, errors, splits)
   3  camrep.data, camrep.runtime,              data; checkpoints, writers, plots; experiment
-     camrep.configs                            configs
+     camrep.configs                            configs; camrep.data in sub-layers, lowest first:
+     3.0 camrep.data (errors, records,         the data error, the record format, the source
+         sources)                              registry (which names its modules as strings)
+     3.1 camrep.data.readers                   readers of real datasets and their file helpers
+     3.2 camrep.data.procedural                the procedural families and their renderer
+     3.3 camrep.data.feed                      storage, the data fingerprint, the batch pipeline
+     3.4 camrep.data.prepare, .show, .oracle   the data commands
   4  camrep.pose_encodings                     every pose encoding of both stages
   5  camrep.models                             Flax modules
   6  camrep.synthesis                          view-synthesis training and evaluation
@@ -35,6 +41,12 @@ LAYERS = {
   "camrep.pose": 1,
   "camrep.settings": 2,
   "camrep.data": 3,
+  "camrep.data.readers": 3.1,
+  "camrep.data.procedural": 3.2,
+  "camrep.data.feed": 3.3,
+  "camrep.data.prepare": 3.4,
+  "camrep.data.show": 3.4,
+  "camrep.data.oracle": 3.4,
   "camrep.runtime": 3,
   "camrep.configs": 3,
   "camrep.pose_encodings": 4,
@@ -54,7 +66,7 @@ def _module_name(path: pathlib.Path) -> str:
   return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
-def _layer(module: str) -> int:
+def _layer(module: str) -> float:
   if module == "camrep":  # the package's own __init__: a docstring
     return 0
   for prefix in sorted(LAYERS, key=len, reverse=True):
@@ -107,6 +119,21 @@ def test_the_layer_check_sees_function_level_imports(tmp_path):
   found = [t for _, t in _imports(src)]
   assert found == ["camrep.synthesis.train", "camrep.lie"]
   assert _layer(found[0]) > _layer("camrep.pose")  # what test_imports_run_downwards refuses
+
+
+def test_data_sub_layers_order_readers_procedural_feed_commands():
+  """A reader never needs the procedural machinery or the pipeline, the pipeline never a
+  command: the data package's sub-layers refuse such imports as the package's layers do."""
+  order = [
+    "camrep.data.sources",
+    "camrep.data.readers.captures.collection",
+    "camrep.data.procedural.families",
+    "camrep.data.feed.pipeline",
+    "camrep.data.prepare",
+  ]
+  layers = [_layer(m) for m in order]
+  assert layers == sorted(layers) and len(set(layers)) == len(layers), layers
+  assert _layer("camrep.data.feed.storage") > _layer("camrep.runtime.writers")
 
 
 def test_the_package_and_configs_import_neither_experiments_nor_tools():
@@ -167,7 +194,7 @@ def twins(names) -> list[tuple[str, str]]:
 
 def test_no_module_names_are_twins():
   names = [p.stem for p in MODULES if not p.stem.startswith("__")]
-  names += [p.name for p in PACKAGE.iterdir() if p.is_dir() and (p / "__init__.py").exists()]
+  names += [p.parent.name for p in PACKAGE.rglob("__init__.py") if p.parent != PACKAGE]
   assert twins(names) == []
 
 

@@ -1,5 +1,5 @@
-"""Tests of camrep.data.pipeline: layout, determinism, resume, process shards, pairs, errors, the
-view choice computed for all scenes at once, K stacked steps."""
+"""Tests of camrep.data.feed.pipeline: layout, determinism, resume, process shards, pairs, errors,
+the view choice computed for all scenes at once, K stacked steps."""
 
 from __future__ import annotations
 
@@ -8,9 +8,10 @@ import itertools
 import numpy as np
 import pytest
 
-from camrep.data import draws, pipeline, procedural, storage
+from camrep.data import procedural
 from camrep.data.errors import DataError
-from camrep.data.pipeline import PipelineConfig
+from camrep.data.feed import draws, pipeline, storage
+from camrep.data.feed.pipeline import PipelineConfig
 
 NUM_YAWS = 8
 

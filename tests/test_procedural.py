@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from camrep.data import procedural, seven_scenes, sources
+from camrep.data import procedural, sources
+from camrep.data.readers import seven_scenes
 from camrep.data.records import RECORD_KEYS
 from tests.utils import slow_except
 

@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from camrep.data import gibson, gqn, imageio, seven_scenes, sources, srn
+from camrep.data import sources
 from camrep.data.errors import DataError
+from camrep.data.readers import gibson, gqn, imageio, seven_scenes, srn
 from camrep.data.records import RECORD_KEYS
 from tests import readers_fixtures as fx
 

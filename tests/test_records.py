@@ -20,7 +20,8 @@ import pytest
 from absl import flags
 
 from camrep.configs import gqn, regression
-from camrep.data import fingerprint, prepare, procedural
+from camrep.data import prepare, procedural
+from camrep.data.feed import fingerprint
 from camrep.regression import config_schema, pose_system
 from camrep.regression import driver as R
 from camrep.runtime import cli, runconfig, writers

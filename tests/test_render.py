@@ -1,4 +1,5 @@
-"""Tests of camrep.data.render: ray/primitive intersections, camera conventions, shading, jit."""
+"""Tests of camrep.data.procedural.render: ray/primitive intersections, camera conventions,
+shading, jit."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import jax
 import numpy as np
 import pytest
 
-from camrep.data import render
+from camrep.data.procedural import render
 
 GREY = render.material((0.5, 0.5, 0.5))
 _NUM_RAYS = 8  # trace() calls are padded to this many rays: one compile serves every test

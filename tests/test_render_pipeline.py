@@ -6,8 +6,10 @@ import jax
 import numpy as np
 import pytest
 
-from camrep.data import pipeline, procedural, scene_table
+from camrep.data import procedural
 from camrep.data.errors import DataError
+from camrep.data.feed import pipeline
+from camrep.data.procedural import scene_table
 
 pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 

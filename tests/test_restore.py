@@ -14,7 +14,8 @@ import jax
 import numpy as np
 import pytest
 
-from camrep.data import batches, pipeline, render, storage
+from camrep.data.feed import batches, pipeline, storage
+from camrep.data.procedural import render
 from camrep.regression import pose_system
 from camrep.runtime import checkpoint as ckpt_lib
 from camrep.runtime import workdir as workdir_lib

@@ -244,7 +244,7 @@ def test_numpy_inputs_are_computed_in_float64_and_jax_keeps_its_dtype():
 
 
 def test_seven_scenes_reader_uses_these_functions():
-  from camrep.data import seven_scenes
+  from camrep.data.readers import seven_scenes
 
   for name in ("quat_to_matrix", "orthonormalize", "matrix_to_euler_sxyz", "euler_sxyz_to_matrix"):
     assert getattr(seven_scenes, name) is getattr(rot, name), name

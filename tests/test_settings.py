@@ -113,7 +113,7 @@ def test_car_rotation_is_intrinsic_zxz_and_inverts():
 
 
 def test_orientation_quat_seven_scenes_matches_dofs_to_c2w():
-  from camrep.data import seven_scenes
+  from camrep.data.readers import seven_scenes
 
   rng = np.random.default_rng(4)
   poses = np.stack(

@@ -99,7 +99,7 @@ def test_table1_intervals_and_verdicts_from_run_directories(tmp_path):
   text = C.build(results)
   iv = stats.cell_interval(sel["car", "ours"].runs, "rotation_error_deg")
   assert f"| ours | {stats.fmt_interval(iv, digits=C.C.digits_for(iv.value))} |" in text
-  assert "| ours / best hand-designed | 0.50 [0.50, 0.50] better (vs quat) |" in text
+  assert "| ours / best hand-designed | 0.50 [0.50, 0.50] better (vs quat; 3 seeds) |" in text
   # Other test views (other true poses) cannot be paired: named, not silently compared.
   _write_run(root, "logq", 0, _errors(9, (100,)), poses=np.ones((100, 2), np.float32))
   _write_run(root, "logq", 1, _errors(8, (100,)))
@@ -135,8 +135,8 @@ def test_table2_average_intervals_and_verdicts(tmp_path):
   text = table2.build(tables.load_results([os.path.join(root, "*", "*", "*")]))
   row = next(x for x in text.splitlines() if x.startswith("| ours / best hand-designed"))
   # ours halves quat's position errors view by view and equals its rotation errors.
-  assert "position 0.50 [0.50, 0.50] better (vs quat)" in row
-  assert "rotation 1.00 [1.00, 1.00] tie (vs quat)" in row
+  assert "position 0.50 [0.50, 0.50] better (vs quat; 3 seeds)" in row
+  assert "rotation 1.00 [1.00, 1.00] tie (vs quat; 3 seeds)" in row
   assert "95% bootstrap interval" in text
   # Each scene's cell: the mean over seeds of the scene's median, with its own interval.
   runs = tables.select(tables.load_results([os.path.join(root, "*", "*", "*")]))
@@ -155,3 +155,95 @@ def ours_column(text: str) -> int:
   """The index (in a `|`-split row) of Table 2's "ours" column."""
   header = next(x for x in text.splitlines() if x.startswith("| scene |"))
   return [c.strip() for c in header.split("|")].index("ours")
+
+
+# ---------------------------------------------------------------- seed-level intervals and Holm
+
+
+def test_holm_matches_a_hand_computed_example():
+  """p = (0.01, 0.04, 0.03, 0.005), m = 4: sorted 0.005, 0.01, 0.03, 0.04 times 4, 3, 2, 1 give
+  0.02, 0.03, 0.06, 0.04, made monotone 0.02, 0.03, 0.06, 0.06; NaN is left out of m."""
+  adj = stats.holm([0.01, 0.04, float("nan"), 0.03, 0.005])
+  np.testing.assert_allclose(adj[[0, 1, 3, 4]], [0.03, 0.06, 0.06, 0.02])
+  assert np.isnan(adj[2])
+  assert stats.holm([0.5, 0.9]).tolist() == [1.0, 1.0]  # capped at 1
+  assert stats.holm([0.01]).tolist() == [0.01]  # one test: unchanged
+
+
+def test_t_quantiles_and_interval_against_closed_forms():
+  """t quantiles: 1 df tan(pi (q - 1/2)); 2 df (2q - 1) sqrt(2 / (4 q (1 - q))); the 2-df two-sided
+  p of t is 1 - t / sqrt(2 + t^2)."""
+  for q in (0.9, 0.975, 0.995):
+    assert stats.t_quantile(q, 1) == pytest.approx(np.tan(np.pi * (q - 0.5)), rel=1e-9)
+    assert stats.t_quantile(q, 2) == pytest.approx((2 * q - 1) * np.sqrt(2 / (4 * q * (1 - q))))
+  assert stats.t_quantile(0.975, 9) == pytest.approx(2.262157, abs=1e-6)
+  m, lo, hi, p = stats.seed_t_interval([1.0, 2.0, 3.0])  # mean 2, sd 1
+  half = stats.t_quantile(0.975, 2) / np.sqrt(3)
+  assert (m, lo, hi) == pytest.approx((2.0, 2 - half, 2 + half))
+  t = 2 * np.sqrt(3)
+  assert p == pytest.approx(1 - t / np.sqrt(2 + t * t))
+  assert all(np.isnan(x) for x in stats.seed_t_interval([1.0])[1:])  # one seed: no interval
+  assert stats.seed_t_interval([0.5, 0.5])[1:] == (0.5, 0.5, 0.0)  # no spread
+
+
+def test_seed_ratio_is_the_t_interval_of_per_seed_log_ratios():
+  """Per-seed ratios 1.2, 1.25, 1.3 (ours = c_s x base, per seed): the geometric mean and the t
+  interval of their logs; swapping the two gives the reciprocal interval and the same p; a common
+  scale changes nothing."""
+  base = _errors(0, (3, 50))
+  c = np.array([1.2, 1.25, 1.3])
+  r = stats.seed_ratio(c[:, None] * base, base, baseline="quat", population=False)
+  m, lo, hi, p = stats.seed_t_interval(np.log(c))
+  assert r.per_seed == pytest.approx(tuple(c))
+  assert (r.ratio.value, r.ratio.lo, r.ratio.hi) == pytest.approx(tuple(np.exp([m, lo, hi])))
+  assert r.p == pytest.approx(p) and r.verdict() == "worse" and r.population is None
+  swapped = stats.seed_ratio(base, c[:, None] * base, population=False)
+  assert swapped.ratio.lo == pytest.approx(1 / r.ratio.hi) and swapped.p == pytest.approx(r.p)
+  assert swapped.verdict() == "better" and swapped.verdict(p_adjusted=0.2) == "tie"
+  scaled = stats.seed_ratio(7 * c[:, None] * base, 7 * base, population=False)
+  assert scaled.ratio.hi == pytest.approx(r.ratio.hi)
+  one = stats.seed_ratio(base[:1], base[:1])
+  assert one.verdict() == "–" and np.isnan(one.population.lo)
+
+
+def test_corrected_bootstrap_is_wider_than_the_percentile_bootstrap_at_three_seeds():
+  """The corrected hierarchical bootstrap (sqrt(S / (S - 1)) and t_{S-1} quantiles) holds the
+  ratio of the statistics and is wider than the percentile interval of the same replicates."""
+  ours, base = _errors(1), _errors(2)
+  c = stats.corrected_bootstrap_ratio(ours, base)
+  plain = stats.paired_ratio(ours, base).ratio
+  assert c.value == pytest.approx(plain.value)
+  assert c.lo < plain.lo < plain.value < plain.hi < c.hi
+
+
+def test_variance_components_recover_known_variances():
+  """errors = 5 + seed (sd 2) + view (sd 1) + noise (sd 0.5) over 400 seeds and 400 views: the
+  method of moments gives back 4, 1 and 0.25 (unlike the sums of squares' shares)."""
+  rng = np.random.default_rng(0)
+  s, n = 400, 400
+  e = 5 + 2 * rng.standard_normal((s, 1)) + rng.standard_normal((1, n))
+  e = e + 0.5 * rng.standard_normal((s, n))
+  c = stats.variance_components(e)
+  assert (c.mean, c.seed, c.view, c.noise) == pytest.approx((5, 4, 1, 0.25), rel=0.15)
+  assert sum(c.shares()) == pytest.approx(1.0)
+  with pytest.raises(ValueError, match=">= 2 seeds"):
+    stats.variance_components(e[:1])
+
+
+def test_seed_view_ratio_adds_the_views_variance_to_the_seed_level_interval():
+  """The population interval shares the seed-level centre; where the views barely change the
+  ratio (ours = c_s x base, view by view) it is the seed-level t interval up to 1%; where every
+  seed gives the same ratio on every view draw it has no width; where the views do change the
+  ratio (10 seeds, 30 views) it is wider than the seed-level interval; NaN for one seed."""
+  base = _errors(0, (3, 50))
+  c = np.array([1.2, 1.25, 1.3])
+  r = stats.seed_ratio(c[:, None] * base, base)
+  assert r.population.value == pytest.approx(r.ratio.value)
+  assert (r.population.lo, r.population.hi) == pytest.approx((r.ratio.lo, r.ratio.hi), rel=1e-2)
+  flat = stats.seed_view_ratio(2 * base, base)
+  assert (flat.lo, flat.value, flat.hi) == pytest.approx((2.0, 2.0, 2.0))
+  ours, other = _errors(1, (10, 30)), _errors(2, (10, 30))
+  seed_only = stats.seed_ratio(ours, other, population=False).ratio
+  both = stats.seed_view_ratio(ours, other)
+  assert both.lo < seed_only.lo and seed_only.hi < both.hi
+  assert np.isnan(stats.seed_view_ratio(ours[:1], other[:1]).lo)

@@ -1,4 +1,4 @@
-"""Tests of camrep.data.storage: exact round trip through tfds ArrayRecord, and errors."""
+"""Tests of camrep.data.feed.storage: exact round trip through tfds ArrayRecord, and errors."""
 
 from __future__ import annotations
 
@@ -7,9 +7,11 @@ import json
 import numpy as np
 import pytest
 
-from camrep.data import gqn, pipeline, prepare, sources, storage
+from camrep.data import prepare, sources
 from camrep.data.errors import DataError
-from camrep.data.storage import ViewSource
+from camrep.data.feed import pipeline, storage
+from camrep.data.feed.storage import ViewSource
+from camrep.data.readers import gqn
 from tests import readers_fixtures as fx
 
 

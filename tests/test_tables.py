@@ -153,7 +153,8 @@ def test_a_car_only_table_shows_its_column_in_its_own_pose_terms(tmp_path):
 
 def test_the_committed_tables_regenerate_byte_identical_from_the_committed_records():
   """results/converge keeps one compact record per run (run.json): Table 1 and the lead table
-  made from them are the committed files, byte for byte."""
+  made from them are the committed files, byte for byte, and so is the claims table (which
+  also reads the view-synthesis records)."""
   conv = os.path.join(ROOT, "results", "converge")
   reg = os.path.join(conv, "regression")
   assert not [f for _, _, fs in os.walk(reg) for f in fs if f != "run.json"]
@@ -164,3 +165,7 @@ def test_the_committed_tables_regenerate_byte_identical_from_the_committed_recor
 
   with open(os.path.join(conv, "lead_table.md"), encoding="utf-8") as f:
     assert lead_table.build(reg) + "\n" == f.read()
+  from experiments import claims_table
+
+  with open(os.path.join(conv, "claims.md"), encoding="utf-8") as f:
+    assert claims_table.build(conv) + "\n" == f.read()

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from camrep.data import scene_table
+from camrep.data.procedural import scene_table
 from camrep.runtime import progress as progress_lib
 from camrep.synthesis import components
 

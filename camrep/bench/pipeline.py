@@ -84,7 +84,8 @@ import numpy as np
 
 from camrep import configs
 from camrep.bench import host as host_lib
-from camrep.data import pipeline, procedural, sources, storage
+from camrep.data import procedural, sources
+from camrep.data.feed import pipeline, storage
 
 WIDTHS = {"paper": 1.0, "quick": 0.125}
 

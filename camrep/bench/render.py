@@ -19,7 +19,8 @@ from collections.abc import Sequence
 import jax
 import numpy as np
 
-from camrep.data import procedural, render
+from camrep.data import procedural
+from camrep.data.procedural import render
 
 
 def bench(name: str, size: int | None, batches: int) -> dict:

@@ -55,7 +55,7 @@ def base() -> ml_collections.ConfigDict:
   c.data.num_threads = 2
   c.data.prefetch = 2
   # Prepared datasets (data.dir): worker processes that read and decode the batches' PNGs; -1:
-  # all usable cores but two (`camrep.data.pipeline.default_num_workers`: 14 on a 16-core GPU
+  # all usable cores but two (`camrep.data.feed.pipeline.default_num_workers`: 14 on a 16-core GPU
   # machine, 0 on 2 cores); 0: no worker processes (reader threads only). Several training
   # processes on one machine each start this many: set it per process then.
   c.data.num_workers = -1

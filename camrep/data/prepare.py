@@ -48,7 +48,7 @@ unknown field is an error. `--preset NAME` applies a named set of overrides firs
 `Source.presets`; the families' "default" / "small").
 
 Output: `DATA_DIR/NAME/CONFIG/VERSION/`, CONFIG being `--config_name` or else the preset name
-(no CONFIG level without either); see `camrep.data.storage` for the files. Preparing
+(no CONFIG level without either); see `camrep.data.feed.storage` for the files. Preparing
 again into the same directory reuses the dataset if its recorded source settings are the same
 and, for captures, its inputs are unchanged (each frame's image and mask files by size and
 modification time, pose, intrinsics; `CaptureSource.inputs`); it refuses otherwise, naming what
@@ -75,8 +75,9 @@ from typing import Any
 
 from absl import flags
 
-from camrep.data import records, sources, storage
+from camrep.data import records, sources
 from camrep.data.errors import DataError
+from camrep.data.feed import storage
 from camrep.runtime import cli
 
 

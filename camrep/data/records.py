@@ -21,17 +21,27 @@ Splits: "train"; "test" (held-out views of the training scenes); "test_scenes" (
 scenes, for the families that have them).
 
 A prepared captures dataset also says what its instances are called and how its splits were made
-(`naming`, `split_summary`): results name captures, not scene ids.
+(`naming`, `split_summary`): results name captures, not scene ids. `digest` is the one hash of
+record metadata: a capture source's inputs and a run's data fingerprint
+(`camrep.data.feed.fingerprint`).
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 
 RECORD_KEYS = ("image", "pose", "scene", "view")
+
+
+def digest(value: Any) -> str:
+  """ "sha256:<hex>" of `value` as canonical JSON (sorted keys, no spaces)."""
+  text = json.dumps(value, sort_keys=True, separators=(",", ":"), default=str)
+  return "sha256:" + hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
 # ---------------------------------------------------------------------------------------------

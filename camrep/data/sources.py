@@ -2,12 +2,12 @@
 its data through `build` and reads a source's facts (setting, pose columns, splits) from `get`.
 
 A source is a procedural family rendered by camrep (`camrep.data.procedural`) or a reader of a
-real dataset on disk (`camrep.data.gqn`, `srn`, `gibson`, `seven_scenes`); either way it yields
-the view records of `camrep.data.records`. Adding one is one call, in this module or in the
-module that defines it (imported before use):
+real dataset on disk (`camrep.data.readers`: `gqn`, `srn`, `gibson`, `seven_scenes`, `captures`);
+either way it yields the view records of `camrep.data.records`. Adding one is one call, in this
+module or in the module that defines it (imported before use):
 
   sources.register(sources.Source(
-    name="nerf", module="camrep.data.nerf", attr="NerfScenes", procedural=False,
+    name="nerf", module="camrep.data.readers.nerf", attr="NerfScenes", procedural=False,
     setting=None, pose_names=("x", "y", "z", "theta", "phi", "psi"),
     splits=("train", "test"), description="NeRF-synthetic transforms.json scenes",
     presets={"small": {"image_size": 64}}))
@@ -109,6 +109,7 @@ def unregister(name: str) -> None:
 
 
 _PROCEDURAL = "camrep.data.procedural"
+_CAPTURES = "camrep.data.readers.captures.collection"
 _GQN, _CAR, _GIBSON, _7S = (
   settings_lib.GQN, settings_lib.CAR, settings_lib.GIBSON, settings_lib.SEVEN_SCENES
 )  # fmt: skip
@@ -122,19 +123,19 @@ for _source in (
          "procedural Gibson-like areas"),
   Source("scene6dof", _PROCEDURAL, "make_family", True, _7S, None,
          ("train", "test"), "procedural 6-DOF scenes (7-Scenes)"),
-  Source("gqn", "camrep.data.gqn", "GQN", False, _GQN, None, ("train", "test"),
+  Source("gqn", "camrep.data.readers.gqn", "GQN", False, _GQN, None, ("train", "test"),
          "DeepMind _GQN TFRecords (rooms)", {"small": {"max_files": 1, "max_scenes": 200}}),
-  Source("srn_cars", "camrep.data.srn", "SRNCars", False, _CAR, None,
+  Source("srn_cars", "camrep.data.readers.srn", "SRNCars", False, _CAR, None,
          ("train", "test", "test_scenes"), "SRN ShapeNet cars renders",
          {"small": {"image_size": 64}}),
-  Source("gibson", "camrep.data.gibson", "GibsonRooms", False, _GIBSON, None,
+  Source("gibson", "camrep.data.readers.gibson", "GibsonRooms", False, _GIBSON, None,
          ("train", "test"), "authors' Gibson renders", {"small": {"image_size": 64}}),
-  Source("seven_scenes", "camrep.data.seven_scenes", "SevenScenes", False, _7S,
+  Source("seven_scenes", "camrep.data.readers.seven_scenes", "SevenScenes", False, _7S,
          None, ("train", "test"), "Microsoft 7-Scenes RGB-D",
          {"small": {"image_size": 64, "scenes": ["chess"]}}),
-  # Posed captures (camrep.data.captures.collection), one --input folder per instance.
+  # Posed captures (_CAPTURES), one --input folder per instance.
   *(
-    Source(f"{fmt}{suffix}", "camrep.data.captures.collection", f"{fmt}_{kind}", False, setting,
+    Source(f"{fmt}{suffix}", _CAPTURES, f"{fmt}_{kind}", False, setting,
            None, ("train", "test", "test_scenes"), f"{what} captures, {setting.name} setting",
            {"small": {"image_size": 64}})
     for fmt, what in (("nerf", "NeRF transforms.json"), ("llff", "LLFF"), ("colmap", "COLMAP"))
@@ -201,7 +202,7 @@ def build(
   preset: str | None = None,
   overrides: Mapping[str, Any] | None = None,
 ) -> Any:
-  """Constructs a registered source (a `camrep.data.storage.ViewSource`).
+  """Constructs a registered source (a `camrep.data.feed.storage.ViewSource`).
 
   Args:
     name: a key of `SOURCES`.

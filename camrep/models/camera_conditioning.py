@@ -59,7 +59,7 @@ from typing_extensions import override
 
 from camrep import lie
 from camrep import pose as P
-from camrep.data import render
+from camrep.data.procedural import render
 from camrep.models.relative_attention import ViewTransform
 
 Array = jax.Array
@@ -150,8 +150,8 @@ def invert_rigid(T: Array) -> Array:
 
 
 class PoseCameras(abc.ABC):
-  """A setting's poses as pinhole cameras (the renderer's conventions, `camrep.data.render`:
-  z-up world, OpenCV camera axes x right, y down, z forward).
+  """A setting's poses as pinhole cameras (the renderer's conventions,
+  `camrep.data.procedural.render`: z-up world, OpenCV camera axes x right, y down, z forward).
 
   Implementations are frozen dataclasses (hashable: static arguments of jitted code) holding the
   setting's constants; `cameras_of_family` builds one from a procedural family.
@@ -174,7 +174,7 @@ class PoseCameras(abc.ABC):
 @dataclasses.dataclass(frozen=True)
 class RoomsCameras(PoseCameras):
   """Rooms poses (x, y, yaw): camera at (x, y, camera_height), yaw counter-clockwise from +x,
-  fixed pitch (`camrep.data.families.RoomsFamily`)."""
+  fixed pitch (`camrep.data.procedural.families.RoomsFamily`)."""
 
   camera_height: float = 0.4
   pitch: float = -0.3
@@ -191,7 +191,7 @@ class RoomsCameras(PoseCameras):
 @dataclasses.dataclass(frozen=True)
 class ObjectCameras(PoseCameras):
   """Object (car) poses (azimuth, polar): camera at camera_distance (sin p cos a, sin p sin a,
-  cos p) looking at the origin, +z up (`camrep.data.families.ObjectFamily`)."""
+  cos p) looking at the origin, +z up (`camrep.data.procedural.families.ObjectFamily`)."""
 
   camera_distance: float = 2.4
   fov_deg: float = 45.0
@@ -214,7 +214,7 @@ def cameras_of_family(family) -> PoseCameras:
     ValueError: another family (area cameras sit at a per-scene origin, scene6dof cameras in a
       per-scene aligned frame: their poses alone do not give the camera).
   """
-  from camrep.data import families
+  from camrep.data.procedural import families
 
   cfg = family.config
   if isinstance(family, families.RoomsFamily):

@@ -56,8 +56,8 @@ def check_same_data(workdir: str, syn_config, config, source: sources.Source) ->
   check_same_world(workdir, syn_config, config, source)
   if not our_dir:
     return
-  from camrep.data import storage
   from camrep.data.errors import DataError
+  from camrep.data.feed import storage
 
   preset = syn_config.data.get("preset", "default")
   try:
@@ -80,8 +80,8 @@ def _synthesis_data_record(workdir: str, syn_config) -> dict[str, Any] | None:
   warning; None when neither is possible (its prepared dataset is gone)."""
   import sys
 
-  from camrep.data import fingerprint
   from camrep.data.errors import DataError
+  from camrep.data.feed import fingerprint
 
   record = workdir_lib.read_record(workdir)
   if record is not None and isinstance(record.get("data"), dict):
@@ -108,7 +108,7 @@ def check_same_world(workdir: str, syn_config, config, source: sources.Source) -
     ConfigError: the first differing parameter (or the fingerprints) named, synthesis value ->
       this regression's.
   """
-  from camrep.data import fingerprint
+  from camrep.data.feed import fingerprint
 
   theirs = _synthesis_data_record(workdir, syn_config)
   if theirs is None:

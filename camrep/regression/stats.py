@@ -17,9 +17,32 @@ recomputes the statistic; the 95% interval is the 2.5 and 97.5 percentiles of th
 
 Paired comparison ("ours" against a baseline in one column): both matrices on the same seeds
 (the seeds both have, matched by seed number) and the same views (checked: the true poses are
-equal); each replicate draws seeds and views once and applies the draw to both, so the ratio
-stat(E_ours) / stat(E_base) keeps their pairing; the verdict is "better" when the 95% interval of
-the ratio lies entirely below 1, "worse" when entirely above, else "tie".
+equal). Two intervals of the ratio stat(E_ours) / stat(E_base):
+
+  - seed-level t interval (`seed_ratio`, the verdict's): per seed s the ratio
+    r_s = stat(E_ours[s]) / stat(E_base[s]) on the shared test views; with l_s = log r_s,
+    l̄ and sd over the S seeds, the interval is exp(l̄ ± t_{S-1, 0.975} sd / sqrt(S)) around the
+    geometric mean exp(l̄), and p the two-sided one-sample t test of mean log ratio 0 (S - 1
+    degrees of freedom; S >= 2). The seeds are the independent units: with 3 seeds this is
+    wide (t_{2, 0.975} = 4.30), as it must be. The test views are shared by every seed, so
+    their sampling is not in this interval: it is an interval for this test set;
+  - seed-level t widened by the views (`seed_view_ratio`, beside it): the same centre, the
+    variance of l̄ plus the variance of the log ratio when only the test views are resampled
+    (every seed kept), t quantiles with Welch-Satterthwaite degrees of freedom: an interval for
+    the population of views, not only this test set;
+  - hierarchical bootstrap with a small-sample correction (`corrected_bootstrap_ratio`): the
+    two-level bootstrap above applied to both matrices with one draw per replicate, its
+    standard error of the log ratio inflated by sqrt(S / (S - 1)) (a bootstrap of S seeds
+    underestimates the seed variance by (S - 1) / S) and t quantiles in place of the
+    percentiles: log ratio ± t_{S-1, 0.975} se. It covers about 100% in the records' regimes
+    (too wide to decide anything) and is kept for the coverage check only.
+
+`paired_ratio` keeps the plain percentile bootstrap (2.5 and 97.5 percentiles of the replicated
+ratio), which undercovers where the seeds dominate a cell's variance (experiments/coverage.py).
+
+Verdicts over a table: each comparison's p value, Holm-adjusted over the table's comparisons
+(`holm`); "better" / "worse" when the adjusted p is below 0.05 (the direction from l̄), else
+"tie"; unadjusted, p < 0.05 is the t interval excluding 1.
 """
 
 from __future__ import annotations
@@ -31,12 +54,15 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+from scipy import stats as sp_stats
 
 from camrep.regression import runs as runs_lib
 
 B = 2000  # bootstrap replicates
 SEED = 0  # of the bootstrap's random generator: tables are reproducible
 HAND_DESIGNED = ("euler", "axis_angle", "sincos", "quat", "logq", "rot6d", "svd9d")
+LEVEL = 0.95  # of every interval
+ALPHA = 0.05  # family-wise error rate of a table's verdicts (Holm)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,6 +160,18 @@ def interval(
   return Interval(value, float(lo), float(hi), errors.shape[0], errors.shape[1])
 
 
+def seed_interval(
+  errors: np.ndarray, scenes: np.ndarray | None = None, reduce: str = "mean", level: float = LEVEL
+) -> Interval:
+  """The statistic of (S, N) errors with the t interval of its S per-seed statistics (S - 1
+  degrees of freedom; NaN bounds for one seed): an interval over seeds for this test set."""
+  errors = np.asarray(errors, np.float64)
+  if errors.ndim != 2 or errors.size == 0:
+    raise ValueError(f"errors must be a non-empty (seeds, views) matrix, got {errors.shape}")
+  m, lo, hi, _ = seed_t_interval(per_seed_statistics(errors, scenes, reduce), level)
+  return Interval(m, lo, hi, errors.shape[0], errors.shape[1])
+
+
 def verdict(lo: float, hi: float) -> str:
   """ "better" (interval of ours / baseline below 1), "worse" (above 1) or "tie"."""
   if hi < 1:
@@ -166,6 +204,215 @@ def paired_ratio(
   value = statistic(ours, scenes, reduce) / statistic(base, scenes, reduce)
   r = Interval(float(value), float(lo), float(hi), ours.shape[0], ours.shape[1])
   return Comparison(r, baseline, verdict(r.lo, r.hi))
+
+
+def t_quantile(q: float, df: float) -> float:
+  """The q quantile of Student's t with df degrees of freedom."""
+  return float(sp_stats.t.ppf(q, df))
+
+
+@dataclasses.dataclass(frozen=True)
+class SeedComparison:
+  """Seed-level paired comparison of ours against a baseline (module docstring).
+
+  Attributes:
+    ratio: the geometric mean of the per-seed ratios with its seed-level t interval (NaN bounds
+      for one seed).
+    per_seed: (S,) ratios r_s, in seed order.
+    p: two-sided p value of mean log ratio 0 (NaN for one seed, 0 when every r_s is equal and
+      not 1).
+    population: the same geometric mean with the interval widened by the test views' sampling
+      (`seed_view_ratio`), or None when not computed.
+    baseline: the baseline's name.
+  """
+
+  ratio: Interval
+  per_seed: tuple[float, ...]
+  p: float
+  population: Interval | None
+  baseline: str
+
+  @property
+  def direction(self) -> str:
+    """ "better" (geometric mean ratio below 1) or "worse" (at or above 1)."""
+    return "better" if self.ratio.value < 1 else "worse"
+
+  def verdict(self, p_adjusted: float | None = None, alpha: float = ALPHA) -> str:
+    """ "better" / "worse" when p (or the Holm-adjusted p) is below alpha, else "tie"; "–"
+    without a p value (one seed)."""
+    p = self.p if p_adjusted is None else p_adjusted
+    if not math.isfinite(p):
+      return "–"
+    return self.direction if p < alpha else "tie"
+
+
+def seed_t_interval(values: np.ndarray, level: float = LEVEL) -> tuple[float, float, float, float]:
+  """(mean, lo, hi, p) of a one-sample t interval and the two-sided test of mean 0.
+
+  Args:
+    values: (S,) independent values (per-seed log ratios).
+    level: the interval's coverage.
+
+  Returns NaN bounds and p for S < 2; for S >= 2 with zero spread, the mean as both bounds and p
+  0 (or 1 when the mean is 0).
+  """
+  x = np.asarray(values, np.float64)
+  n, m = len(x), float(np.mean(x))
+  if n < 2:
+    return m, math.nan, math.nan, math.nan
+  se = float(np.std(x, ddof=1)) / math.sqrt(n)
+  if se == 0:
+    return m, m, m, (1.0 if m == 0 else 0.0)
+  half = t_quantile(0.5 + level / 2, n - 1) * se
+  p = float(2 * sp_stats.t.sf(abs(m) / se, n - 1))
+  return m, m - half, m + half, p
+
+
+def welch_interval(
+  a: np.ndarray, b: np.ndarray, level: float = LEVEL
+) -> tuple[float, float, float]:
+  """(mean(a) - mean(b), lo, hi): Welch's t interval of a difference of means of two
+  independent samples (Welch-Satterthwaite degrees of freedom); NaN bounds when a sample has
+  one value."""
+  a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+  d = float(a.mean() - b.mean())
+  if len(a) < 2 or len(b) < 2:
+    return d, math.nan, math.nan
+  va, vb = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
+  se = math.sqrt(va + vb)
+  if se == 0:
+    return d, d, d
+  df = (va + vb) ** 2 / (va**2 / (len(a) - 1) + vb**2 / (len(b) - 1))
+  half = t_quantile(0.5 + level / 2, df) * se
+  return d, d - half, d + half
+
+
+def per_seed_statistics(
+  errors: np.ndarray, scenes: np.ndarray | None = None, reduce: str = "mean"
+) -> np.ndarray:
+  """(S,) stat of each seed's row of (S, N) errors (`statistic` of one seed)."""
+  errors = np.asarray(errors, np.float64)
+  return np.array([statistic(row[None], scenes, reduce) for row in errors])
+
+
+def corrected_bootstrap_ratio(
+  ours: np.ndarray,
+  base: np.ndarray,
+  scenes: np.ndarray | None = None,
+  reduce: str = "mean",
+  *,
+  level: float = LEVEL,
+  b: int = B,
+  seed: int = SEED,
+) -> Interval:
+  """stat(ours) / stat(base) with the corrected hierarchical bootstrap interval (module
+  docstring); NaN bounds for one seed."""
+  ours, base = np.asarray(ours, np.float64), np.asarray(base, np.float64)
+  s, n = ours.shape
+  value = statistic(ours, scenes, reduce) / statistic(base, scenes, reduce)
+  if s < 2:
+    return Interval(float(value), math.nan, math.nan, s, n)
+  reps = _resampled_stats([ours, base], scenes, reduce, b, seed)
+  with np.errstate(divide="ignore", invalid="ignore"):
+    logs = np.log(reps[:, 0] / reps[:, 1])
+  logs = logs[np.isfinite(logs)]
+  se = float(np.std(logs, ddof=1)) * math.sqrt(s / (s - 1))
+  half = t_quantile(0.5 + level / 2, s - 1) * se
+  c = math.log(value)
+  return Interval(float(value), math.exp(c - half), math.exp(c + half), s, n)
+
+
+def seed_view_ratio(
+  ours: np.ndarray,
+  base: np.ndarray,
+  scenes: np.ndarray | None = None,
+  reduce: str = "mean",
+  *,
+  level: float = LEVEL,
+  b: int = B,
+  seed: int = SEED,
+) -> Interval:
+  """The seed-level t interval widened by the test views' sampling: with l_s the per-seed log
+  ratios (S of them) and v the variance of log(stat(ours) / stat(base)) when only the views are
+  resampled (`b` replicates, every seed kept, within each scene), the interval is
+  exp(l̄ ± t_df sqrt(sd(l)^2 / S + v)) with Welch-Satterthwaite's
+  df = (sd^2 / S + v)^2 / ((sd^2 / S)^2 / (S - 1) + v^2 / (N - 1)): t_{S-1} where the seeds
+  dominate, near normal where the views do. An interval for the population of views, not only
+  this test set; NaN bounds for one seed."""
+  ours, base = np.asarray(ours, np.float64), np.asarray(base, np.float64)
+  s, n = ours.shape
+  with np.errstate(divide="ignore", invalid="ignore"):
+    logs = np.log(
+      per_seed_statistics(ours, scenes, reduce) / per_seed_statistics(base, scenes, reduce)
+    )
+  m = float(np.mean(logs))
+  if s < 2:
+    return Interval(math.exp(m), math.nan, math.nan, s, n)
+  rng = np.random.default_rng(seed)
+  groups = _groups(scenes, n)
+  views = np.stack(
+    [np.concatenate([g[rng.integers(0, len(g), len(g))] for g in groups]) for _ in range(b)]
+  )
+  sub_scenes = None if scenes is None else np.asarray(scenes)[np.concatenate(groups)]
+  reps = np.empty(b)
+  for i, v in enumerate(views):
+    with np.errstate(divide="ignore", invalid="ignore"):
+      reps[i] = np.log(
+        statistic(ours[:, v], sub_scenes, reduce) / statistic(base[:, v], sub_scenes, reduce)
+      )
+  var_v = float(np.nanvar(reps, ddof=1))
+  var_s = float(np.var(logs, ddof=1)) / s
+  total = var_s + var_v
+  if total == 0:
+    return Interval(math.exp(m), math.exp(m), math.exp(m), s, n)
+  df = total**2 / (var_s**2 / (s - 1) + var_v**2 / max(n - 1, 1))
+  half = t_quantile(0.5 + level / 2, df) * math.sqrt(total)
+  return Interval(math.exp(m), math.exp(m - half), math.exp(m + half), s, n)
+
+
+def seed_ratio(
+  ours: np.ndarray,
+  base: np.ndarray,
+  scenes: np.ndarray | None = None,
+  reduce: str = "mean",
+  *,
+  baseline: str = "",
+  level: float = LEVEL,
+  population: bool = True,
+  b: int = B,
+  seed: int = SEED,
+) -> SeedComparison:
+  """Seed-level comparison of two (S, N) matrices paired by row (seed) and column (view),
+  with the interval for the population of views beside it (`population`: `seed_view_ratio`)."""
+  ours, base = np.asarray(ours, np.float64), np.asarray(base, np.float64)
+  if ours.shape != base.shape or ours.ndim != 2 or ours.size == 0:
+    raise ValueError(
+      f"paired errors need equal (seeds, views) shapes, got {ours.shape}, {base.shape}"
+    )
+  with np.errstate(divide="ignore", invalid="ignore"):
+    r = per_seed_statistics(ours, scenes, reduce) / per_seed_statistics(base, scenes, reduce)
+    m, lo, hi, p = seed_t_interval(np.log(r), level)
+  iv = Interval(math.exp(m), math.exp(lo), math.exp(hi), ours.shape[0], ours.shape[1])
+  pop = (
+    seed_view_ratio(ours, base, scenes, reduce, level=level, b=b, seed=seed) if population else None
+  )
+  return SeedComparison(iv, tuple(float(x) for x in r), p, pop, baseline)
+
+
+def holm(pvalues: Sequence[float]) -> np.ndarray:
+  """Holm's step-down adjusted p values (same order as `pvalues`; NaN stays NaN and is not
+  counted): the k-th smallest of m p values becomes max over j <= k of min(1, (m - j + 1) p_(j)).
+  Rejecting where the adjusted p is below alpha keeps the family-wise error rate at alpha."""
+  p = np.asarray(pvalues, np.float64)
+  out = np.full(p.shape, np.nan)
+  ok = np.flatnonzero(np.isfinite(p))
+  m = len(ok)
+  if not m:
+    return out
+  order = ok[np.argsort(p[ok], kind="stable")]
+  adj = np.minimum(1.0, (m - np.arange(m)) * p[order])
+  out[order] = np.maximum.accumulate(adj)
+  return out
 
 
 # ------------------------------------------------------------------------------ from the runs
@@ -231,14 +478,21 @@ def _same_views(a, b) -> bool:
 
 
 def cell_interval(
-  runs: Sequence[Mapping[str, Any]], error: str, reduce: str = "mean", *, by_scene: bool = False
+  runs: Sequence[Mapping[str, Any]],
+  error: str,
+  reduce: str = "mean",
+  *,
+  by_scene: bool = False,
+  method: str = "bootstrap",
 ) -> Interval | None:
-  """The interval of one table cell from its runs' per-view errors (None without them)."""
+  """The interval of one table cell from its runs' per-view errors (None without them):
+  `interval` (method "bootstrap") or `seed_interval` ("seed_t")."""
   m = seed_matrix(runs, error)
   if m is None:
     return None
   errors, scenes, _ = m
-  return interval(errors, scenes if by_scene else None, reduce)
+  fn = {"bootstrap": interval, "seed_t": seed_interval}[method]
+  return fn(errors, scenes if by_scene else None, reduce)
 
 
 def compare_runs(
@@ -269,6 +523,36 @@ def compare_runs(
   return paired_ratio(a[0], b_[0], a[1] if by_scene else None, reduce, baseline=baseline)
 
 
+def seed_compare_runs(
+  ours: Sequence[Mapping[str, Any]],
+  base: Sequence[Mapping[str, Any]],
+  error: str,
+  reduce: str = "mean",
+  *,
+  baseline: str = "",
+  by_scene: bool = False,
+  population: bool = True,
+) -> SeedComparison | None:
+  """`seed_ratio` of two groups of runs on the seeds both have (None: no common seed or no
+  per-view errors).
+
+  Raises:
+    ValueError: the two groups' test views differ.
+  """
+  common = sorted({int(r["seed"]) for r in ours} & {int(r["seed"]) for r in base})
+  if not common:
+    return None
+  a, b_ = seed_matrix(ours, error, common), seed_matrix(base, error, common)
+  if a is None or b_ is None:
+    return None
+  if a[0].shape != b_[0].shape or not _same_views(a[2], b_[2]):
+    raise ValueError(
+      f"ours and {baseline or 'the baseline'} were tested on other views: cannot pair them"
+    )
+  scenes = a[1] if by_scene else None
+  return seed_ratio(a[0], b_[0], scenes, reduce, baseline=baseline, population=population)
+
+
 def best_hand_designed(
   cells: Mapping[str, float],
 ) -> str | None:
@@ -291,3 +575,53 @@ def fmt_comparison(c: Comparison | None) -> str:
     return "–"
   r = c.ratio
   return f"{r.value:.2f} [{r.lo:.2f}, {r.hi:.2f}] {c.verdict} (vs {c.baseline})"
+
+
+def fmt_seed_comparison(c: SeedComparison | None) -> str:
+  """ "0.81 [0.70, 0.93] better (vs quat; 3 seeds)": the seed-level t interval and its
+  unadjusted verdict ("–" for None)."""
+  if c is None:
+    return "–"
+  r = c.ratio
+  return (
+    f"{r.value:.2f} [{r.lo:.2f}, {r.hi:.2f}] {c.verdict()} (vs {c.baseline}; {r.n_seeds} seeds)"
+  )
+
+
+@dataclasses.dataclass(frozen=True)
+class Components:
+  """Variance components of a (S, N) error matrix under errors = mu + seed + view + noise
+  (two-way random effects without replication, method of moments; a negative estimate is
+  clipped to 0). Unlike sums of squares, these are the variances of the effects themselves."""
+
+  mean: float
+  seed: float
+  view: float
+  noise: float
+
+  def shares(self) -> tuple[float, float, float]:
+    """(seed, view, noise) as fractions of their sum."""
+    t = self.seed + self.view + self.noise
+    return (self.seed / t, self.view / t, self.noise / t) if t > 0 else (0.0, 0.0, 0.0)
+
+
+def variance_components(errors: np.ndarray) -> Components:
+  """`Components` of (S, N) errors, S, N >= 2: with the mean squares
+  MS_seed = N sum_s (m_s - m)^2 / (S - 1), MS_view = S sum_v (m_v - m)^2 / (N - 1) and
+  MS_res = sum (e_sv - m_s - m_v + m)^2 / ((S - 1)(N - 1)),
+  seed = (MS_seed - MS_res) / N, view = (MS_view - MS_res) / S, noise = MS_res."""
+  e = np.asarray(errors, np.float64)
+  s, n = e.shape
+  if s < 2 or n < 2:
+    raise ValueError(f"variance components need >= 2 seeds and views, got {e.shape}")
+  m, ms, mv = e.mean(), e.mean(axis=1), e.mean(axis=0)
+  res = e - ms[:, None] - mv[None, :] + m
+  ms_seed = n * np.sum((ms - m) ** 2) / (s - 1)
+  ms_view = s * np.sum((mv - m) ** 2) / (n - 1)
+  ms_res = np.sum(res**2) / ((s - 1) * (n - 1))
+  return Components(
+    float(m),
+    float(max(0.0, (ms_seed - ms_res) / n)),
+    float(max(0.0, (ms_view - ms_res) / s)),
+    float(ms_res),
+  )

@@ -36,6 +36,7 @@ import numpy as np
 from camrep import settings
 from camrep.data import records
 from camrep.regression import runs as runs_lib
+from camrep.regression import stats
 
 RESULTS_FILE = runs_lib.RESULTS_FILE
 
@@ -226,6 +227,16 @@ class Selection:
   def seeds(self) -> tuple[int, ...]:
     return tuple(r["seed"] for r in self.runs)
 
+  @property
+  def scored_seeds(self) -> tuple[int, ...]:
+    """The seeds the chosen lr's validation score averaged (those every lr of the grid has)."""
+    return self.scores[self.lr][1]
+
+  @property
+  def on_all_seeds(self) -> bool:
+    """Whether the lr was chosen on the validation mean over all the seeds the cell reports."""
+    return set(self.scored_seeds) == set(self.seeds)
+
 
 def select(results: Sequence[Mapping[str, Any]]) -> dict[tuple[str, str], Selection]:
   """Groups results by (setting, representation) and picks each group's learning rate.
@@ -259,6 +270,33 @@ def select(results: Sequence[Mapping[str, Any]]) -> dict[tuple[str, str], Select
     runs = [by_lr[best][s] for s in sorted(by_lr[best])]
     out[setting, rep] = Selection(setting, rep, best, runs, scores)
   return out
+
+
+def validation_statistic(
+  runs: Sequence[Mapping[str, Any]], error: str, reduce: str = "mean"
+) -> float:
+  """The mean over runs (seeds) of validation["all"][error][reduce] (NaN when a run lacks it).
+
+  The validation summaries hold the whole validation split only ("all"), so a column whose test
+  statistic averages per-scene medians (7-Scenes) is judged on the median of all its
+  validation views."""
+  vals = []
+  for r in runs:
+    v = (r.get("validation") or {}).get("all", {}).get(error, {}).get(reduce)
+    if v is None:
+      return math.nan
+    vals.append(float(v))
+  return float(np.mean(vals)) if vals else math.nan
+
+
+def best_on_validation(
+  selections: Mapping[str, Selection], error: str, reduce: str = "mean"
+) -> str | None:
+  """The hand-designed representation of one column ({representation: Selection}) with the
+  lowest `validation_statistic` at its chosen lr, or None: the baseline ours is compared with,
+  chosen without reading a test error."""
+  values = {rep: validation_statistic(sel.runs, error, reduce) for rep, sel in selections.items()}
+  return stats.best_hand_designed(values)
 
 
 def seed_stats(

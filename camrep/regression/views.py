@@ -53,7 +53,8 @@ import grain
 import numpy as np
 
 from camrep import settings as settings_lib
-from camrep.data import pipeline, records, sources, storage
+from camrep.data import records, sources
+from camrep.data.feed import pipeline, storage
 from camrep.runtime.runconfig import ConfigError
 
 ImageReader = Callable[[np.ndarray], np.ndarray]
@@ -239,8 +240,8 @@ def data_record(config, source: sources.Source) -> dict[str, Any]:
   Raises:
     ConfigError: the dataset cannot be found, or the family refuses its parameters.
   """
-  from camrep.data import fingerprint
   from camrep.data.errors import DataError
+  from camrep.data.feed import fingerprint
 
   if not source.procedural:
     path, _ = open_dataset(config)

@@ -14,9 +14,10 @@ import jax
 
 from camrep import pose as P
 from camrep import settings
-from camrep.data import batches, fingerprint, sources
-from camrep.data import pipeline as pipeline_lib
+from camrep.data import sources
 from camrep.data.errors import DataError
+from camrep.data.feed import batches, fingerprint
+from camrep.data.feed import pipeline as pipeline_lib
 from camrep.runtime import frame as frame_lib
 from camrep.runtime.runconfig import ConfigError
 from camrep.synthesis import synthesizers
@@ -119,7 +120,7 @@ def make_pipeline(
   process_count: int = 1,
   for_eval: bool = False,
 ):
-  """Batches of `split` laid out for the pmapped step (see camrep.data.pipeline).
+  """Batches of `split` laid out for the pmapped step (see camrep.data.feed.pipeline).
 
   Data comes from `config.data.dir` (a prepared tfds directory) when set, its training batches
   decoded by `num_workers(config)` worker processes; otherwise from the procedural family, held

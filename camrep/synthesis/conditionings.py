@@ -24,9 +24,10 @@ to cameras (`camera_conditioning.cameras_of_family`, the family of config `data.
 `data.family`, also for such data prepared to a directory); prepared data of the car setting
 (SRN cars, a capture): a camera on the unit sphere looking at the origin, with a nominal field of
 view (`NOMINAL_FOV_DEG`): the prepared records hold the pose columns (azimuth, polar) only, and a
-capture is normalised to a median camera distance of 1 (`camrep.data.captures.normalize`), so
-the rotation is exact and the distance and intrinsics are nominal. Other prepared data is
-refused for (a)-(c): its pose columns do not give the camera.
+capture is normalised to a median camera distance of 1
+(`camrep.data.readers.captures.normalize`), so the rotation is exact and the distance and
+intrinsics are nominal. Other prepared data is refused for (a)-(c): its pose columns do not give
+the camera.
 """
 
 from __future__ import annotations

@@ -19,8 +19,9 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from camrep import lie, pose, pose_encodings
-from camrep.data import sources, storage
+from camrep.data import sources
 from camrep.data.errors import DataError
+from camrep.data.feed import storage
 from camrep.models import mvt
 from camrep.runtime import frame as frame_lib
 from camrep.runtime import validate as V

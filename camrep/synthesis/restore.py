@@ -15,7 +15,7 @@ import jax
 import ml_collections
 
 from camrep import pose as P
-from camrep.data import batches
+from camrep.data.feed import batches
 from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import components
 from camrep.synthesis import step as step_lib

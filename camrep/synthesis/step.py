@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from camrep.data import batches
+from camrep.data.feed import batches
 from camrep.runtime import frame as frame_lib
 from camrep.synthesis import synthesizers
 

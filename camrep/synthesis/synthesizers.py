@@ -15,7 +15,7 @@ Implementations: `GQNDecoder` (encoder over context views, AdaIN decoder), `Tabl
 (per-scene tables), one per `config.task` (`TASKS`), and `ConvDraw` (GQN's generator, Eslami et
 al. 2018).
 
-Batches, on one device (see camrep.data.pipeline): training {"image": uint8 (S, V, H, W, 3),
+Batches, on one device (see camrep.data.feed.pipeline): training {"image": uint8 (S, V, H, W, 3),
 "pose": (S, V, P), "scene": (S,)}; held-out views (`heldout.eval_batches`) {"context_image"
 (E, C, H, W, 3), "context_pose" (E, C, P), "target_image" (E, Q, H, W, 3), "target_pose"
 (E, Q, P), "scene" (E,)}.

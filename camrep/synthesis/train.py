@@ -24,7 +24,7 @@ import ml_collections
 import numpy as np
 from typing_extensions import override
 
-from camrep.data import pipeline as pipeline_lib
+from camrep.data.feed import pipeline as pipeline_lib
 from camrep.runtime import frame as frame_lib
 from camrep.runtime import session as session_lib
 from camrep.runtime import stopping

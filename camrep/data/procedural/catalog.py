@@ -1,38 +1,10 @@
-"""Procedural posed-image datasets rendered by `camrep.data.render`: camrep's default data.
+"""The procedural families' configs, presets and factory: `make_family(name, preset, **overrides)`.
 
-Four families mirror the paper's four datasets (the authors' code); each yields view
-records (`camrep.data.records`) with the same pose conventions as its real counterpart:
-
-  rooms      like GQN rooms: many square rooms [-1, 1]^2 (textured walls and floor, 1 to 4
-             objects), camera free in 2-D at a fixed height and pitch; pose (x, y, yaw).
-  object     like ShapeNet cars: many toy cars built from primitives, all facing +x with a bright
-             nose, headlights, red tail lights and a rear cabin, so the front is visible; camera
-             on a sphere looking at the centre, white background; pose (azimuth, polar).
-  area       like Gibson rooms: a few furnished rooms; dense views over a 2 m x 2 m area in the
-             middle of each; pose (x, y, yaw) with x, y in [0, 2] m area coordinates.
-  scene6dof  like 7-Scenes: one furnished room per 7-Scenes scene, seen along the REAL 7-Scenes
-             camera trajectories (`camrep.data.seven_scenes` pose tables); pose = the paper's
-             six DOFs from `seven_scenes.c2w_to_dofs`.
-
-Splits: "train"; "test" = different poses of the training scenes (a different random stream,
-or the 7-Scenes test trajectories); "test_scenes" = whole held-out scenes (rooms and object),
-whose scene ids continue after the training ids (num_train_scenes, num_train_scenes + 1, ...),
-so a per-scene table indexed by id never aliases a held-out scene.
-
-Determinism: scene `s` is built from `np.random.default_rng([seed, family, s])` and view `v`
-of split `k` from `np.random.default_rng([seed, family, s, k, v])`, so any record can be
-regenerated alone and a smaller config's views are a prefix of a larger one's. The renderer
-is deterministic (one jit compile per family and image size: see `camrep.data.render`).
-
-Usage:
-  family = make_family("rooms", preset="small")
-  for record in family.iter_views("train"): ...
-  images = family.render_views(scene=0, poses=family.poses("test", 0))
-
-Modules: this one holds the configs, presets and the factory; `camrep.data.families` the four
-family classes, `camrep.data.family_base` their shared machinery (splits, pose streams,
-rendering, view records) and `camrep.data.scenery` the random scene content (materials, light,
-furnished rooms). The family classes and `default_pose_dir` are re-exported here.
+One frozen config dataclass per family (`RoomsConfig`, `ObjectConfig`, `AreaConfig`,
+`Scene6DofConfig`), the `small` preset's overrides (`SMALL_OVERRIDES`), the counts every config
+must keep at least 1 (`check_counts`), and `make_config` / `make_family`, which apply defaults, then
+the preset, then the caller's overrides. The families themselves are described in
+`camrep.data.procedural`.
 """
 
 from __future__ import annotations
@@ -40,35 +12,14 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from camrep.data.families import (
+from camrep.data.procedural.families import (
   SEVEN_SCENES,
   AreaFamily,
   ObjectFamily,
   RoomsFamily,
   Scene6DofFamily,
-  default_pose_dir,
 )
-from camrep.data.family_base import Layout, ProceduralFamily, SampledPoseFamily
-
-__all__ = [
-  "FAMILIES",
-  "PRESETS",
-  "SMALL_OVERRIDES",
-  "AreaConfig",
-  "AreaFamily",
-  "Layout",
-  "ObjectConfig",
-  "ObjectFamily",
-  "ProceduralFamily",
-  "RoomsConfig",
-  "RoomsFamily",
-  "SampledPoseFamily",
-  "Scene6DofConfig",
-  "Scene6DofFamily",
-  "default_pose_dir",
-  "make_config",
-  "make_family",
-]
+from camrep.data.procedural.family_base import ProceduralFamily
 
 FAMILIES = ("rooms", "object", "area", "scene6dof")
 PRESETS = ("default", "small")

@@ -28,8 +28,8 @@ import struct
 
 import numpy as np
 
-from camrep.data.captures import cameras
-from camrep.data.captures.cameras import (
+from camrep.data.readers.captures import cameras
+from camrep.data.readers.captures.cameras import (
   Capture,
   CaptureError,
   CountMismatchError,
@@ -39,7 +39,7 @@ from camrep.data.captures.cameras import (
   NonFinitePoseError,
   UnknownCameraModelError,
 )
-from camrep.data.imageio import PathLike
+from camrep.data.readers.imageio import PathLike
 
 CAMERA_MODELS = {
   0: ("SIMPLE_PINHOLE", 3),

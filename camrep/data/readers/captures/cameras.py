@@ -4,15 +4,15 @@ Conventions (the one frame every reader converts to, so that the normalisation a
 records need not know the source format):
 
 * `Frame.c2w` is camera-to-world, 4x4, in **OpenCV camera axes** (x right, y down, z forward),
-  the convention of SRN cars (`camrep.data.srn`) and COLMAP. A world point p_w seen by the camera
-  is p_cam = R^T (p_w - t) with c2w = [R | t].
+  the convention of SRN cars (`camrep.data.readers.srn`) and COLMAP. A world point p_w seen by the
+  camera is p_cam = R^T (p_w - t) with c2w = [R | t].
 * Intrinsics are in pixels of the image file as read (after any `images_N` down-scaling):
   focal lengths `fx`, `fy`, principal point `cx`, `cy`, size `width` x `height`.
 * Distortion is OpenCV's coefficient vector (k1, k2, p1, p2, k3, k4, k5, k6), zeros when none;
   `load_frame_image` undistorts with `cv2.undistort` to the same camera matrix, or refuses.
 
-The readers are `camrep.data.captures.nerf`, `.llff` and `.colmap`;
-`camrep.data.captures.collection`
+The readers are `camrep.data.readers.captures.nerf`, `.llff` and `.colmap`;
+`camrep.data.readers.captures.collection`
 turns captures into view records.
 """
 
@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from camrep.data.errors import DataError
-from camrep.data.imageio import PathLike
+from camrep.data.readers.imageio import PathLike
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr", ".bmp", ".tif", ".tiff", ".webp")
 """Image file extensions the readers look for (case-insensitive)."""

@@ -23,15 +23,15 @@ import re
 
 import numpy as np
 
-from camrep.data.captures import cameras
-from camrep.data.captures.cameras import (
+from camrep.data.readers.captures import cameras
+from camrep.data.readers.captures.cameras import (
   Capture,
   CaptureError,
   CountMismatchError,
   Frame,
   NonFinitePoseError,
 )
-from camrep.data.imageio import PathLike
+from camrep.data.readers.imageio import PathLike
 
 POSES_FILE = "poses_bounds.npy"
 _FACTOR_RE = re.compile(r"^images_(\d+)$")

@@ -13,7 +13,8 @@ from collections.abc import Iterator
 import jax.numpy as jnp
 import numpy as np
 
-from camrep.data import render, sources
+from camrep.data import sources
+from camrep.data.procedural import render
 
 FAMILY_CODE = {"rooms": 1, "object": 2, "area": 3, "scene6dof": 4}
 """Per family: its key in every generator seed (`seeded_rng(seed, FAMILY_CODE[name], ...)`)."""

@@ -2,8 +2,8 @@
 once: the batch planner's view choice without a Python call per scene.
 
 A batch's views are chosen scene after scene from ONE generator (`default_rng([seed, 1, step,
-process])`, see `camrep.data.pipeline`): for each scene `rng.choice(n, size, replace=False)` and,
-in "pairs" mode, `rng.integers(k, size=...)`. This module computes the same numbers for all the
+process])`, see `camrep.data.feed.pipeline`): for each scene `rng.choice(n, size, replace=False)`
+and, in "pairs" mode, `rng.integers(k, size=...)`. This module computes the same numbers for all the
 batch's scenes with array operations, from the generator's raw 64-bit outputs
 (`bit_generator.random_raw`, one call), following numpy's own algorithms (numpy/random
 `_generator.pyx` `Generator.choice`, `_shuffle_int`; `distributions.c` `random_bounded_uint64`,

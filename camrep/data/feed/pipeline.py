@@ -1,6 +1,6 @@
 """Input pipeline: batches of posed views laid out for a pmapped train step (grain).
 
-A batch is a `camrep.data.batches.ViewBatch` of numpy arrays, D = `num_devices` (local
+A batch is a `camrep.data.feed.batches.ViewBatch` of numpy arrays, D = `num_devices` (local
 devices), S = `scenes_per_device`, V = `views_per_scene`: image uint8 (D, S, V, H, W, 3), pose
 float32 (D, S, V, P), scene int32 (D, S), view int32 (D, S, V); `batches.dummy_batch` gives its
 shapes without reading data.
@@ -32,7 +32,7 @@ p, p + process_count, ... only (disjoint, covering). Every process uses the same
 steps_per_epoch, computed from the smallest shard, so all processes turn epochs together.
 
 Backends share the batching code: `tfds_pipeline` reads the ArrayRecord files written by
-`camrep.data.storage.prepare` (grouping by scene comes from the sidecar index, only the
+`camrep.data.feed.storage.prepare` (grouping by scene comes from the sidecar index, only the
 selected PNGs are decoded); `memory_pipeline` holds a source's split in memory (tests, quick
 runs). `BatchPipeline.iterator` wraps `batch` in a `grain.MapDataset` over step numbers and
 prefetches it: with `num_workers` > 0 in that many worker processes (grain's `mp_prefetch`: worker
@@ -63,9 +63,10 @@ import jax
 import numpy as np
 from absl import flags as absl_flags
 
-from camrep.data import batches, draws, scene_table, storage
 from camrep.data.errors import DataError
-from camrep.data.storage import ViewIndex, ViewSource
+from camrep.data.feed import batches, draws, storage
+from camrep.data.feed.storage import ViewIndex, ViewSource
+from camrep.data.procedural import scene_table
 
 MODES = ("random", "pairs")
 PERIODIC_POSE_NAMES = frozenset({"yaw", "azimuth", "theta", "psi"})

@@ -30,9 +30,9 @@ from collections.abc import Iterator, Sequence
 import numpy as np
 
 from camrep import settings
-from camrep.data import textio
 from camrep.data.errors import DataError
-from camrep.data.imageio import PathLike, check_image_size, crop_and_resize, read_image
+from camrep.data.readers import textio
+from camrep.data.readers.imageio import PathLike, check_image_size, crop_and_resize, read_image
 from camrep.rotations import euler_sxyz_to_matrix as euler_sxyz_to_matrix
 from camrep.rotations import matrix_to_euler_sxyz as matrix_to_euler_sxyz
 from camrep.rotations import orthonormalize as orthonormalize

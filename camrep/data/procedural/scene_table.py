@@ -34,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from camrep.data import render
+from camrep.data.procedural import render
 
 _CAMERAS_PER_CALL = 1 << 16
 TABLE_MAX_BYTES = 4 * 2**30

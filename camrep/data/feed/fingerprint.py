@@ -39,7 +39,10 @@ from typing import Any
 
 import numpy as np
 
-from camrep.data import batches, render, sources, storage
+from camrep.data import sources
+from camrep.data.feed import batches, storage
+from camrep.data.procedural import render
+from camrep.data.records import digest
 
 # Family parameters that choose how much of a generator's data there is (and at what
 # resolution), not what a scene or its camera poses are: left out of the "world" fingerprint.
@@ -58,12 +61,6 @@ EXTENT_FIELDS = frozenset(
     "batch_size",
   }
 )
-
-
-def digest(value: Any) -> str:
-  """ "sha256:<hex>" of `value` as canonical JSON (sorted keys, no spaces)."""
-  text = json.dumps(value, sort_keys=True, separators=(",", ":"), default=str)
-  return "sha256:" + hashlib.sha256(text.encode("utf-8")).hexdigest()
 
 
 def plain(value: Any) -> Any:

@@ -52,7 +52,7 @@ import numpy as np
 from flax import struct
 
 # Bumped whenever a change here (or in the procedural families' scenery) alters a rendered
-# pixel: it is part of a procedural dataset's fingerprint (`camrep.data.fingerprint`), so a
+# pixel: it is part of a procedural dataset's fingerprint (`camrep.data.feed.fingerprint`), so a
 # workdir trained on the old images refuses to resume on the new ones.
 RENDERER_VERSION = 1
 _EPS = 1e-4
@@ -866,7 +866,8 @@ def render_table_views(
   rows are gathered inside the call, so only indices and cameras cross to the device.
 
   Args:
-    table: `Scene` whose leaves have a leading axis N (`camrep.data.scene_table.SceneTable`).
+    table: `Scene` whose leaves have a leading axis N
+      (`camrep.data.procedural.scene_table.SceneTable`).
     rows: int32 (*L) rows of the table (any leading shape L; repeats allowed).
     T_world_cam: (*L, V, 4, 4) camera-to-world matrices of the scene at each row.
     camera: intrinsics (static).

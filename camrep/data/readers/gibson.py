@@ -26,7 +26,7 @@ import numpy as np
 
 from camrep import settings
 from camrep.data.errors import DataError
-from camrep.data.imageio import PathLike, crop_and_resize, read_image
+from camrep.data.readers.imageio import PathLike, crop_and_resize, read_image
 
 SPLITS = ("train", "test")
 META_FILES = {"train": "train_meta.json", "test": "test_meta.json"}

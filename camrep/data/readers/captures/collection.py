@@ -43,9 +43,10 @@ from typing import Any
 import numpy as np
 
 from camrep import settings
-from camrep.data import seven_scenes
-from camrep.data.captures import colmap, llff, nerf, normalize
-from camrep.data.captures.cameras import (
+from camrep.data.errors import DataError
+from camrep.data.readers import seven_scenes
+from camrep.data.readers.captures import colmap, llff, nerf, normalize
+from camrep.data.readers.captures.cameras import (
   Capture,
   CaptureError,
   DistortionError,
@@ -53,8 +54,8 @@ from camrep.data.captures.cameras import (
   load_frame_image,
   parse_background,
 )
-from camrep.data.errors import DataError
-from camrep.data.imageio import crop_and_resize
+from camrep.data.readers.imageio import crop_and_resize
+from camrep.data.records import digest
 
 READERS: dict[str, Callable[..., Capture]] = {
   "nerf": nerf.read_capture,
@@ -71,7 +72,7 @@ DEFAULT_MARGIN = 0.5
 
 
 class CaptureSource:
-  """Captures in one format as a `camrep.data.storage.ViewSource`.
+  """Captures in one format as a `camrep.data.feed.storage.ViewSource`.
 
   Attributes:
     name: the source name ("nerf", "llff", "colmap", or with "_6dof").
@@ -328,8 +329,6 @@ class CaptureSource:
     Raises:
       MissingImageError: an image or mask file vanished since the capture was read.
     """
-    from camrep.data.fingerprint import digest
-
     out = []
     for cap in self.captures:
       frames = {}

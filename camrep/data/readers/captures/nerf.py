@@ -27,15 +27,15 @@ import os
 
 import numpy as np
 
-from camrep.data.captures import cameras
-from camrep.data.captures.cameras import (
+from camrep.data.readers.captures import cameras
+from camrep.data.readers.captures.cameras import (
   Capture,
   CaptureError,
   Frame,
   MissingImageError,
   UnknownCameraModelError,
 )
-from camrep.data.imageio import PathLike
+from camrep.data.readers.imageio import PathLike
 
 SPLIT_FILES = {
   "train": "transforms_train.json",

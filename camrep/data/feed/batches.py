@@ -1,7 +1,7 @@
 """The batch a pipeline hands to a train step, and its shape template built without reading data.
 
-`ViewBatch` is what `camrep.data.pipeline.BatchPipeline.batch` returns: posed views laid out for
-a pmapped step, D = devices, S = scenes per device, V = views per scene, P = pose size. It is a
+`ViewBatch` is what `camrep.data.feed.pipeline.BatchPipeline.batch` returns: posed views laid out
+for a pmapped step, D = devices, S = scenes per device, V = views per scene, P = pose size. It is a
 `flax.struct` pytree (so `jax.tree.map`, `jax.eval_shape` and `device_put` take it whole) that
 also reads like the dict it replaces (`batch["image"]`, `batch.keys()`).
 
@@ -21,7 +21,8 @@ from typing import Any
 import flax.struct
 import numpy as np
 
-from camrep.data import sources, storage
+from camrep.data import sources
+from camrep.data.feed import storage
 
 FIELDS = ("image", "pose", "scene", "view")
 

@@ -10,7 +10,7 @@ import colorsys
 
 import numpy as np
 
-from camrep.data import render
+from camrep.data.procedural import render
 
 _TWO_PI = 2.0 * np.pi
 

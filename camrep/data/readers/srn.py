@@ -29,9 +29,9 @@ from collections.abc import Iterator, Mapping
 import numpy as np
 
 from camrep import settings
-from camrep.data import textio
 from camrep.data.errors import DataError
-from camrep.data.imageio import PathLike, check_image_size, crop_and_resize, read_image
+from camrep.data.readers import textio
+from camrep.data.readers.imageio import PathLike, check_image_size, crop_and_resize, read_image
 
 DEFAULT_SPLIT_DIRS = {"train": "cars_train", "test": "cars_train_test"}
 _STEM_RE = re.compile(r"^(\d+)\.(png|txt)$")

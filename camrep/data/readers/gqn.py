@@ -39,7 +39,7 @@ from tfrecord import example_pb2
 
 from camrep import settings
 from camrep.data.errors import DataError
-from camrep.data.imageio import PathLike, check_image_size, decode_image
+from camrep.data.readers.imageio import PathLike, check_image_size, decode_image
 
 ROOMS = "rooms_free_camera_no_object_rotations"
 """The GQN dataset the paper uses."""

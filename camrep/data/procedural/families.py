@@ -1,8 +1,8 @@
 """The four procedural families (`camrep.data.procedural` documents them and builds them):
 `RoomsFamily` (GQN-rooms-like), `ObjectFamily` (ShapeNet-car-like toy cars), `AreaFamily`
 (Gibson-like furnished rooms) and `Scene6DofFamily` (real 7-Scenes trajectories in procedural
-rooms). Each builds its scenes with `camrep.data.scenery` and maps its poses to cameras; the
-shared machinery is `camrep.data.family_base`.
+rooms). Each builds its scenes with `camrep.data.procedural.scenery` and maps its poses to
+cameras; the shared machinery is `camrep.data.procedural.family_base`.
 """
 
 from __future__ import annotations
@@ -11,9 +11,16 @@ import os
 
 import numpy as np
 
-from camrep.data import render, seven_scenes
-from camrep.data.family_base import Layout, ProceduralFamily, SampledPoseFamily
-from camrep.data.scenery import add_light, furnish, hsv, object_material, surface_material
+from camrep.data.procedural import render
+from camrep.data.procedural.family_base import Layout, ProceduralFamily, SampledPoseFamily
+from camrep.data.procedural.scenery import (
+  add_light,
+  furnish,
+  hsv,
+  object_material,
+  surface_material,
+)
+from camrep.data.readers import seven_scenes
 
 SEVEN_SCENES = ("chess", "fire", "heads", "office", "pumpkin", "redkitchen", "stairs")
 """The 7-Scenes scene names (the scene6dof family's scenes)."""

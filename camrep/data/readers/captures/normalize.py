@@ -4,18 +4,18 @@ Car setting (object-centric captures, SRN-cars-like): the world is moved so that
 the point nearest to every camera's optical axis (least squares) and rotated so that the
 capture's up direction (`up_direction`) is +z, then scaled so that the median camera distance is
 1. The car pose (azimuth, polar) of a view is then that of its camera centre on a z-up sphere, as
-for SRN cars (`camrep.data.srn.c2w_to_angles`). The centre and the up direction are found from the
-camera positions and optical axes only, never from the cameras' own up vectors, so rolling a camera
-about its optical axis (a portrait photo among landscape ones) changes no label, except in the
-degenerate cases `up_direction` names. How well the cameras look at one point is measured per
-view: the distance from the centre to the optical axis (in the capture's units and after
-scaling) and the angle between the axis and the ray to the centre (degrees). A capture whose
+for SRN cars (`camrep.data.readers.srn.c2w_to_angles`). The centre and the up direction are found
+from the camera positions and optical axes only, never from the cameras' own up vectors, so
+rolling a camera about its optical axis (a portrait photo among landscape ones) changes no label,
+except in the degenerate cases `up_direction` names. How well the cameras look at one point is
+measured per view: the distance from the centre to the optical axis (in the capture's units and
+after scaling) and the angle between the axis and the ray to the centre (degrees). A capture whose
 median angle exceeds `max_residual_deg` (or with a camera facing away from the centre) is not
 object-centric: `NotObjectCentricError` says so and names the 6-DOF route.
 
 6-DOF setting (forward-facing or walk-through captures, 7-Scenes-like): the capture's own world
 frame, uniformly scaled so that the training cameras' positions span at most the 7-Scenes grid
-cuboid, then `camrep.data.seven_scenes.c2w_to_dofs` (translation re-based by the training
+cuboid, then `camrep.data.readers.seven_scenes.c2w_to_dofs` (translation re-based by the training
 minimum, Euler angles shifted to be >= 0).
 
 Both are similarity transforms stored in the dataset metadata (`Normalization.to_json`), so
@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from camrep.data.captures.cameras import CaptureError
+from camrep.data.readers.captures.cameras import CaptureError
 
 DEFAULT_MAX_RESIDUAL_DEG = 10.0
 """Largest median angle (degrees) between a view's optical axis and the ray to the centre for an
