@@ -237,6 +237,7 @@ def decoding_error(
 def run_decoding(runs: Sequence[Mapping[str, Any]]) -> dict[int, float]:
   """{synthesis seed: decoding error} of the runs' pose systems, with the first run of each
   synthesis seed's quantisation and refinement (resolved as the regression resolved them)."""
+  from camrep import pose_encodings
   from camrep.regression import learner
 
   out = {}
@@ -251,7 +252,9 @@ def run_decoding(runs: Sequence[Mapping[str, Any]]) -> dict[int, float]:
       r["setting"],
       r["poses"],
       error=r["error"],
-      quantisation=learner.resolve_hparams(config).quantisation,
+      quantisation=learner.resolve_hparams(
+        config, pose_encodings.get(config.representation)
+      ).quantisation,
       refine_steps=int(config.model.refine_steps),
       scenes=r["scenes"],
     )

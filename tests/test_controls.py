@@ -15,6 +15,7 @@ import pytest
 from camrep import pose_encodings
 from camrep.configs import regression as regression_config
 from camrep.configs import shapenet_car
+from camrep.regression import config_schema as reg_schema
 from camrep.regression import driver as R
 from camrep.regression import pose_system
 from camrep.regression import targets as T
@@ -99,11 +100,11 @@ def test_frozen_generators_stay_at_their_initial_values(frozen, learned):
 def test_untrained_reads_the_runs_initial_pose_system(tmp_path, learned):
   _, init = _initial_rep(learned)
   config = _regression("untrained", learned, str(tmp_path / "cache"))
-  spec, rep, info = pose_system.representation_params(config)
+  spec, rep, info = pose_system.representation_params(reg_schema.check(config))
   assert info["source"] == "synthesis" and info["state"] == "initial"
   assert pose_system.params_digest(rep) == pose_system.params_digest(init)
   ours = _regression("ours", learned, str(tmp_path / "cache"))
-  _, trained, _ = pose_system.representation_params(ours)
+  _, trained, _ = pose_system.representation_params(reg_schema.check(ours))
   assert pose_system.params_digest(trained) != pose_system.params_digest(rep)
 
 
@@ -119,6 +120,6 @@ def test_controls_train_through_regression(tmp_path, learned, frozen):
 def test_a_run_of_the_other_kind_is_refused(tmp_path, learned, frozen):
   cache = str(tmp_path / "cache")
   with pytest.raises(runconfig.ConfigError, match="freeze_generators=True"):
-    pose_system.representation_params(_regression("frozen_gen", learned, cache))
+    pose_system.representation_params(reg_schema.check(_regression("frozen_gen", learned, cache)))
   with pytest.raises(runconfig.ConfigError, match="held its generators"):
-    pose_system.representation_params(_regression("ours", frozen, cache))
+    pose_system.representation_params(reg_schema.check(_regression("ours", frozen, cache)))

@@ -32,6 +32,7 @@ from camrep.data import prepare
 from camrep.regression import config_schema as regression_schema
 from camrep.runtime import checkpoint as ckpt_lib
 from camrep.runtime import cli, runconfig
+from camrep.runtime import frame as frame_lib
 from camrep.runtime import validate as V
 from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import config_schema as synthesis_schema
@@ -402,7 +403,7 @@ def test_resume_on_another_device_count_is_refused_unless_allowed(gqn_smoke_run,
   with pytest.raises(runconfig.ConfigError, match="took 4 scenes per step on 2 device"):
     train.train_and_evaluate(config, str(wd), log=lambda s: None)
   assert _snapshot(wd) == before
-  now = workdir_lib.topology(processes=1, devices=1, scenes_per_device=2)
+  now = frame_lib.topology(processes=1, devices=1, scenes_per_device=2)
   change = workdir_lib.check_topology(str(wd), now, allowed=True)
   assert change == {"topology": [two, now]}  # recorded in config_history.jsonl when allowed
 

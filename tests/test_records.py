@@ -183,28 +183,24 @@ def _regression(workdir, **family):
   config.synthesis_workdir = str(workdir)
   for k, v in family.items():
     config.data.family[k] = v
-  config_schema.check(config)
-  return config
+  return config_schema.check(config)
 
 
 def test_regression_ours_refuses_a_pose_system_learned_on_other_rooms(gqn_smoke_run, tmp_path):
-  # The same rooms: accepted (load_pose_system restores only the checkpoint).
-  config = _regression(gqn_smoke_run)
-  assert pose_system.load_pose_system(gqn_smoke_run, "gqn", config=config)["step"] == 4
+  # The same rooms: accepted (restore_pose_system restores only the checkpoint).
+  run = _regression(gqn_smoke_run)
+  assert pose_system.restore_pose_system(gqn_smoke_run, run.setting, run)["step"] == 4
   # Rooms of another wall style: the source and the directory are the same, the rooms are not.
   other = _regression(gqn_smoke_run, wall_style="distinct")
   wd = tmp_path / "reg"
   with pytest.raises(runconfig.ConfigError, match="other data") as e:
-    R.run(other, str(wd), log=lambda s: None)
+    R.run(other.config, str(wd), log=lambda s: None)
   assert "data.family.wall_style: 'tinted' -> 'distinct'" in str(e.value)
   assert not wd.exists()
   # Another light and seed: each named.
   with pytest.raises(runconfig.ConfigError, match="data.family.light_azimuth_deg: None -> 30"):
-    pose_system.load_pose_system(
-      gqn_smoke_run,
-      "gqn",
-      config=_regression(gqn_smoke_run, light_azimuth_deg=30.0, seed=3),
-    )
+    run = _regression(gqn_smoke_run, light_azimuth_deg=30.0, seed=3)
+    pose_system.restore_pose_system(gqn_smoke_run, run.setting, run)
 
 
 def test_non_finite_stop_says_whether_the_restored_checkpoint_was_verified():

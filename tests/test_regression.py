@@ -57,6 +57,11 @@ def _checked(config):
   return config
 
 
+def _batching(config):
+  """The batch layout the driver resolves from a config."""
+  return views_lib.Batching.of(config, settings.get(config.setting))
+
+
 # ------------------------------------------------------------------------------- the driver
 
 
@@ -78,7 +83,7 @@ def test_baseline_end_to_end(tmp_path, cache):
     assert json.load(f) == json.loads(json.dumps(results))
   # record.json: the data's fingerprint (a baseline has no pose system to record).
   record = workdir_lib.read_record(wd)
-  assert record["data"] == views_lib.data_record(_checked(config))
+  assert record["data"] == views_lib.data_record(config, reg_schema.check(config).source)
   assert "pose_spec" not in record
   assert (results["setting"], results["representation"], results["seed"]) == ("car", "euler", 1)
   assert results["lr"] == 3e-3 and results["steps"] == 3 and results["params"] > 0
@@ -113,9 +118,9 @@ def test_baseline_end_to_end(tmp_path, cache):
   # the pixels a fresh render gives.
   assert os.path.isfile(os.path.join(cache, "object", os.listdir(os.path.join(cache, "object"))[0],
                                      "1.0.0", "camrep_source.json"))  # fmt: skip
-  cached = views_lib.make_data(_checked(config)).train
+  cached = views_lib.make_data(config, reg_schema.check(config).source).train
   config.data.cache_dir = ""
-  rendered = views_lib.make_data(_checked(config)).train
+  rendered = views_lib.make_data(config, reg_schema.check(config).source).train
   rows = np.arange(len(rendered))
   np.testing.assert_array_equal(cached.images(rows), rendered.images(rows))
   np.testing.assert_array_equal(cached.poses, rendered.poses)
@@ -157,13 +162,13 @@ def test_ours_from_a_synthesis_workdir(tmp_path, cache, car_synthesis):
   assert info["workdir"] == os.path.abspath(car_synthesis)
   assert results["lr"] == 1e-3  # the paper's car lr (configs/regression.py hparams.car)
   assert np.isfinite(results["test"]["all"]["rotation_error_deg"]["mean"])
-  spec, rep, info = pose_system.representation_params(_checked(config))
+  spec, rep, info = pose_system.representation_params(reg_schema.check(config))
   assert spec == components.pose_spec(shapenet_car.get_config("smoke")) and info["step"] == 1
   # The system it read, by content: the digest of the parameters it regressed.
   assert results["representation_params"]["digest"] == pose_system.params_digest(rep)
   # "mlp" with a learned-grid run: its pose spec, a frozen random MLP embedding.
   mlp = _config("car", "mlp", synthesis_workdir=car_synthesis, **{"data.cache_dir": cache})
-  spec, params, info = pose_system.representation_params(_checked(mlp))
+  spec, params, info = pose_system.representation_params(reg_schema.check(mlp))
   assert info["source"] == "random_init" and set(params) == set(spec.names)
   # A synthesis run of another setting is refused.
   other = _config("gibson", "ours", synthesis_workdir=car_synthesis)
@@ -267,7 +272,7 @@ def test_validation_split_and_batches():
   train_v, val = views_lib.split_validation(settings.GQN, views, 0.2)
   assert set(val.scenes) == {4} and set(train_v.scenes) == {0, 1, 2, 3}
 
-  config = _checked(_config("gqn", "quat", **{"evals.batch_size": 7}))
+  config = _batching(_checked(_config("gqn", "quat", **{"evals.batch_size": 7})))
   batch = next(views_lib.train_batches(config, train_v))
   assert batch["context_image"].shape == (2, 3, 4, 4, 3) and batch["image"].shape == (2, 2, 4, 4, 3)
   assert batch["pose"].shape == (2, 2, 3) and batch["scene"].shape == (2,)
@@ -279,7 +284,7 @@ def test_validation_split_and_batches():
   np.testing.assert_array_equal(b["context_pose"][0], views.poses[rows[:3]])
   np.testing.assert_array_equal(b["pose"][0], views.poses[rows[3:]])
 
-  config = _checked(_config("car", "quat", **{"evals.batch_size": 16}))
+  config = _batching(_checked(_config("car", "quat", **{"evals.batch_size": 16})))
   ev = list(views_lib.eval_batches(config, views_lib.EvalSet(_views(5, 5, p=2))))
   assert [b["mask"].sum() for b in ev] == [16, 9] and ev[1]["image"].shape[0] == 16
   b0, b1 = (next(views_lib.train_batches(config, _views(5, 5, p=2))) for _ in range(2))
@@ -316,7 +321,7 @@ def _reference_batch(config, views, step):
 def test_training_batches_keep_the_stages_draws(setting):
   views = _views(6, 10)
   config = _checked(_config(setting, "quat", **{"data.batch_size": 2, "seed": 3}))
-  got = views_lib.train_batches(config, views)
+  got = views_lib.train_batches(_batching(config), views)
   steps = 3 * len(views.scene_ids()) // 2 if setting == "gqn" else len(views)  # 3 epochs, 2
   for step in range(steps):
     want, batch = _reference_batch(config, views, step), next(got)

@@ -29,7 +29,7 @@ import pytest
 
 from camrep import pose_encodings, settings
 from camrep.configs import regression as regression_config
-from camrep.regression import config_schema, driver, learner
+from camrep.regression import config_schema, driver
 from camrep.regression import targets as T
 from camrep.runtime.runconfig import ConfigError
 
@@ -87,10 +87,10 @@ def _config(variant, setting, rep):
 def effective(variant, setting, rep):
   """(config without its hyper-parameter table, flattened; the regressor's hyper-parameters)."""
   config = _config(variant, setting, rep)
-  config_schema.check(config)
+  run = config_schema.check(config)
   flat = {k: v for k, v in _flat(config.to_dict()).items() if not k.startswith("hparams.")}
   spec = settings.get(setting).pose_spec() if rep in T.LEARNED else None
-  hp = dataclasses.asdict(driver.make_regressor(config, spec, 1).hparams)
+  hp = dataclasses.asdict(driver.make_regressor(run, spec, 1).hparams)
   return flat, {k: list(v) if isinstance(v, tuple) else v for k, v in hp.items()}
 
 
@@ -151,8 +151,7 @@ def test_the_paper_values_are_where_a_reader_looks():
 def test_command_line_values_win_and_bad_ones_are_named():
   c = _config("smoke", "seven_scenes", "quat")
   c.optax.lr, c.loss.kind, c.model.extra_fc = 3e-3, "mse", 7
-  config_schema.check(c)
-  hp = learner.resolve_hparams(c)
+  hp = config_schema.check(c).hparams
   assert (hp.lr, hp.loss, hp.extra_fc, hp.weight_decay) == (3e-3, "mse", 7, 5e-4)
   for field, value, match in (
     ("weighting", "kendall", "unknown loss.weighting"),

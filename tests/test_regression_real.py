@@ -224,11 +224,11 @@ def test_ours_end_to_end(tmp_path, synthesis, prepared, cache, source, test_spli
 def test_decoded_splits_are_resized_and_streamed_alike(tmp_path, prepared):
   data_dir = prepared("gibson")
   config = _checked(_config("gibson", data_dir, "euler", **{"data.image_size": 16}))
-  data = views_lib.make_data(config)
+  data = views_lib.make_data(config, config_schema.check(config).source)
   rows = np.arange(len(data.train))
   assert data.train.image_shape == (16, 16) and data.train.images(rows).shape[1:] == (16, 16, 3)
   config.data.stream = True
-  streamed = views_lib.make_data(config)
+  streamed = views_lib.make_data(config, config_schema.check(config).source)
   np.testing.assert_array_equal(streamed.train.images(rows), data.train.images(rows))
   np.testing.assert_array_equal(streamed.train.images(rows[:4].reshape(2, 2))[1, 0],
                                 data.train.images(rows[2]))  # fmt: skip
@@ -349,8 +349,7 @@ def _torchvision_npz(path, stages, *, seed=0, width=1.0):
 
 
 def _resnet_state(config):
-  config_schema.check(config)
-  reg = R.make_regressor(config, None, 1)
+  reg = R.make_regressor(config_schema.check(config), None, 1)
   batch = {
     "image": np.zeros((2, 32, 32, 3), np.uint8),
     "pose": np.zeros((2, 6), np.float32),

@@ -83,7 +83,7 @@ def _regressor(setting, rep, hparams=None, **kw):
   """`learner.make_regressor` with configs/regression.py's hyper-parameters, some replaced by
   `hparams` (a dict)."""
   hp = dataclasses.replace(regression_hparams(setting, rep), **(hparams or {}))
-  return learner.make_regressor(setting, rep, hparams=hp, **kw)
+  return learner.make_regressor(setting, pose_encodings.get(rep), hparams=hp, **kw)
 
 
 # ---------------------------------------------------------------------------- modules

@@ -26,7 +26,7 @@ pytestmark = pytest.mark.slow
 
 def _small_quick_config(**family):
   """configs/regression.py:quick's gqn setting (its rooms' look) at a size that trains in
-  seconds: 32 px, 40 rooms of 10 views, 300 steps at lr 1e-3."""
+  seconds: 32 px, 40 rooms of 10 views, 300 steps at lr 1e-3; checked and resolved."""
   c = regression_config.get_config("gqn,quick")
   c.representation = "quat"
   c.data.family.update(
@@ -36,15 +36,15 @@ def _small_quick_config(**family):
   c.total_steps, c.data.batch_size = 300, 4
   c.optax.lr = 1e-3
   c.evals.extra_splits = "test"
-  config_schema.check(c)
-  return c
+  return config_schema.check(c)
 
 
-def _train_and_score(config):
-  data = views_lib.make_data(config)
-  reg = driver.make_regressor(config, None, int(data.train.scenes.max()) + 1)
-  batches = views_lib.train_batches(config, data.train)
-  first = next(views_lib.train_batches(config, data.train))
+def _train_and_score(run):
+  config, batching = run.config, views_lib.Batching.of(run.config, run.setting)
+  data = views_lib.make_data(config, run.source)
+  reg = driver.make_regressor(run, None, int(data.train.scenes.max()) + 1)
+  batches = views_lib.train_batches(batching, data.train)
+  first = next(views_lib.train_batches(batching, data.train))
   state = learner.init(jax.random.key(0), reg, first)
   step = jax.jit(learner.train_step)
   for _ in range(config.total_steps):
@@ -59,7 +59,7 @@ def _train_and_score(config):
   )
   for name, eval_set in splits:
     errs = scoring.evaluate_regression(
-      state, views_lib.eval_batches(config, eval_set), predict_fn=predict
+      state, views_lib.eval_batches(batching, eval_set), predict_fn=predict
     )
     out[name] = {k: float(np.mean(errs[k])) for k in ("x_error", "yaw_error_deg")}
   return out

@@ -217,7 +217,7 @@ def turntable():
 def test_a_setting_is_one_class(turntable):
   """The encodings, the regressor and the regression config take a new setting unchanged."""
   from camrep.configs import regression as regression_config
-  from camrep.regression import config_schema, driver, learner
+  from camrep.regression import config_schema, driver
   from camrep.regression import targets as T
 
   assert turntable.pose_columns == ("azimuth", "polar") and turntable.position_dim == 0
@@ -229,10 +229,10 @@ def test_a_setting_is_one_class(turntable):
   c = regression_config.get_config("turntable,smoke")
   assert c.setting == "turntable" and c.evals.test_split == "test" and "hparams" in c
   c.representation = "mlp"
-  config_schema.check(c)
-  reg = driver.make_regressor(c, turntable.pose_spec(), 1)
+  run = config_schema.check(c)
+  reg = driver.make_regressor(run, turntable.pose_spec(), 1)
   assert reg.setting is turntable and [h.name for h in reg.heads] == ["azimuth", "polar"]
-  assert learner.resolve_hparams(c).lr == c.optax.lr
+  assert run.hparams.lr == c.optax.lr
 
 
 @pytest.mark.slow

@@ -12,6 +12,7 @@ import pytest
 from camrep import settings
 from camrep.configs import regression as regression_config
 from camrep.data import prepare
+from camrep.regression import config_schema as reg_schema
 from camrep.regression import driver
 from camrep.regression import views as views_lib
 from camrep.runtime import runconfig
@@ -64,7 +65,7 @@ def _config(data):
 
 def test_capture_validation_interpolates_and_is_disjoint_from_test(capture):
   c = _config(capture)
-  d = views_lib.make_data(c)
+  d = views_lib.make_data(c, reg_schema.check(c).source)
   val, test = d.evals["validation"].queries, d.evals["test"].queries
   k = views_lib.validation_every(c.data.validation_fraction)
   assert len(val) >= 2 and d.info["validation"].startswith(f"every {k}th training view")
@@ -85,7 +86,7 @@ def test_a_capture_run_with_the_old_validation_split_refuses_to_resume(tmp_path,
   wd = tmp_path / "run"
   wd.mkdir()
   c = _config(capture)
-  now = driver.data_record(c)
+  now = driver.data_record(c, reg_schema.check(c).source)
   assert now["version"] == 2 and now["validation"] == "interleaved"
   workdir_lib.write_record(str(wd), {"version": 1, "data": {}})
   with pytest.raises(runconfig.ConfigError, match="old validation split of a capture"):

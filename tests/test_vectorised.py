@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from camrep import settings
+from camrep import pose_encodings, settings
 from camrep.configs import regression as regression_config
 from camrep.regression import driver, learner, vectorised
 from camrep.runtime.runconfig import ConfigError
@@ -61,7 +61,9 @@ def test_member_names_configs_and_checks(tmp_path):
     "lr3e-3_seed0",
     "lr3e-3_seed1",
   ]
-  assert [(c.optax.lr, c.seed) for _, c in specs] == [(1e-3, 0), (1e-3, 1), (3e-3, 0), (3e-3, 1)]
+  assert [(r.config.optax.lr, r.config.seed) for _, r in specs] == [
+    (1e-3, 0), (1e-3, 1), (3e-3, 0), (3e-3, 1),
+  ]  # fmt: skip
   with pytest.raises(ConfigError, match="share a directory"):
     vectorised.members(base, str(tmp_path), [1e-3, 1.2e-3], [0])
   with pytest.raises(ConfigError, match="at least one lr"):
@@ -92,8 +94,8 @@ def tiny():
   setting = settings.get("car")
   config = _config()
   config.optax.weight_decay = 1e-4  # the chained optimiser: add_decayed_weights, Adam, scale
-  hp = learner.resolve_hparams(config)
-  reg = learner.make_regressor(setting, "euler", hparams=hp, width=1 / 32)
+  hp = learner.resolve_hparams(config, pose_encodings.get("euler"))
+  reg = learner.make_regressor(setting, pose_encodings.get("euler"), hparams=hp, width=1 / 32)
   rng = np.random.default_rng(0)
   n_cols = len(setting.pose_columns)
 

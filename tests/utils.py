@@ -106,9 +106,10 @@ def snapshot(workdir) -> dict[str, bytes]:
 
 def regression_hparams(setting: str, representation: str):
   """The `learner.HyperParams` that configs/regression.py gives (setting, representation)."""
+  from camrep import pose_encodings
   from camrep.configs import regression as regression_config
   from camrep.regression import learner
 
   c = regression_config.get_config(f"{setting},smoke")
   c.representation = representation
-  return learner.resolve_hparams(c)
+  return learner.resolve_hparams(c, pose_encodings.get(representation))

@@ -83,19 +83,18 @@ def main():
   if a.lr:
     c.optax.lr = a.lr
   layers.adain = _adain_variant(a.norm)  # read by the regressor at trace time
-  config_schema.check(c)
-  setup = driver.prepare(c)
-  train = setup.data.train
+  setup = driver.prepare(config_schema.check(c))
+  train, b = setup.data.train, setup.batching
   sub = train.subset(np.isin(train.scenes, train.scene_ids()[:40]))
   sets = {
-    "train(own)": views.eval_batches(c, views.EvalSet(sub, sub)),
-    "test(held-out views)": views.eval_batches(c, setup.data.evals["test"]),
-    "test_scenes(new rooms)": views.eval_batches(c, setup.data.evals["test_scenes"]),
+    "train(own)": views.eval_batches(b, views.EvalSet(sub, sub)),
+    "test(held-out views)": views.eval_batches(b, setup.data.evals["test"]),
+    "test_scenes(new rooms)": views.eval_batches(b, setup.data.evals["test_scenes"]),
   }
   sets["held-out views, other room's context"] = _other_context(sets["test(held-out views)"])
   sets["train(own), other room's context"] = _other_context(sets["train(own)"])
-  batches = views.train_batches(c, train)
-  first = next(views.train_batches(c, train))
+  batches = views.train_batches(b, train)
+  first = next(views.train_batches(b, train))
   key = jax.random.fold_in(jax.random.key(0), 0)
   state = learner.init(key, setup.reg, first, rep_params=setup.rep_params)
   step_fn, pred_fn = jax.jit(learner.train_step), jax.jit(learner.predict_poses)

@@ -76,26 +76,29 @@ class GridTimer:
     config.data.cache_dir = cache_dir
     specs = vectorised.members(config, "", list(lrs), list(seeds))
     data, states, batches = None, [], {}
-    for _, c in specs:
-      setup = driver.prepare(c, log=log, data=data)
+    for _, run in specs:
+      c = run.config
+      setup = driver.prepare(run, log=log, data=data)
       data = setup.data
       stage = driver.RegressionStage(setup, {}, predict_fn=None)
       states.append(stage.init())
       if c.seed not in batches:  # step k trains on batch k - 1 (`RegressionStage.chunks`)
         batches[c.seed] = [
-          views_lib.learner_batch(c, data.train, stage.pipe.batch(i)) for i in range(steps)
+          views_lib.learner_batch(setup.batching, data.train, stage.pipe.batch(i))
+          for i in range(steps)
         ]
+    configs = [r.config for _, r in specs]
     self.members, self.steps, self.programs = len(specs), steps, tuple(programs)
     step = lambda: jax.jit(learner.train_step, donate_argnums=0)  # noqa: E731 - one per member
     self._single = [
       (step(), s, [jax.device_put(b) for b in batches[c.seed]])
-      for s, (_, c) in zip(states, specs, strict=True)
+      for s, c in zip(states, configs, strict=True)
     ]
     unit = vectorised._unit(states)
     self._groups = {p: [vectorised.group_step(1, p), vectorised.stack(unit)] for p in programs}
-    self._rates = jax.numpy.asarray([c.optax.lr for _, c in specs], jax.numpy.float32)
+    self._rates = jax.numpy.asarray([c.optax.lr for c in configs], jax.numpy.float32)
     self._batches = [
-      jax.device_put(vectorised.stack([batches[c.seed][i] for _, c in specs])) for i in range(steps)
+      jax.device_put(vectorised.stack([batches[c.seed][i] for c in configs])) for i in range(steps)
     ]
     self.compile_s = {}
     for p in programs:

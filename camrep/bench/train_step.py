@@ -271,10 +271,9 @@ class RegressionTimer(StepTimer):
     config.data.cache_dir = cache_dir
     if width is not None:
       config.model.width = width
-    config_schema.check(config)
-    setup = driver.prepare(config, log=log)
-    pipe = views_lib.train_pipeline(config, setup.data.train)
-    b0 = views_lib.learner_batch(config, setup.data.train, pipe.batch(0))
+    setup = driver.prepare(config_schema.check(config), log=log)
+    pipe = views_lib.train_pipeline(setup.batching, setup.data.train)
+    b0 = views_lib.learner_batch(setup.batching, setup.data.train, pipe.batch(0))
     batch = {k: jnp.asarray(v) for k, v in b0.items()}
     reg = setup.reg
     if weight_grad:

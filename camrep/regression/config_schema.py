@@ -7,22 +7,26 @@ starts over from step 0 (`runtime.frame`); MAY_CHANGE fields resume.
 The stage's one validation is here: `validate(config, overridden=...)` checks every field's rule
 and the fields the run ignores (what `python -m camrep.regression` runs first), then the
 cross-field checks (`check`: setting and data source, "ours" without a workdir, splits, sizes,
-the stopping rule, the ResNet weights). A config holds one setting's fields
-(`configs/regression.py:SETTING`): an override of another setting's field is refused when the
-flag is parsed.
+the stopping rule, the ResNet weights). `check` returns the config `Resolved`: the setting, pose
+encoding, data source and hyper-parameters it names, looked up once and passed down to the
+run's parts (which take these objects and never look a name up again). A config holds one
+setting's fields (`configs/regression.py:SETTING`): an override of another setting's field is
+refused when the flag is parsed.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Iterable
+
+import ml_collections
 
 from camrep import pose_encodings
 from camrep import settings as settings_lib
 from camrep.data import sources
 from camrep.regression import learner
 from camrep.regression import targets as T
-from camrep.regression import views as views_lib
 from camrep.runtime import frame as frame_lib
 from camrep.runtime import validate as V
 from camrep.runtime.runconfig import ConfigError
@@ -39,10 +43,6 @@ _M, _FREE = V.MAY_CHANGE, V.FREE
 
 def _real(c) -> bool:
   return bool(c.data.get("dir", ""))
-
-
-def _reads_synthesis(c) -> bool:
-  return pose_encodings.get(c.representation).needs_synthesis
 
 
 def _encoding(c):
@@ -148,33 +148,56 @@ for _group in ("ours", "baselines"):
     SCHEMA[f"hparams.{_group}.{_key}"] = SCHEMA[_key]
 
 
-def check(config) -> None:
+@dataclasses.dataclass(frozen=True)
+class Resolved:
+  """A checked config and what its names stand for, looked up once (`check`).
+
+  Attributes:
+    config: the run's config.
+    setting: the paper's setting (`config.setting`).
+    encoding: the representation's `PoseEncoding` class (`config.representation`).
+    source: the data source: `data.source`, or the setting's procedural family.
+    hparams: the loss, weighting and optimiser (`learner.resolve_hparams`).
+  """
+
+  config: ml_collections.ConfigDict
+  setting: settings_lib.Setting
+  encoding: type[pose_encodings.PoseEncoding]
+  source: sources.Source
+  hparams: learner.HyperParams
+
+
+def check(config) -> Resolved:
   """Checks the fields of a config together (a config of `configs/regression.py`, which holds
   its setting's sizes and hyper-parameters): the setting and representation, "ours" with its
   `synthesis_workdir`, the data source (`check_source`), the hyper-parameters
   (`learner.resolve_hparams`), the test splits, the sizes, the stopping rule and the ResNet
   weights.
 
+  Returns:
+    The config `Resolved`.
+
   Raises:
     ConfigError: naming the field and what is allowed.
   """
   try:
-    settings_lib.get(config.setting)
+    setting = settings_lib.get(config.setting)
   except ValueError as e:
     raise ConfigError(str(e)) from None
   if config.representation not in T.REPRESENTATIONS:
     raise ConfigError(
       f"unknown representation {config.representation!r}; choose one of {T.REPRESENTATIONS}"
     )
-  if _reads_synthesis(config) and not config.synthesis_workdir:
+  encoding = pose_encodings.get(config.representation)
+  if encoding.needs_synthesis and not config.synthesis_workdir:
     raise ConfigError(
       f'representation "{config.representation}" regresses the learned pose system of a '
       "view-synthesis run: pass --config.synthesis_workdir=DIR (a `python -m camrep.main` "
-      f"workdir of setting {config.setting!r})"
+      f"workdir of setting {setting.name!r})"
     )
-  check_source(config)
+  source = check_source(config.data, setting)
   try:
-    learner.resolve_hparams(config)
+    hparams = learner.resolve_hparams(config, encoding)
   except ValueError as e:
     raise ConfigError(str(e)) from None
   extra = [x.strip() for x in config.evals.extra_splits.split(",") if x.strip()]
@@ -189,58 +212,63 @@ def check(config) -> None:
   weights = config.model.get("resnet_weights", "")
   if weights and not os.path.isfile(weights):
     raise ConfigError(f"model.resnet_weights {weights} does not exist")
+  return Resolved(config, setting, encoding, source, hparams)
 
 
-def check_source(config) -> None:
-  """Refuses a data.source of another setting, a real source without an existing data.dir, and
-  a procedural one with a data.dir.
+def check_source(d, setting: settings_lib.Setting) -> sources.Source:
+  """The data source of a config's data section `d` (data.source, or the setting's procedural
+  family when it is empty). Refuses a data.source of another setting, a real source without an
+  existing data.dir, and a procedural one with a data.dir.
 
   Raises:
     ConfigError: as above.
   """
-  d = config.data
-  source = d.get("source", "")
-  if not source:
+  name = d.get("source", "")
+  if not name:
+    procedural = sources.get(sources.procedural_of(setting))
     if d.get("dir", ""):
       raise ConfigError(
         "data.dir is set but data.source is empty: name the prepared dataset's source "
-        f"(--config.data.source={views_lib.data_source(config)} is "
+        f"(--config.data.source={procedural.name} is "
         "procedural; real ones: gqn, srn_cars, gibson, seven_scenes)"
       )
-    return
+    return procedural
   try:
-    setting = sources.setting_of(source)
+    source = sources.get(name)
   except ValueError as e:
     raise ConfigError(f"data.source: {e}") from None
-  if setting is not settings_lib.get(config.setting):
+  if source.setting is None:
+    raise ConfigError(f"data.source: data source {name!r} belongs to no paper setting")
+  if source.setting is not setting:
     raise ConfigError(
-      f"data.source {source!r} is data of the {setting.name!r} setting, but setting is "
-      f"{config.setting!r}: pass --config=configs/regression.py:{setting.name}"
+      f"data.source {name!r} is data of the {source.setting.name!r} setting, but setting is "
+      f"{setting.name!r}: pass --config=configs/regression.py:{source.setting.name}"
     )
-  if sources.is_procedural(source):
+  if source.procedural:
     if d.dir:
-      raise ConfigError(f"data.source {source!r} is procedural and takes no data.dir")
-    return
+      raise ConfigError(f"data.source {name!r} is procedural and takes no data.dir")
+    return source
   if not d.dir:
     raise ConfigError(
-      f"data.source {source!r} is a real dataset: prepare it with `python -m camrep.data.prepare "
-      f"--source {source} --input RAW --data_dir DIR` and pass --config.data.dir=DIR"
+      f"data.source {name!r} is a real dataset: prepare it with `python -m camrep.data.prepare "
+      f"--source {name} --input RAW --data_dir DIR` and pass --config.data.dir=DIR"
     )
   if not os.path.isdir(d.dir):
-    raise ConfigError(f"data.dir {d.dir} does not exist (data.source {source!r})")
+    raise ConfigError(f"data.dir {d.dir} does not exist (data.source {name!r})")
+  return source
 
 
-def validate(config, *, overridden: Iterable[str] = ()):
+def validate(config, *, overridden: Iterable[str] = ()) -> Resolved:
   """The stage's validation: every field's rule, the overridden fields the run ignores and
   `allow_changes` naming fields, then the cross-field checks (`check`).
 
   Returns:
-    The config, unchanged (each setting's config holds its own values).
+    The config `Resolved` (the config itself unchanged: each setting's config holds its own
+    values).
 
   Raises:
     ConfigError: the first problem, naming the field, its value and what is allowed.
   """
   V.check(config, SCHEMA, overridden=overridden)
   V.check_allow_changes(config, SCHEMA)
-  check(config)
-  return config
+  return check(config)

@@ -25,9 +25,12 @@ its own DIR/<lr>_seed<k>: `camrep.regression.vectorised`):
                      median over all examples ("all") and per scene id
   errors_<split>.npz per-example errors, scene ids, true and predicted poses of the test split(s)
 
-Data (`views.make_data`), all from the setting's procedural family
-(`camrep.data.sources.procedural_of`), rendered once and held in memory (prepared once as an
-ArrayRecord dataset in `data.cache_dir` when set), batched by the view-synthesis pipeline:
+The config is checked and resolved once (`config_schema.validate`: its setting, pose encoding,
+data source and hyper-parameters, `config_schema.Resolved`); the run's parts take those objects.
+
+Data (`views.make_data`), all from the setting's procedural family (the resolved data source),
+rendered once and held in memory (prepared once as an ArrayRecord dataset in `data.cache_dir`
+when set), batched by the view-synthesis pipeline:
 
   train       the family's "train" split minus the validation part;
   validation  held out of "train" to choose the learning rate and for nothing else: gqn the last
@@ -49,7 +52,7 @@ them), decoded once and held in memory (or batch by batch with `data.stream`). r
 evaluation split is, and the number of test views.
 
 Representations (`pose_system.representation_params`): baselines need nothing more; "ours"
-restores the frozen pose system of a view-synthesis workdir (`pose_system.load_pose_system`, via
+restores the frozen pose system of a view-synthesis workdir (`pose_system.restore_pose_system`, via
 `camrep.synthesis`'s `load_run`); "mlp" uses that workdir's MLP embedding when it was trained with
 rep.kind="mlp", else a frozen randomly initialised MLP embedding (`MlpEncoding`; the
 supplement's MLP is trained by view synthesis). The synthesis workdir must have been trained on
@@ -81,7 +84,6 @@ from typing_extensions import override
 from camrep.configs import regression as regression_config
 from camrep.data import records
 from camrep.regression import config_schema, learner, pose_system, scoring
-from camrep.regression import tables as tables_lib
 from camrep.regression import views as views_lib
 from camrep.runtime import frame as frame_lib
 from camrep.runtime import session as session_lib
@@ -97,11 +99,12 @@ SPLITS = config_schema.SPLITS
 # The run.
 
 
-def make_regressor(config, spec, num_scenes: int) -> learner.Regressor:
-  """The config's `learner.Regressor`."""
+def make_regressor(run: config_schema.Resolved, spec, num_scenes: int) -> learner.Regressor:
+  """The `learner.Regressor` of a resolved config."""
+  config = run.config
   return learner.make_regressor(
-    config.setting,
-    config.representation,
+    run.setting,
+    run.encoding,
     spec=spec,
     width=config.model.width,
     num_scenes=num_scenes,
@@ -110,7 +113,7 @@ def make_regressor(config, spec, num_scenes: int) -> learner.Regressor:
     refine_steps=config.model.refine_steps,
     equalise_params=config.model.equalise_params,
     image_norm="imagenet" if config.model.get("resnet_weights", "") else "symmetric",
-    hparams=learner.resolve_hparams(config),
+    hparams=run.hparams,
   )
 
 
@@ -129,43 +132,48 @@ def count_params(tree) -> int:
 
 @dataclasses.dataclass
 class Setup:
-  """What one regression run is built from: the config, the frozen pose input, the
-  data and the regressor."""
+  """What one regression run is built from: the config, its batch layout, the frozen pose input,
+  the data and the regressor."""
 
   config: ml_collections.ConfigDict
+  batching: views_lib.Batching
   spec: Any
   rep_params: Any
   rep_info: dict[str, Any]
   data: views_lib.Data
   reg: learner.Regressor
 
+  @property
+  def setting(self):
+    """The run's paper setting (a `camrep.settings.Setting`: the regressor's)."""
+    return self.reg.setting
 
-def prepare(
-  config: ml_collections.ConfigDict, *, log=print, data: views_lib.Data | None = None
-) -> Setup:
-  """Restores the pose input and renders the data of a resolved config (in that order, so that a
-  bad synthesis workdir fails before minutes of rendering); `data`: the config's data, made
-  already (runs that differ only in seed and lr share it: `vectorised`).
+
+def prepare(run: config_schema.Resolved, *, log=print, data: views_lib.Data | None = None) -> Setup:
+  """Restores the pose input and renders the data of a resolved config (`config_schema.check`;
+  in that order, so that a bad synthesis workdir fails before minutes of rendering); `data`: the
+  config's data, made already (runs that differ only in seed and lr share it: `vectorised`).
 
   Raises:
     ConfigError: as `pose_system.representation_params`, or the synthesis workdir's run is not
       complete (`synthesis_state`) and `allow_incomplete_synthesis` is not set.
   """
-  t0 = time.perf_counter()
-  spec, rep_params, rep_info = pose_system.representation_params(config)
+  config, t0 = run.config, time.perf_counter()
+  spec, rep_params, rep_info = pose_system.representation_params(run)
   if rep_info.get("source") == "synthesis":
     rep_info = check_synthesis(config, rep_info, log=log)
-  data = views_lib.make_data(config) if data is None else data
+  data = views_lib.make_data(config, run.source) if data is None else data
   t_data = time.perf_counter() - t0
   scene_max = [data.train.scenes.max(), *(e.queries.scenes.max() for e in data.evals.values())]
-  reg = make_regressor(config, spec, int(max(scene_max)) + 1)
+  reg = make_regressor(run, spec, int(max(scene_max)) + 1)
   log(
     f"{config.setting}/{config.representation} lr={config.optax.lr:g} seed={config.seed}: "
     f"{len(data.train)} training views, "
     + ", ".join(f"{k} {len(e.queries)} views" for k, e in data.evals.items())
     + f" (data {t_data:.1f}s)"
   )
-  return Setup(config, spec, rep_params, rep_info, data, reg)
+  batching = views_lib.Batching.of(config, run.setting)
+  return Setup(config, batching, spec, rep_params, rep_info, data, reg)
 
 
 def synthesis_state(workdir: str, step: int | None = None) -> str | None:
@@ -256,17 +264,22 @@ class RegressionStage(frame_lib.Stage):
   """The regression's part of the fit loop (`runtime.frame.Stage`): its state, step over K
   batches, training batches (a pure function of (seed, step): `views.train_pipeline`), periodic
   validation (every split's with `evals.periodic_all_splits`) and its plateau score
-  (eval/validation/score, `tables.validation_score`). The final evaluation of every split is the
+  (eval/validation/score, `Setting.validation_score`). The final evaluation of every split is the
   run's own (`evaluate_splits`), so the periodic one does not run at total_steps."""
 
   eval_at_end = False
   log_rate = False
   unlogged = ("train/finite",)
 
-  def __init__(self, setup: Setup, eval_sets, *, predict_fn):
-    self.setup, self.config = setup, setup.config
-    self.eval_sets, self.predict_fn = eval_sets, predict_fn
-    self.pipe = views_lib.train_pipeline(self.config, setup.data.train)
+  def __init__(self, setup: Setup, eval_sets=None, *, predict_fn):
+    """`eval_sets`: {split: evaluation batches}; default each of the data's evaluation sets'
+    (`views.eval_batches`)."""
+    self.setup, self.config, self.predict_fn = setup, setup.config, predict_fn
+    self.pipe = views_lib.train_pipeline(setup.batching, setup.data.train)
+    if eval_sets is None:
+      evals = setup.data.evals
+      eval_sets = {k: views_lib.eval_batches(setup.batching, e) for k, e in evals.items()}
+    self.eval_sets = eval_sets
     self.writer = None
     self._template: learner.RegressionState | None = None
     self._seconds_before, self._t0 = 0.0, time.perf_counter()
@@ -280,7 +293,7 @@ class RegressionStage(frame_lib.Stage):
     """The fresh state (`learner.init` on the first batch's shapes, the ResNet weights)."""
     config = self.config
     init_key = jax.random.fold_in(jax.random.key(config.seed), 0)
-    first = views_lib.learner_batch(config, self.setup.data.train, self.pipe.batch(0))
+    first = views_lib.learner_batch(self.setup.batching, self.setup.data.train, self.pipe.batch(0))
     state = learner.init(init_key, self.setup.reg, first, rep_params=self.setup.rep_params)
     self._template = state = load_resnet_weights(config, state)
     return state
@@ -315,11 +328,11 @@ class RegressionStage(frame_lib.Stage):
     first = next(spans, None)
     if first is None:
       return
-    views = self.setup.data.train
+    views, batching = self.setup.data.train, self.setup.batching
     host = self.pipe.iterator(start_step=first[0] - 1)  # step k trains on batch k - 1
     try:
       for _, n in itertools.chain([first], spans):
-        bs = [views_lib.learner_batch(self.config, views, next(host)) for _ in range(n)]
+        bs = [views_lib.learner_batch(batching, views, next(host)) for _ in range(n)]
         yield bs[0] if n == 1 else {k: np.stack([b[k] for b in bs]) for k in bs[0]}
     finally:
       if hasattr(host, "close"):
@@ -343,7 +356,7 @@ class RegressionStage(frame_lib.Stage):
       self.writer.write_scalars(step, scalars)
       out.update(scalars)
       if name == "validation":
-        score = {"eval/validation/score": tables_lib.validation_score(config.setting, summary)}
+        score = {"eval/validation/score": self.setup.setting.validation_score(summary)}
         self.writer.write_scalars(step, score)
         out.update(score)
     return out
@@ -379,7 +392,7 @@ def evaluate_splits(
     step = config.total_steps if step is None else step
     scalars = _scalars(f"eval/{name}", summary)
     if name == "validation":
-      scalars["eval/validation/score"] = tables_lib.validation_score(config.setting, summary)
+      scalars["eval/validation/score"] = setup.setting.validation_score(summary)
     writer.write_scalars(step, scalars)
     if name != "validation":
       names = records.scene_name_column(setup.data.info, name, errs["scene"])
@@ -429,7 +442,7 @@ def results_record(
     "machine": workdir_lib.machine(),
   }
   if stop is not None:
-    final = tables_lib.validation_score(config.setting, summaries["validation"])
+    final = setup.setting.validation_score(summaries["validation"])
     curve = [c for c in stop["curve"] if c[0] != steps] + [[steps, final]]
     out["stopping"] = {**stop, "curve": curve}
   return out
@@ -458,14 +471,13 @@ def read_results(workdir: str) -> dict[str, Any] | None:
     return json.load(f)
 
 
-def data_record(config) -> dict[str, Any]:
-  """record.json's data part of a run: {"version", "data": `views.data_record`}; a captures
-  dataset's, whose validation split interleaves (`views.split_validation`), is version 2 with
-  "validation": "interleaved" (version 1: the last 10% of each capture's views)."""
-  record = {"version": 1, "data": views_lib.data_record(config)}
-  if views_lib.is_real(config) and views_lib.interleaved_validation(
-    views_lib.open_dataset(config)[1]
-  ):
+def data_record(config, source) -> dict[str, Any]:
+  """record.json's data part of a run reading `source` (`sources.Source`): {"version", "data":
+  `views.data_record`}; a captures dataset's, whose validation split interleaves
+  (`views.split_validation`), is version 2 with "validation": "interleaved" (version 1: the last
+  10% of each capture's views)."""
+  record = {"version": 1, "data": views_lib.data_record(config, source)}
+  if not source.procedural and views_lib.interleaved_validation(views_lib.open_dataset(config)[1]):
     record = {**record, "version": 2, "validation": "interleaved"}
   return record
 
@@ -572,7 +584,7 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
     WorkdirError: the workdir cannot be written, or another run holds it.
     FloatingPointError: the loss became non-finite (the last checkpoint is kept).
   """
-  config = config_schema.validate(config)  # the stage's checks
+  run = config_schema.validate(config)  # the stage's checks; the names resolved once
   check_stored_layout(workdir)
   rule = frame_lib.stopping_rule(config)
   with frame_lib.Frame(
@@ -580,20 +592,19 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
   ) as frame:
     if frame.already_complete(rule) is not None and (done := read_results(workdir)) is not None:
       return done
-    record = data_record(config)
+    record = data_record(config, run.source)
     check_validation_record(workdir, record)
-    setup = prepare(config, log=log)
+    setup = prepare(run, log=log)
     frame.check_record({**record, **pose_record(setup)})
     predict_fn = jax.jit(learner.predict_poses)
-    eval_sets = {k: views_lib.eval_batches(config, e) for k, e in setup.data.evals.items()}
-    stage = RegressionStage(setup, eval_sets, predict_fn=predict_fn)
+    stage = RegressionStage(setup, predict_fn=predict_fn)
     state, start = frame.restore_or_init(stage.init, saved=stage.saved, restored=stage.restored)
     frame.begin(start)
     stage.start(frame.writer, train_seconds=frame.extra.get("train_seconds", 0.0))
     fit = frame_lib.fit(frame, stage, state, start, rule=rule, progress_every=20.0)
     if not fit.complete:
       return None
-    results = complete(frame, stage, fit, eval_sets, predict_fn=predict_fn, rule=rule)
+    results = complete(frame, stage, fit, stage.eval_sets, predict_fn=predict_fn, rule=rule)
   overall = results["test"]["all"]
   log(
     f"test ({config.evals.test_split}): "

@@ -2,8 +2,8 @@
 
 Plain functions, independent of the view-synthesis trainer (`camrep.synthesis.train`):
 
-  resolve_hparams(config)                       a run config's loss and optimiser settings
-  make_regressor(setting, representation, ...)  the static description: network, heads, loss
+  resolve_hparams(config, encoding)             a run config's loss and optimiser settings
+  make_regressor(setting, encoding, ...)        the static description: network, heads, loss
   init(key, regressor, batch, rep_params)       a `RegressionState`
   train_step(state, batch[, lr])                one Adam step; pure, jit it at the call site:
                                                 `step = jax.jit(regress.train_step)`
@@ -88,8 +88,9 @@ class HyperParams:
   quantisation: str
 
 
-def resolve_hparams(config) -> HyperParams:
-  """The hyper-parameters of a run config (configs/regression.py).
+def resolve_hparams(config, encoding: type[pose_encodings.PoseEncoding]) -> HyperParams:
+  """The hyper-parameters of a run config (configs/regression.py) whose representation is
+  `encoding` (the `PoseEncoding` class `config.representation` names).
 
   Each field (`HPARAM_FIELDS`) is the config's own when set (not None), else that of
   `config.hparams` (the setting's): its `ours` for the learned representations, `ours` updated
@@ -97,9 +98,8 @@ def resolve_hparams(config) -> HyperParams:
   (`PoseEncoding.loss`). The config is not changed.
 
   Raises:
-    ValueError: an unknown representation, loss, weighting or quantisation, or a field unset.
+    ValueError: an unknown loss, weighting or quantisation, or a field unset.
   """
-  encoding = pose_encodings.get(config.representation)
   table = config.hparams
   chosen = table.ours.to_dict()
   if not encoding.learned:
@@ -175,7 +175,7 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 
 def make_regressor(
   setting: settings_lib.Setting | str,
-  representation: str,
+  encoding: type[pose_encodings.PoseEncoding],
   *,
   hparams: HyperParams,
   spec: P.PoseSystemSpec | None = None,
@@ -187,7 +187,8 @@ def make_regressor(
   equalise_params: bool = False,
   image_norm: str = "symmetric",
 ) -> Regressor:
-  """The regressor of a setting and representation at a given width.
+  """The regressor of a setting and a representation (its `PoseEncoding` class) at a given
+  width.
 
   The network is the setting's (`Setting.network`: gqn `GQNRegressor`, car `CarRegressor`,
   gibson `GibsonRegressor`, seven_scenes `ResNetRegressor`). The baselines' extra dense layer
@@ -195,7 +196,8 @@ def make_regressor(
 
   Args:
     setting: a `camrep.settings.Setting` (or its name).
-    representation: one of `targets.REPRESENTATIONS`.
+    encoding: the representation's class, a regression target (`pose_encodings.get(name)` of
+      one of `targets.REPRESENTATIONS`).
     hparams: loss, weighting and optimiser (`resolve_hparams` of a run config).
     spec: pose system of a learned representation (default `setting.pose_spec()`;
       pass `camrep.synthesis.components.pose_spec(config)` for a stage-1 run's system).
@@ -211,19 +213,29 @@ def make_regressor(
 
   Returns:
     a `Regressor`.
+
+  Raises:
+    ValueError: an encoding a regressor cannot predict, or a spec of other columns than the
+      setting's.
   """
   setting = settings_lib.get(setting)
-  if representation in T.LEARNED:
+  if not encoding.regression_target:
+    raise ValueError(
+      f"a regressor cannot predict {encoding.table_name()!r}; choose one of {T.REPRESENTATIONS}"
+    )
+  if encoding.per_dof:  # the learned representations ("ours", "mlp")
     spec = spec or setting.pose_spec()
+    setting.check_spec(spec)
   else:
     spec = None
-  heads = T.head_specs(representation, setting, spec=spec)
+  heads = encoding.create(setting, spec).heads()  # `targets.head_specs`
   extra = layers.scaled(hparams.extra_fc, width) if hparams.extra_fc else None
-  if equalise_params and representation in T.BASELINES and not extra:
+  if equalise_params and not encoding.per_dof and not extra:
     extra = 1  # a placeholder: the units are solved from `match` (PoseHeads)
   match = None
   if equalise_params and extra:
-    match = sum(h.size for h in T.head_specs("ours", setting, spec=setting.pose_spec()))
+    ours = pose_encodings.GridEncoding.create(setting, setting.pose_spec())
+    match = sum(h.size for h in ours.heads())
   module = R.make_network(
     setting.network,
     heads,
@@ -236,6 +248,7 @@ def make_regressor(
   )
   if image_norm not in IMAGE_NORMS:
     raise ValueError(f"image_norm must be one of {IMAGE_NORMS}, got {image_norm!r}")
+  representation = encoding.table_name()
   return Regressor(setting, representation, module, heads, hparams, spec, refine_steps, image_norm)
 
 

@@ -1,15 +1,17 @@
 """The frozen pose input a regression run regresses from (paper section 4.4), and the checks that
 tie it to a view-synthesis workdir trained on the same data.
 
-  representation_params  (spec, params, info) of `config.representation`: nothing for the
-                         baselines; a learned encoding's from `config.synthesis_workdir` when
-                         that run trained the same encoding ("ours": the learned grid system,
-                         required; the controls "untrained": that run's initial grid,
-                         "frozen_gen": a run that froze its generators), else a frozen randomly
-                         initialised one ("mlp": `MlpEncoding`)
+  representation_params  (spec, params, info) of a resolved config's encoding
+                         (`config_schema.Resolved`): nothing for the baselines; a learned
+                         encoding's from `config.synthesis_workdir` when that run trained the
+                         same encoding ("ours": the learned grid system, required; the controls
+                         "untrained": that run's initial grid, "frozen_gen": a run that froze
+                         its generators), else a frozen randomly initialised one ("mlp":
+                         `MlpEncoding`)
   load_pose_system       restores a view-synthesis workdir's pose input (the synthesis
-                         `load_run`, which reads no data), checked against the setting and,
-                         given the regression's config, its data
+                         `load_run`, which reads no data), checked against the setting
+                         (`restore_pose_system`: given the regression's resolved config, also
+                         against its data and encoding)
   check_same_data        the same data.source and prepared directory and dataset as the
                          regression reads, and (`check_same_world`) the same data fingerprint:
                          the family's parameters apart from scene and view counts and image
@@ -28,20 +30,21 @@ import numpy as np
 
 from camrep import pose_encodings
 from camrep import settings as settings_lib
+from camrep.data import sources
 from camrep.regression import views as views_lib
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime.runconfig import ConfigError
 from camrep.synthesis import components, restore
 
 
-def check_same_data(workdir: str, syn_config, config) -> None:
-  """Refuses a view-synthesis run trained on other data than this regression reads: another
-  data.source, or (real data) another prepared directory or dataset.
+def check_same_data(workdir: str, syn_config, config, source: sources.Source) -> None:
+  """Refuses a view-synthesis run trained on other data than this regression reads (`config`'s,
+  from `source`): another data.source, or (real data) another prepared directory or dataset.
 
   Raises:
     ConfigError: as above.
   """
-  ours, theirs = views_lib.data_source(config), syn_config.data.source
+  ours, theirs = source.name, syn_config.data.source
   our_dir = os.path.abspath(config.data.dir) if config.data.get("dir", "") else ""
   their_dir = os.path.abspath(syn_config.data.dir) if syn_config.data.get("dir", "") else ""
   if ours != theirs or our_dir != their_dir:
@@ -52,7 +55,7 @@ def check_same_data(workdir: str, syn_config, config) -> None:
       + (f" data.dir={our_dir}" if our_dir else " (procedural)")
       + ': "ours" must regress a pose system learned on the same data'
     )
-  check_same_world(workdir, syn_config, config)
+  check_same_world(workdir, syn_config, config, source)
   if not our_dir:
     return
   from camrep.data.errors import DataError
@@ -98,7 +101,7 @@ def _synthesis_data_record(workdir: str, syn_config) -> dict[str, Any] | None:
   return data
 
 
-def check_same_world(workdir: str, syn_config, config) -> None:
+def check_same_world(workdir: str, syn_config, config, source: sources.Source) -> None:
   """Refuses a view-synthesis run whose data fingerprint ("world": the family's parameters apart
   from scene and view counts and image resolution, or the prepared dataset's identity and
   content) differs from this regression's, e.g. rooms of another wall style, light or seed.
@@ -112,7 +115,7 @@ def check_same_world(workdir: str, syn_config, config) -> None:
   theirs = _synthesis_data_record(workdir, syn_config)
   if theirs is None:
     return  # its dataset is gone: data.source and data.dir were compared
-  ours = views_lib.data_record(config)
+  ours = views_lib.data_record(config, source)
   if theirs.get("world") == ours.get("world"):
     return
   a, b = theirs.get("family") or {}, ours.get("family") or {}
@@ -134,12 +137,19 @@ def check_same_world(workdir: str, syn_config, config) -> None:
   )
 
 
-def load_pose_system(
-  workdir: str, setting: settings_lib.Setting | str, *, config=None, initial: bool = False
+def load_pose_system(workdir: str, setting: settings_lib.Setting | str) -> dict[str, Any]:
+  """The frozen pose input of a view-synthesis workdir, checked against the setting (a name is
+  looked up); `restore_pose_system` with no regression data to check.
+  """
+  return restore_pose_system(workdir, settings_lib.get(setting))
+
+
+def restore_pose_system(
+  workdir: str, setting: settings_lib.Setting, run=None, *, initial: bool = False
 ) -> dict[str, Any]:
-  """The frozen pose input of a view-synthesis workdir, checked against the setting (and, with
-  the regression's `config`, against its data: `check_same_data`, and the encoding it regresses:
-  `check_trained_encoding`).
+  """The frozen pose input of a view-synthesis workdir, checked against the setting (and, given
+  the regression's `run`, a `config_schema.Resolved`, against its data and encoding:
+  `check_same_data`, `check_trained_encoding`).
 
   Restores the latest checkpoint with the synthesis `load_run` (which reads no data); with
   `initial`, the run's pose input as its init gave it (`Synthesizer.init_pose` of its root key),
@@ -159,7 +169,6 @@ def load_pose_system(
     syn_config = workdir_lib.read_config(workdir)
   except FileNotFoundError as e:
     raise ConfigError(f"synthesis_workdir: {e}") from None
-  setting = settings_lib.get(setting)
   syn_setting = components.setting(syn_config)
   if syn_setting is not setting:
     raise ConfigError(
@@ -167,10 +176,9 @@ def load_pose_system(
       f"{syn_config.data.source!r}); this regression's setting is {setting.name!r}"
     )
   kind = syn_config.rep.get("kind", "grid")
-  if config is not None:
-    check_same_data(workdir, syn_config, config)
-    check_trained_encoding(workdir, config.representation, syn_config)
-  spec = components.pose_spec(syn_config)
+  if run is not None:
+    check_same_data(workdir, syn_config, run.config, run.source)
+    check_trained_encoding(workdir, run.encoding, syn_config)
   try:
     with ckpt_lib.Checkpointer(workdir, read_only=True) as ck:
       step = ck.latest_step()
@@ -179,27 +187,28 @@ def load_pose_system(
   if step is None:
     raise ConfigError(f"synthesis_workdir {workdir} has no checkpoint (train it first)")
   try:
-    run = restore.load_run(workdir)
+    # Its model is built on the pose system of its config (`components.pose_spec`).
+    syn_run = restore.load_run(workdir)
   except (FileNotFoundError, ckpt_lib.CheckpointError) as e:
     raise ConfigError(f"synthesis_workdir: {e}") from None
-  if run.model.spec != spec or not run.model.reads_pose_vectors:
+  if not syn_run.model.reads_pose_vectors:
     raise ConfigError(
-      f"synthesis_workdir {workdir} is a {type(run.model).__name__} run (task "
+      f"synthesis_workdir {workdir} is a {type(syn_run.model).__name__} run (task "
       f"{syn_config.task!r}) whose pose input is not the setting's pose system as pose vectors; "
       "representation 'ours' reads the pose system of a decoder run (configs/gqn.py, "
       "configs/shapenet_car.py, ...)"
     )
-  rep = jax.tree.map(jnp.asarray, run.params["rep"])
+  rep = jax.tree.map(jnp.asarray, syn_run.params["rep"])
   if initial:
     from camrep.synthesis import step as step_lib
 
     # Jitted as the run's own init (`step.init_fn`): the same bits (eager differs by 1e-10).
-    rep = jax.jit(run.model.init_pose)(step_lib.root_keys(run.config)[0])
+    rep = jax.jit(syn_run.model.init_pose)(step_lib.root_keys(syn_run.config)[0])
   return {
-    "spec": spec,
+    "spec": syn_run.spec,
     "rep": rep,
     "kind": kind,
-    "step": int(run.step),
+    "step": int(syn_run.step),
     "workdir": workdir,
     "digest": params_digest(rep),
   }
@@ -216,16 +225,17 @@ def params_digest(params) -> str:
   return "sha256:" + h.hexdigest()
 
 
-def check_trained_encoding(workdir: str, representation: str, syn_config) -> None:
-  """Refuses a view-synthesis run that did not train the encoding a representation must read
-  from one (`PoseEncoding.needs_synthesis`: the learned grid, "ours", and its controls), or that
-  froze its generators where the representation needs them learned, or the reverse
+def check_trained_encoding(
+  workdir: str, cls: type[pose_encodings.PoseEncoding], syn_config
+) -> None:
+  """Refuses a view-synthesis run that did not train the encoding a representation `cls` must
+  read from one (`PoseEncoding.needs_synthesis`: the learned grid, "ours", and its controls), or
+  that froze its generators where `cls` needs them learned, or the reverse
   (`PoseEncoding.frozen_generators`).
 
   Raises:
     ConfigError: as above.
   """
-  cls = pose_encodings.get(representation)
   kind = syn_config.rep.get("kind", "grid")
   if not cls.needs_synthesis:
     return
@@ -249,21 +259,19 @@ def check_trained_encoding(workdir: str, representation: str, syn_config) -> Non
     )
 
 
-def representation_params(config) -> tuple[Any, Any, dict[str, Any]]:
-  """(spec, rep_params, info) of the config's representation (see the module docstring).
+def representation_params(run) -> tuple[Any, Any, dict[str, Any]]:
+  """(spec, rep_params, info) of a resolved config's representation (`run`, a
+  `config_schema.Resolved`; see the module docstring).
 
   Raises:
     ConfigError: "ours" without a learned-grid synthesis run of the same setting.
   """
-  cls = pose_encodings.get(config.representation)
+  config, cls, setting = run.config, run.encoding, run.setting
   if not cls.learned:
     return None, None, {"source": "none"}
-  setting = settings_lib.get(config.setting)
   system = None
   if config.synthesis_workdir:
-    system = load_pose_system(
-      config.synthesis_workdir, setting, config=config, initial=cls.initial_state
-    )
+    system = restore_pose_system(config.synthesis_workdir, setting, run, initial=cls.initial_state)
   if system is None and cls.needs_synthesis:
     raise ConfigError(
       f'representation "{cls.table_name()}" regresses the learned pose system of a '

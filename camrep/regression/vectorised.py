@@ -96,8 +96,8 @@ def members(
   seeds: Sequence[int],
   *,
   overridden=(),
-) -> list[tuple[str, ml_collections.ConfigDict]]:
-  """(workdir, checked config) of every member, lr by lr and seed by seed.
+) -> list[tuple[str, config_schema.Resolved]]:
+  """(workdir, checked and resolved config) of every member, lr by lr and seed by seed.
 
   Raises:
     ConfigError: no lr or seed, one given twice, two lrs that share a directory name, or a
@@ -118,10 +118,10 @@ def members(
     for k in seeds:
       c = member_config(config, lr, k)
       try:
-        config_schema.validate(c, overridden=overridden)
+        run = config_schema.validate(c, overridden=overridden)
       except ConfigError as e:
         raise ConfigError(f"member lr={lr:g} seed={k}: {e}") from None
-      out.append((os.path.join(workdir, member_name(lr, k)), c))
+      out.append((os.path.join(workdir, member_name(lr, k)), run))
   return out
 
 
@@ -131,6 +131,7 @@ class Member:
 
   Attributes:
     workdir, config: the single run's.
+    run: its config resolved (`config_schema.Resolved`).
     frame: its entered run frame.
     setup, record: its `driver.Setup` and record.json content.
     stage: its `driver.RegressionStage`.
@@ -144,6 +145,7 @@ class Member:
 
   workdir: str
   config: ml_collections.ConfigDict
+  run: config_schema.Resolved
   frame: frame_lib.Frame
   setup: driver.Setup | None = None
   record: dict[str, Any] = dataclasses.field(default_factory=dict)
@@ -267,15 +269,16 @@ def run(
     FloatingPointError: a member's values became non-finite (the others completed first).
   """
   specs = members(config, workdir, lrs, seeds, overridden=overridden)
-  rule = frame_lib.stopping_rule(specs[0][1])
+  rule = frame_lib.stopping_rule(specs[0][1].config)
   group: list[Member] = []
   with contextlib.ExitStack() as frames:
-    for wd, c in specs:
+    for wd, run in specs:
       driver.check_stored_layout(wd)
       frame = frame_lib.Frame(
-        wd, c, schema=config_schema.SCHEMA, log=log, restart=True, outputs=driver.clear_outputs
-      )
-      member = Member(wd, c, frame)
+        wd, run.config, schema=config_schema.SCHEMA, log=log, restart=True,
+        outputs=driver.clear_outputs,
+      )  # fmt: skip
+      member = Member(wd, run.config, run, frame)
       frame.__enter__()  # a failed entry undoes itself
       frames.push(functools.partial(_leave, member))
       if frame.already_complete(rule) is not None:
@@ -307,13 +310,13 @@ def _prepare(todo: Sequence[Member], *, log) -> tuple[dict, Callable]:
   program; the shared evaluation batches and the jitted prediction."""
   data = None
   for m in todo:
-    record = driver.data_record(m.config)
+    record = driver.data_record(m.config, m.run.source)
     driver.check_validation_record(m.workdir, record)
     if data is not None and record["data"] != todo[0].record["data"]:
       raise ConfigError(
         f"member {m.label}: its data differ from those of {todo[0].label}; train it alone"
       )
-    m.setup = driver.prepare(m.config, log=log, data=data)
+    m.setup = driver.prepare(m.run, log=log, data=data)
     data = m.setup.data
     m.record = {**record, **driver.pose_record(m.setup)}
     m.frame.check_record(m.record)
@@ -322,7 +325,8 @@ def _prepare(todo: Sequence[Member], *, log) -> tuple[dict, Callable]:
       "the members' regressors differ in more than their lr (synthesis workdirs of different "
       "pose systems?): train them alone"
     )
-  eval_sets = {k: views_lib.eval_batches(todo[0].config, e) for k, e in data.evals.items()}
+  batching = todo[0].setup.batching
+  eval_sets = {k: views_lib.eval_batches(batching, e) for k, e in data.evals.items()}
   return eval_sets, jax.jit(learner.predict_poses)
 
 

@@ -5,7 +5,7 @@ views, and evaluation batches read their rows through the same reader.
 
 Where the images come from:
 
-  procedural  the setting's family (`sources.procedural_of`, `config.data.family` overrides),
+  procedural  the setting's family (its procedural source, `config.data.family` overrides),
               rendered into memory; with `data.cache_dir`, prepared once into that directory as
               an ArrayRecord dataset (`storage.prepare`, one builder config per family config,
               reused by later runs) and decoded from it, the same pixels.
@@ -26,6 +26,10 @@ The paper's splits per real dataset (`real_split_plan`):
                 `data.test_scenes_fraction` are the held-out test scenes ("test_scenes"), the
                 `validation_fraction` before them validation, the rest training; "test" = view
                 9 of the training scenes.
+
+The run's parts take what the config resolves to (`regression.config_schema.Resolved`): the data
+source (`sources.Source`, whose setting is the run's), and the batch layout (`Batching`), never
+the setting's name.
 
 Training batches (`train_pipeline`): gqn draws `batch_size` scenes a step (epoch permutations of
 the training scenes) with n_context + n_query distinct views each; the other settings draw
@@ -260,20 +264,9 @@ class Data:
   info: dict[str, Any]
 
 
-def is_real(config) -> bool:
-  """Whether the config reads a prepared real dataset (data.source a real source)."""
-  source = config.data.get("source", "")
-  return bool(source) and not sources.is_procedural(source)
-
-
-def data_source(config) -> str:
-  """The config's data source: data.source, or the setting's procedural family."""
-  return config.data.get("source", "") or sources.procedural_of(config.setting)
-
-
-def data_record(config) -> dict[str, Any]:
-  """`fingerprint.data_record` of the data this regression reads: its prepared
-  dataset (`open_dataset`) or the setting's procedural family. Renders nothing.
+def data_record(config, source: sources.Source) -> dict[str, Any]:
+  """`fingerprint.data_record` of the data this regression reads from `source`: its prepared
+  dataset (`open_dataset`) or its procedural family. Renders nothing.
 
   Raises:
     ConfigError: the dataset cannot be found, or the family refuses its parameters.
@@ -281,21 +274,22 @@ def data_record(config) -> dict[str, Any]:
   from camrep.data.errors import DataError
   from camrep.data.feed import fingerprint
 
-  if config.data.get("dir", ""):
+  if not source.procedural:
     path, _ = open_dataset(config)
     return fingerprint.prepared_record(path)
   try:
-    return fingerprint.procedural_record(config.data, sources.procedural_of(config.setting))
+    return fingerprint.procedural_record(config.data, source.name)
   except DataError as e:
     raise ConfigError(f"data.family: {e}") from None
 
 
-def make_data(config) -> Data:
-  """Train, validation and test sets of a config (see the module docstring)."""
-  if is_real(config):
-    return make_real_data(config)
-  setting, cache = settings_lib.get(config.setting), config.data.cache_dir
-  family = sources.family_of_config(config.data, sources.procedural_of(setting))
+def make_data(config, source: sources.Source) -> Data:
+  """Train, validation and test sets of a config whose data come from `source` (see the module
+  docstring)."""
+  if not source.procedural:
+    return make_real_data(config, source)
+  setting, cache = source.setting, config.data.cache_dir
+  family = sources.family_of_config(config.data, source.name)
   full_train = load_split(family, "train", cache_dir=cache)
   train, val = split_validation(setting, full_train, config.data.validation_fraction)
   gqn = setting.context_views
@@ -311,7 +305,7 @@ def make_data(config) -> Data:
     else:
       evals[name] = EvalSet(views)
   if gqn:
-    _check_gqn_counts(config, train, evals)
+    _check_gqn_counts(config.data, train, evals)
   info = {
     "family": family.name,
     "preset": config.data.preset,
@@ -435,14 +429,15 @@ def real_split_plan(setting: settings_lib.Setting, splits: Any) -> dict[str, str
   return out
 
 
-def make_real_data(config) -> Data:
-  """Train, validation and test sets from a prepared real dataset (see the module docstring).
+def make_real_data(config, source: sources.Source) -> Data:
+  """Train, validation and test sets from a prepared real dataset of `source` (see the module
+  docstring).
 
   Raises:
     ConfigError: missing directory or dataset, a split the dataset lacks, an empty split, or too
       few views or scenes for the layout.
   """
-  d, setting = config.data, settings_lib.get(config.setting)
+  d, setting = config.data, source.setting
   path, meta = open_dataset(config)
   plan = real_split_plan(setting, meta.get("splits", {}))
   extra = [x.strip() for x in config.evals.extra_splits.split(",") if x.strip()]
@@ -489,7 +484,7 @@ def make_real_data(config) -> Data:
     else:
       evals[name] = EvalSet(views)
   if gqn:
-    _check_gqn_counts(config, train, evals)
+    _check_gqn_counts(d, train, evals)
   image_size = int(full_train.image_shape[0])
   info = {
     "source": d.source,
@@ -517,7 +512,7 @@ def make_real_data(config) -> Data:
     "splits": {name: plan.get(name, "") for name in wanted},
     "num_examples": {},
     "num_test_views": len(evals[config.evals.test_split].queries)
-    - (_gqn_context_views(config, evals[config.evals.test_split]) if gqn else 0),
+    - (_gqn_context_views(d.n_context, evals[config.evals.test_split]) if gqn else 0),
   }
   names = scene_names(meta)
   if names:
@@ -543,58 +538,94 @@ def scene_names(meta: dict[str, Any]) -> list[str]:
   return [str(x) for x in scenes or []]
 
 
-def _gqn_context_views(config, e: EvalSet) -> int:
+def _gqn_context_views(n_context: int, e: EvalSet) -> int:
   """Context views excluded from a gqn evaluation set's queries (held-out scenes only)."""
   if e.context is not e.queries:
     return 0
-  return sum(
-    min(config.data.n_context, len(e.queries.scene_rows(s))) for s in e.queries.scene_ids()
-  )
+  return sum(min(n_context, len(e.queries.scene_rows(s))) for s in e.queries.scene_ids())
 
 
-def _check_gqn_counts(config, train: ViewSet, evals: dict[str, EvalSet]) -> None:
-  """Raises ConfigError when a gqn scene has too few views for the context / query layout."""
+def _check_gqn_counts(d, train: ViewSet, evals: dict[str, EvalSet]) -> None:
+  """Raises ConfigError when a gqn scene has too few views for the context / query layout of
+  the config's data section `d`."""
   for name, e in evals.items():
     ctx_counts = [len(e.context.scene_rows(s)) for s in e.queries.scene_ids()]
-    need = config.data.n_context + (1 if e.context is e.queries else 0)
+    need = d.n_context + (1 if e.context is e.queries else 0)
     if min(ctx_counts) < need:
       raise ConfigError(f"{name}: a scene has {min(ctx_counts)} views, {need} needed")
-  if config.data.n_context + config.data.n_query > min(
-    len(train.scene_rows(s)) for s in train.scene_ids()
-  ):
+  if d.n_context + d.n_query > min(len(train.scene_rows(s)) for s in train.scene_ids()):
     raise ConfigError("a training scene has fewer than n_context + n_query views")
 
 
-def train_pipeline(config, views: ViewSet) -> pipeline.BatchPipeline:
+@dataclasses.dataclass(frozen=True)
+class Batching:
+  """How a run's views are batched (from its config: `Batching.of`).
+
+  Attributes:
+    scenes: whether an example is a scene with context views (`Setting.context_views`, gqn),
+      else a single view.
+    batch_size: training scenes (scenes) or views a step (`data.batch_size`).
+    eval_batch_size: query views an evaluation batch (`evals.batch_size`).
+    n_context, n_query: context and query views of a scene (scenes only; 0 otherwise).
+    seed: the run's seed (the training batch order).
+    num_threads: grain reader threads (0: read in the calling thread).
+    prefetch: batches read ahead by the threads.
+  """
+
+  scenes: bool
+  batch_size: int
+  eval_batch_size: int
+  n_context: int
+  n_query: int
+  seed: int
+  num_threads: int = 0
+  prefetch: int = 2
+
+  @classmethod
+  def of(cls, config, setting: settings_lib.Setting) -> Batching:
+    """The batching of a regression config of `setting`."""
+    d, scenes = config.data, setting.context_views
+    return cls(
+      scenes=scenes,
+      batch_size=int(d.batch_size),
+      eval_batch_size=int(config.evals.batch_size),
+      n_context=int(d.n_context) if scenes else 0,  # the other settings' configs have none
+      n_query=int(d.n_query) if scenes else 0,
+      seed=int(config.seed),
+      num_threads=int(d.get("num_threads", 0)),
+      prefetch=int(d.get("prefetch", 2)),
+    )
+
+
+def train_pipeline(b: Batching, views: ViewSet) -> pipeline.BatchPipeline:
   """The `BatchPipeline` of the training views (see the module docstring): gqn one group per
   scene (its views in view-id order), the other settings one group per view.
 
   Raises:
     ConfigError: fewer training scenes (gqn) or views than a batch.
   """
-  bs, d = config.data.batch_size, config.data
-  gqn = settings_lib.get(config.setting).context_views
-  if gqn:
+  bs = b.batch_size
+  if b.scenes:
     views = views.subset(np.lexsort((views.views, views.scenes)))
     index, groups, what = views.index, len(views.scene_ids()), "scenes"
   else:  # each view its own group: the batch's "scene" holds its row
     index = dataclasses.replace(views.index, scene=np.arange(len(views), dtype=np.int64))
     groups, what = len(views), "images"
   if groups // bs == 0:
-    unit = "scenes" if gqn else "views"
+    unit = "scenes" if b.scenes else "views"
     raise ConfigError(f"batch of {bs} {what} but only {groups} training {unit}")
   pcfg = pipeline.PipelineConfig(
     num_devices=1,
     scenes_per_device=bs,
-    views_per_scene=d.n_context + d.n_query if gqn else 1,
-    seed=config.seed,
-    num_threads=int(d.get("num_threads", 0)),
-    prefetch=int(d.get("prefetch", 2)),
+    views_per_scene=b.n_context + b.n_query if b.scenes else 1,
+    seed=b.seed,
+    num_threads=b.num_threads,
+    prefetch=b.prefetch,
   )
   return pipeline.BatchPipeline(index, views.read_images, pcfg, where="regression training views")
 
 
-def learner_batch(config, views: ViewSet, batch: pipeline.Batch) -> dict[str, np.ndarray]:
+def learner_batch(b: Batching, views: ViewSet, batch: pipeline.Batch) -> dict[str, np.ndarray]:
   """A pipeline batch in the learner's layout.
 
   gqn: "context_image" (S, C, H, W, 3), "context_pose" (S, C, P), "image" (S, Q, H, W, 3),
@@ -602,8 +633,8 @@ def learner_batch(config, views: ViewSet, batch: pipeline.Batch) -> dict[str, np
   "pose" (B, P), "scene" (B,).
   """
   image, pose = batch["image"][0], batch["pose"][0]
-  if settings_lib.get(config.setting).context_views:
-    c = config.data.n_context
+  if b.scenes:
+    c = b.n_context
     return {
       "context_image": image[:, :c],
       "context_pose": pose[:, :c],
@@ -615,12 +646,12 @@ def learner_batch(config, views: ViewSet, batch: pipeline.Batch) -> dict[str, np
   return {"image": image[:, 0], "pose": pose[:, 0], "scene": views.scenes[rows].astype(np.int32)}
 
 
-def train_batches(config, views: ViewSet) -> Iterator[dict[str, np.ndarray]]:
+def train_batches(b: Batching, views: ViewSet) -> Iterator[dict[str, np.ndarray]]:
   """Endless training batches in the learner's layout (`learner_batch`), a pure function of
-  (seed, step), read by `data.num_threads` grain reader threads, `data.prefetch` ahead."""
-  pipe = train_pipeline(config, views)
+  (seed, step), read by `num_threads` grain reader threads, `prefetch` ahead."""
+  pipe = train_pipeline(b, views)
   for batch in pipe.iterator():
-    yield learner_batch(config, views, batch)
+    yield learner_batch(b, views, batch)
 
 
 def _pad(x: np.ndarray, n: int) -> np.ndarray:
@@ -630,22 +661,23 @@ def _pad(x: np.ndarray, n: int) -> np.ndarray:
   return np.concatenate([x, np.repeat(x[-1:], n - len(x), axis=0)])
 
 
-def eval_plan(config, eval_set: EvalSet) -> list[dict[str, np.ndarray]]:
+def eval_plan(b: Batching, eval_set: EvalSet) -> list[dict[str, np.ndarray]]:
   """Rows and masks of fixed-shape evaluation batches (no image read): per batch "rows" (the
   query rows), "mask" (False for padding), gqn also "context_rows".
 
   gqn: per scene, context = the first n_context views (by id) of `eval_set.context`; queries =
   the scene's query views (minus the context views when both are the same set), padded to the
-  largest count; `max(1, batch_size // Q)` scenes per batch. Others: `batch_size` views a batch.
+  largest count; `max(1, eval_batch_size // Q)` scenes per batch. Others: `eval_batch_size`
+  views a batch.
   """
-  q_views, bs = eval_set.queries, config.evals.batch_size
-  if not settings_lib.get(config.setting).context_views:
+  q_views, bs = eval_set.queries, b.eval_batch_size
+  if not b.scenes:
     plans = []
     for start in range(0, len(q_views), bs):
       rows = np.arange(start, min(start + bs, len(q_views)))
       plans.append({"rows": _pad(rows, bs), "mask": np.arange(bs) < len(rows)})
     return plans
-  c = config.data.n_context
+  c = b.n_context
   same = eval_set.context is q_views
   ctx_rows, query_rows = [], []
   for s in q_views.scene_ids():
@@ -665,17 +697,16 @@ def eval_plan(config, eval_set: EvalSet) -> list[dict[str, np.ndarray]]:
   return plans
 
 
-def eval_batches(config, eval_set: EvalSet) -> grain.IterDataset:
+def eval_batches(b: Batching, eval_set: EvalSet) -> grain.IterDataset:
   """Fixed-shape evaluation batches with a "mask" (False for padding) and the queries' "view" ids,
   laid out by `eval_plan`, their images read when the batch is (so a streamed evaluation set is
-  never held whole); re-iterable, read by `data.num_threads` grain threads.
+  never held whole); re-iterable, read by `num_threads` grain threads.
 
   gqn: "context_image" (S, C, H, W, 3), "context_pose" (S, C, P), "image" (S, Q, H, W, 3),
   "pose" (S, Q, P), "scene" (S,), "view" (S, Q), "mask" (S, Q). Others: "image" (B, H, W, 3),
   "pose" (B, P), "scene" (B,), "view" (B,), "mask" (B,).
   """
-  q_views, ctx = eval_set.queries, eval_set.context
-  gqn = settings_lib.get(config.setting).context_views
+  q_views, ctx, gqn = eval_set.queries, eval_set.context, b.scenes
 
   def read(plan: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     rows = plan["rows"]
@@ -690,9 +721,7 @@ def eval_batches(config, eval_set: EvalSet) -> grain.IterDataset:
     out["mask"] = plan["mask"]
     return out
 
-  threads = int(config.data.get("num_threads", 0))
   opts = grain.ReadOptions(
-    num_threads=threads,
-    prefetch_buffer_size=max(1, int(config.data.get("prefetch", 2))) if threads else 0,
+    num_threads=b.num_threads, prefetch_buffer_size=max(1, b.prefetch) if b.num_threads else 0
   )
-  return grain.MapDataset.source(eval_plan(config, eval_set)).map(read).to_iter_dataset(opts)
+  return grain.MapDataset.source(eval_plan(b, eval_set)).map(read).to_iter_dataset(opts)

@@ -136,6 +136,16 @@ def steps_per_dispatch(config) -> int:
   return int(config.get("steps_per_dispatch", 1) or 1)
 
 
+def topology(*, processes: int, devices: int, scenes_per_device: int) -> dict[str, int]:
+  """What a run's steps depend on besides its config: {"processes", "devices", "global_batch"}
+  (scenes per step over all devices of all processes), the `Frame`'s `topology`."""
+  return {
+    "processes": int(processes),
+    "devices": int(devices),
+    "global_batch": int(devices) * int(scenes_per_device),
+  }
+
+
 def restored_from(restored: Mapping | None) -> str:
   """How a run began, for the non-finite stop's message: `Checkpointer.restored` or None."""
   if restored is None:
@@ -190,7 +200,7 @@ class Frame:
         given later, before `begin` (`check_record`).
       lead: whether this process writes (process 0).
       log: progress printer.
-      topology: what the steps depend on besides the config (`workdir.topology`), recorded per
+      topology: what the steps depend on besides the config (`topology`), recorded per
         start and checked at resume; None: nothing.
       restart: start over (from step 0) on an allowed change of a FIXED field or of the record,
         instead of refusing it (see the module docstring).

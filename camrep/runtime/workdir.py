@@ -303,16 +303,6 @@ def read_history(workdir: str) -> list[dict[str, Any]]:
 GLOBAL_BATCH = "global_batch"
 
 
-def topology(*, processes: int, devices: int, scenes_per_device: int) -> dict[str, int]:
-  """What a run's steps depend on besides its config: {"processes", "devices", "global_batch"}
-  (scenes per step over all devices of all processes)."""
-  return {
-    "processes": int(processes),
-    "devices": int(devices),
-    "global_batch": int(devices) * int(scenes_per_device),
-  }
-
-
 def machine() -> dict[str, Any]:
   """What ran a run, for its records (final_metrics.json, results.json): JAX's backend, the kind
   and count of its devices, the host's CPU model and the jax version. Runs of one table may come

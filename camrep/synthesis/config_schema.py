@@ -19,7 +19,7 @@ from __future__ import annotations
 from collections.abc import Iterable
 
 from camrep import lie, pose, pose_encodings
-from camrep.data import procedural, sources
+from camrep.data import sources
 from camrep.data.errors import DataError
 from camrep.data.feed import storage
 from camrep.models import mvt
@@ -228,14 +228,8 @@ def data_image_shape(config) -> tuple[tuple[int, int], str]:
         f"{path} holds poses {list(got)} (another source's data?)"
       )
     return (int(shape[0]), int(shape[1])), f"the prepared dataset {path}"
-  family = dict(d.family.to_dict()) if d.family else {}
-  try:
-    if d.source in procedural.FAMILIES:
-      fam = procedural.make_config(d.source, d.preset, **family)
-    else:  # a procedural source registered elsewhere: its family, built (nothing is rendered)
-      fam = sources.family_of_config(d).config
-  except TypeError as e:
-    raise ConfigError(f"config.data.family {family}: {e}") from None
+  try:  # the family, built (nothing is rendered)
+    fam = sources.family_of_config(d).config
   except ValueError as e:
     raise ConfigError(f"config.data (source {d.source!r}, preset {d.preset!r}): {e}") from None
   size = int(fam.image_size)

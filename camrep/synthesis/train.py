@@ -29,7 +29,6 @@ from camrep.models import layers
 from camrep.runtime import frame as frame_lib
 from camrep.runtime import session as session_lib
 from camrep.runtime import stopping
-from camrep.runtime import workdir as workdir_lib
 from camrep.synthesis import components, config_schema, heldout
 from camrep.synthesis import step as step_lib
 
@@ -159,7 +158,7 @@ def train_and_evaluate(
   record = components.run_record(config)  # the data and pose system, library defaults included
   rule = frame_lib.stopping_rule(config)
   # What the steps depend on besides the config (recorded per start, checked at resume).
-  topology = workdir_lib.topology(
+  topology = frame_lib.topology(
     processes=jax.process_count(),
     devices=jax.device_count(),
     scenes_per_device=config.data.scenes_per_device,
