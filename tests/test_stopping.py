@@ -15,6 +15,7 @@ import shutil
 
 import pytest
 
+from camrep import settings
 from camrep.configs import gqn
 from camrep.regression import config_schema
 from camrep.regression import driver as R
@@ -52,7 +53,8 @@ def test_rule_on_given_curves():
 
 def _run(tmp_path, cache, monkeypatch, scores, **stop):
   calls = iter(scores)
-  monkeypatch.setattr(R.tables_lib, "validation_score", lambda setting, summary: next(calls))
+  car = settings.get("car")
+  monkeypatch.setattr(type(car), "validation_score", lambda self, summary: next(calls))
   c = regression_config.get_config("car,smoke")
   c.representation = "euler"
   c.total_steps, c.eval_every_steps, c.data.cache_dir = 12, 2, cache
