@@ -190,10 +190,7 @@ def restore_pose_system(
     syn_run = restore.load_run(workdir)
   except (FileNotFoundError, ckpt_lib.CheckpointError) as e:
     raise ConfigError(f"synthesis_workdir: {e}") from None
-  # A model may carry a pose system of its own (the transformer's learned conditionings: one DOF
-  # per pose column), not the setting's (`components.pose_spec` of its config).
-  spec = components.pose_spec(syn_config)
-  if syn_run.model.spec != spec or not syn_run.model.reads_pose_vectors:
+  if syn_run.model.own_pose_system or not syn_run.model.reads_pose_vectors:
     raise ConfigError(
       f"synthesis_workdir {workdir} is a {type(syn_run.model).__name__} run (task "
       f"{syn_config.task!r}) whose pose input is not the setting's pose system as pose vectors; "
@@ -207,7 +204,7 @@ def restore_pose_system(
     # Jitted as the run's own init (`step.init_fn`): the same bits (eager differs by 1e-10).
     rep = jax.jit(syn_run.model.init_pose)(step_lib.root_keys(syn_run.config)[0])
   return {
-    "spec": spec,
+    "spec": syn_run.spec,
     "rep": rep,
     "kind": kind,
     "step": int(syn_run.step),

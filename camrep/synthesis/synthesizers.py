@@ -116,6 +116,8 @@ class Synthesizer(abc.ABC):
     temperature: latent temperature of `predict` for a generative model, else None.
     reads_pose_vectors: the model reads the pose encoding's per-DOF vectors, which `predict`'s
       `transform` perturbs (the noise test) and the Gram maps show.
+    own_pose_system: `spec` is the model's own (the transformer's learned conditionings: one DOF
+      per pose column), not the setting's pose system (`components.pose_spec`).
     noise_on: where the noise test perturbs the query pose by default (`noise.NOISE_ON`): its
       per-DOF vectors ("vectors", the paper's test) or the pose before conditioning ("pose").
     variants: further predictions of the held-out evaluation, {name: temperature}.
@@ -126,6 +128,7 @@ class Synthesizer(abc.ABC):
   variants: Mapping[str, float] = {}
   reads_context = False
   reads_pose_vectors = True
+  own_pose_system = False
   noise_on = "vectors"
 
   @classmethod
@@ -411,6 +414,10 @@ class MVTSynthesizer(Synthesizer):
   @property
   def reads_pose_vectors(self) -> bool:
     return self.conditioning.vector_input
+
+  @property
+  def own_pose_system(self) -> bool:
+    return self.conditioning.spec is not None
 
   @classmethod
   def check(cls, config, spec):
