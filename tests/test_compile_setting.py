@@ -12,7 +12,7 @@ import pytest
 
 def test_the_suite_compiles_with_most_optimisations_off():
   if os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] == "0":
-    pytest.skip("JAX_DISABLE_MOST_OPTIMIZATIONS=0: this session compiles as in production")
+    pytest.skip("JAX_DISABLE_MOST_OPTIMIZATIONS=0: this run compiles as in production")
   assert jax.config.read("jax_disable_most_optimizations") is True
 
 

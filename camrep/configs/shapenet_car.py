@@ -14,7 +14,7 @@ pairs (0.5 / 0.5), 6 blocks of 16, 10-degree grids.
     64 px, 64 cars in memory, eighth width, 600 steps: 4.6 min on a 2-core CPU. Expected:
     held-out-view PSNR 18.07 dB against 13.13 dB for the mean of up to 16 training views
     (+4.94 dB; BUILD_NOTES "View synthesis, quick configs").
-  python -m camrep.data.prepare --source=llff --input=../shared/data/captures/ethiopianHead \
+  python -m camrep.data.prepare --source=llff --input=path/to/ethiopianHead \
       --data_dir=/tmp/cap128
   python -m camrep.main --config=configs/shapenet_car.py:capture --workdir=/tmp/cap128_syn \
       --config.data.source=llff --config.data.dir=/tmp/cap128

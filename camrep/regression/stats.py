@@ -495,6 +495,26 @@ def cell_interval(
   return fn(errors, scenes if by_scene else None, reduce)
 
 
+def _paired_errors(ours, base, error: str, baseline: str):
+  """(ours' (S, N) errors, the baseline's, the views' scenes (N,)) on the S seeds both groups of
+  runs have; None without a common seed or per-view errors.
+
+  Raises:
+    ValueError: the two groups' test views differ.
+  """
+  common = sorted({int(r["seed"]) for r in ours} & {int(r["seed"]) for r in base})
+  if not common:
+    return None
+  a, b_ = seed_matrix(ours, error, common), seed_matrix(base, error, common)
+  if a is None or b_ is None:
+    return None
+  if a[0].shape != b_[0].shape or not _same_views(a[2], b_[2]):
+    raise ValueError(
+      f"ours and {baseline or 'the baseline'} were tested on other views: cannot pair them"
+    )
+  return a[0], b_[0], a[1]
+
+
 def compare_runs(
   ours: Sequence[Mapping[str, Any]],
   base: Sequence[Mapping[str, Any]],
@@ -510,17 +530,11 @@ def compare_runs(
   Raises:
     ValueError: the two groups' test views differ.
   """
-  common = sorted({int(r["seed"]) for r in ours} & {int(r["seed"]) for r in base})
-  if not common:
+  pair = _paired_errors(ours, base, error, baseline)
+  if pair is None:
     return None
-  a, b_ = seed_matrix(ours, error, common), seed_matrix(base, error, common)
-  if a is None or b_ is None:
-    return None
-  if a[0].shape != b_[0].shape or not _same_views(a[2], b_[2]):
-    raise ValueError(
-      f"ours and {baseline or 'the baseline'} were tested on other views: cannot pair them"
-    )
-  return paired_ratio(a[0], b_[0], a[1] if by_scene else None, reduce, baseline=baseline)
+  a, b_, scenes = pair
+  return paired_ratio(a, b_, scenes if by_scene else None, reduce, baseline=baseline)
 
 
 def seed_compare_runs(
@@ -539,18 +553,12 @@ def seed_compare_runs(
   Raises:
     ValueError: the two groups' test views differ.
   """
-  common = sorted({int(r["seed"]) for r in ours} & {int(r["seed"]) for r in base})
-  if not common:
+  pair = _paired_errors(ours, base, error, baseline)
+  if pair is None:
     return None
-  a, b_ = seed_matrix(ours, error, common), seed_matrix(base, error, common)
-  if a is None or b_ is None:
-    return None
-  if a[0].shape != b_[0].shape or not _same_views(a[2], b_[2]):
-    raise ValueError(
-      f"ours and {baseline or 'the baseline'} were tested on other views: cannot pair them"
-    )
-  scenes = a[1] if by_scene else None
-  return seed_ratio(a[0], b_[0], scenes, reduce, baseline=baseline, population=population)
+  a, b_, scenes = pair
+  scenes = scenes if by_scene else None
+  return seed_ratio(a, b_, scenes, reduce, baseline=baseline, population=population)
 
 
 def best_hand_designed(
