@@ -10,9 +10,9 @@ pairs, 6 blocks of 16, 21 x 21 position grid (0.1), 10-degree yaw grid, 144 dire
 Data: procedural rooms rendered per batch.
 
   python -m camrep.main --config=configs/gqn.py --workdir=/tmp/gqn
-    paper size: ~4 days on one Titan RTX in the paper; measured for 200 s on one H200 (JAX
-    0.11.2): 14-15 steps/s, ETA ~19 h for the 1M steps, the loop host-bound at 0.2x the step
-    alone (`python -m camrep.bench.gpu_report` measures both). A GPU job: on 2 CPU cores it starts
+    paper size: ~4 days on one Titan RTX in the paper; measured for 285 s on one H200 (JAX
+    0.11.2): 93 steps/s after ~130 s of start-up, ETA 2 h 58 min for the 1M steps, 1.16x the
+    step dispatched alone (BUILD_NOTES "GPU"). A GPU job: on 2 CPU cores it starts
     and prints an ETA, far too slow to finish.
     Expected: the paper's Table 1 pose-regression errors from this pose system (x, y 0.053,
     yaw 4.07 degrees); the paper gives no GQN PSNR in its text.

@@ -8,7 +8,8 @@ pairs (0.5 / 0.5), 6 blocks of 16, 10-degree grids.
 
   python -m camrep.main --config=configs/shapenet_car.py --workdir=/tmp/car
     paper size: ~1-4 days on one Titan RTX per the authors; measured for 200 s on one H200 (JAX
-    0.11.2): 14-15 steps/s (host-bound, as gqn.py). Expected car pose-regression error 2.85
+    0.11.2) with batches built scene by scene: 14-15 steps/s, host-bound (not yet timed with
+    scene tables). Expected car pose-regression error 2.85
     degrees (Table 1).
   python -m camrep.main --config=configs/shapenet_car.py:quick --workdir=/tmp/car_quick
     64 px, 64 cars in memory, eighth width, 600 steps: 4.6 min on a 2-core CPU. Expected:
