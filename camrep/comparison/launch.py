@@ -208,7 +208,7 @@ def synthesis_jobs(
   `--config.rep.kind=<kind>`, or "frozen_gen": the learned system with
   `--config.rep.freeze_generators=True`; a capture column's "car_<NAME>[_<kind>]"), into
   DIR/synthesis/<name>, on the prepared real data `data` names, with the plan's extra flags of
-  the setting (`Plan.synthesis_extra`)."""
+  the setting on its procedural data, or of a capture column (`Plan.synthesis_extra`)."""
   jobs = []
   for full in names:
     name, _, seed = full.partition("_seed")
@@ -228,7 +228,9 @@ def synthesis_jobs(
       argv.append("--config.rep.freeze_generators=True")
     elif kind and kind != "convdraw":
       argv.append(f"--config.rep.kind={kind}")
-    if kind != "convdraw" and not data_flags(cap or setting, data):  # procedural data only
+    if cap is not None:
+      argv += plan_lib.capture_synthesis_flags(plan)
+    elif kind != "convdraw" and not data_flags(setting, data):  # procedural data only
       argv += list(plan.synthesis_extra.get(setting, ()))
     argv += data_flags(cap or setting, data)
     if cap is not None:
