@@ -313,6 +313,53 @@ def test_vectorised_regressions(tmp_path, capsys):
     assert all(not j.members and "--config.seed=0" in j.argv for j in small.first)
 
 
+def _parsed_config(argv, monkeypatch):
+  """The config a `python -m camrep.main` command line gives (its --config flags parsed here)."""
+  from absl import flags
+  from ml_collections import config_flags
+
+  monkeypatch.chdir(ROOT)
+  fv = flags.FlagValues()
+  argv = ["camrep", *[a for a in argv if a.startswith("--config")]]
+  config_flags.DEFINE_config_file("config", None, flag_values=fv, sys_argv=argv)
+  fv(argv)
+  return fv.config
+
+
+def test_protocol_plan_capture_columns_hold_out_the_regressions_validation_views(
+  tmp_path, monkeypatch
+):
+  """A capture column's view-synthesis runs evaluate (and stop) on the validation views carved
+  from the capture's training views at the car regression's k; the same plan's converge size,
+  which made results/converge, passes nothing (its runs resume as they were)."""
+  import numpy as np
+
+  from camrep.configs import regression as regression_config
+  from camrep.data import prepare
+  from camrep.synthesis import components
+  from tests.test_captures import rig, write_llff
+
+  root = write_llff(tmp_path / "obj", rig(16)[0], rng=np.random.default_rng(5))
+  data = tmp_path / "data"
+  prepare.prepare_source("llff", data, input_path=str(root), preset="small", progress=False)
+  args = ["--out", str(tmp_path / "cmp"), "--dry_run", "--settings", "car"]
+  args += ["--data", f"car_obj=llff:{data}"]
+  syn = command.make_launch(command.parse_args(["--size", "protocol", *args])).synth
+  capture = [j for j in syn if j.name.startswith("synthesis_car_obj")]
+  car = [j for j in syn if j not in capture]
+  assert capture and car
+  fraction = regression_config.get_config("car,quick").data.validation_fraction
+  for j in capture:
+    assert "--config.evals.split=validation" in j.argv
+    assert f"--config.data.validation_fraction={fraction:g}" in j.argv
+  assert all("--config.data.validation_fraction" not in " ".join(j.argv) for j in car)
+  c = _parsed_config(capture[0].argv, monkeypatch)
+  config_schema.validate(c)  # every flag is a field the run uses, the split can be carved
+  assert components.carved_validation(c) == 10 == round(1 / fraction)
+  converge = command.make_launch(command.parse_args(["--size", "converge", *args])).synth
+  assert all("--config.evals.split" not in " ".join(j.argv) for j in converge)
+
+
 def test_protocol_plan(tmp_path, capsys):
   """--size protocol: 10 seeds a cell, every seed at every lr, the same lrs for every
   representation of a column and no extension, the control targets in every column (capture

@@ -89,7 +89,8 @@ def test_configs_resolve_as_before():
   size) entered with its variants as written, later with its evals.context_counts,
   `rep.freeze_generators` (False: the frozen-generators control's switch) was added to every
   entry with a `rep` section and `evals.split` ("test": the split of the held-out evaluation and
-  the plateau rule) to every entry, and seven_scenes:quick states its family's scenes (the small
+  the plateau rule) and `data.validation_fraction` (0.1: a captures dataset's carved validation
+  views) to every entry, and seven_scenes:quick states its family's scenes (the small
   preset's chess and heads, the same data) (nothing else
   changed). A
   workdir's config.json is compared with the requested config on resume

@@ -242,6 +242,10 @@ def test_a_raised_cap_resumes_a_synthesis_run_that_reached_the_old_one(rc, tmp_p
   assert job.done()
   final(1200, True)  # stopped by its plateau rule before the cap
   assert job.done()
+  (wd / "config.json").write_text(json.dumps({"total_steps": 2400}))
+  assert not job.done()  # stopped under another cap: stale (its rule followed that cap)
+  (wd / "config.json").write_text(json.dumps({"total_steps": 4800}))
+  assert job.done()
   os.remove(wd / "final_metrics.json")
   assert not job.done()
 
@@ -518,3 +522,58 @@ def test_a_stop_with_several_jobs_at_once_starts_no_other_job(rc, tmp_path, monk
   with pytest.raises(KeyboardInterrupt):
     launch.run_jobs(jobs, str(tmp_path / "logs"), at_once=2, label="")
   assert "a" in started and len(started) <= 2
+
+
+def test_a_run_stopped_at_its_plateau_under_another_cap_is_stale_with_its_readers(
+  rc, tmp_path, monkeypatch, capsys
+):
+  """A view-synthesis run that stopped at its plateau under an older cap (its rule's window and
+  evaluations follow the cap) is not done, nor are the regressions that read its pose system:
+  the dry run names them, a launch moves them (in DIR and the archive) to stale/<path>.stale-<cap>
+  and trains them again; runs under the plan's cap and baselines stay."""
+  ran = []
+  monkeypatch.setattr(launch, "run_job", fake_run_job(rc, ran))
+  out, archive = tmp_path / "out", tmp_path / "archive"
+  args = [a if a != "ours,quat" else "mlp,quat" for a in _args(out, archive)]
+  assert rc.main(args) == 0
+  cap = int(_flag(rc.make(args).synth[0].argv, "total_steps"))
+
+  def stopped(name, trained):
+    wd = out / "synthesis" / name
+    config = json.loads((wd / "config.json").read_text())
+    (wd / "config.json").write_text(json.dumps({**config, "total_steps": trained}))
+    final = {"complete": True, "step": trained // 2, "stopping": {"stopped_early": True}}
+    (wd / "final_metrics.json").write_text(json.dumps(final))
+
+  stopped("car_mlp_seed0", cap // 2)  # stopped under an older cap: stale
+  stopped("car_mlp_seed1", cap)  # stopped under the plan's cap: done
+  archive_lib.sync(str(out), str(archive))
+  readers = sorted(p.name for p in (out / "regression" / "car" / "mlp").glob("*_seed0"))
+  assert len(readers) == 3  # phase 1: seed 0 at every lr
+  ran.clear()
+  assert rc.main([*args, "--dry_run"]) == 0
+  text = capsys.readouterr().out
+  stale = [line for line in text.splitlines() if line.startswith("  stale: ")]
+  assert len(stale) == 2 * (1 + len(readers))  # DIR and the archive alike
+  for root in (out, archive):
+    aside = f"{root}/stale/synthesis/car_mlp_seed0.stale-{cap // 2}"
+    assert f"  stale: {root}/synthesis/car_mlp_seed0: stopped at its plateau under " \
+           f"--config.total_steps={cap // 2}, the plan's cap is {cap}; the launch moves it to " \
+           f"{aside} and trains it again" in text  # fmt: skip
+    for r in readers:
+      assert f"  stale: {root}/regression/car/mlp/{r}: reads synthesis/car_mlp_seed0" in text
+  assert "car_mlp_seed1" not in "".join(stale) and "/quat/" not in "".join(stale)
+  assert ran == []
+  # The launch: moved aside (never deleted), then trained again; nothing else.
+  assert rc.main(args) == 0
+  assert ran[0] == "synthesis_car_mlp_seed0"
+  assert sorted(ran[1:]) == [f"regression_car_mlp_{r}" for r in readers]
+  for root in (out, archive):
+    aside = root / "stale" / "synthesis" / f"car_mlp_seed0.stale-{cap // 2}"
+    assert runs.load(str(aside)).config["total_steps"] == cap // 2
+    for r in readers:
+      assert (root / "stale" / "regression" / "car" / "mlp" / f"{r}.stale-{cap // 2}").is_dir()
+    assert runs.load(str(root / "synthesis" / "car_mlp_seed0")).final["step"] == cap
+  assert capsys.readouterr().out.count("; moved to ") == len(stale)
+  assert rc.main([*args, "--dry_run"]) == 0
+  assert "stale:" not in capsys.readouterr().out

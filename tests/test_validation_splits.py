@@ -11,7 +11,7 @@ import pytest
 
 from camrep import settings
 from camrep.configs import regression as regression_config
-from camrep.data import prepare
+from camrep.data import prepare, records
 from camrep.regression import config_schema as reg_schema
 from camrep.regression import driver
 from camrep.regression import views as views_lib
@@ -67,7 +67,7 @@ def test_capture_validation_interpolates_and_is_disjoint_from_test(capture):
   c = _config(capture)
   d = views_lib.make_data(c, reg_schema.check(c).source)
   val, test = d.evals["validation"].queries, d.evals["test"].queries
-  k = views_lib.validation_every(c.data.validation_fraction)
+  k = records.validation_every(c.data.validation_fraction)
   assert len(val) >= 2 and d.info["validation"].startswith(f"every {k}th training view")
   every = sorted(d.train.views.tolist() + val.views.tolist())
   assert sorted(val.views) == every[k // 2 : len(every) - 1 : k]

@@ -14,7 +14,10 @@ camrep/comparison/plans.toml (seeds, learning-rate grids, caps, the inputs of th
 
 Steps (`launch.execute`), each finished run skipped, so a launch that stops resumes where it
 stopped (a run whose record cannot be read counts as not finished: it is named, its file set
-aside as <name>.damaged, and trained again):
+aside as <name>.damaged, and trained again; a view-synthesis run that stopped at its plateau
+under another cap than the plan's is stale, and so is every run that reads its pose system: the
+dry run names them, a launch moves them, in DIR and the archive alike, to
+<root>/stale/<path>.stale-<cap> and trains them again):
 
   1. view-synthesis runs (`python -m camrep.main --config=configs/<setting>.py[:variant]`) into
      DIR/synthesis/<name>: each setting's learned pose system; the car's (and each capture
@@ -53,8 +56,10 @@ never tabled with the paired runs), then experiments/seed_spread.py -> DIR/seed_
 (`full_grid`: the lr chosen on the validation mean over all seeds), the same lrs for every
 representation of a column (no extension), the control targets "untrained" (ours' own
 synthesis run at its initialisation) and "frozen_gen" in every column, view synthesis stopped on
-the families' validation split (`--config.evals.split=validation`; procedural columns), and
-7-Scenes synthesis over all seven scenes' trajectories.
+validation views (`--config.evals.split=validation`: the procedural families' own split; a
+capture column's every 10th training view, carved from its prepared training split and not
+trained on, the views its regressions validate on), and 7-Scenes synthesis over all seven scenes'
+trajectories.
 
 `--archive DIR`: each finished run's compact record (`camrep.comparison.archive`) is written into
 DIR as soon as the run ends, and a launch starts by restoring the records DIR holds; a restored

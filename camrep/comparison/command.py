@@ -238,6 +238,7 @@ def run(argv: Sequence[str] | None = None) -> int:
   old_handler = signal.signal(signal.SIGTERM, _interrupt)
   t0 = time.perf_counter()
   try:
+    launch_lib.set_aside_stale(launch)  # before the archive's stale records come back
     if launch.archive:
       n = archive_lib.restore(launch.archive, launch.out)
       print(f"restored {n} finished runs from the archive {launch.archive}", flush=True)

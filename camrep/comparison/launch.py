@@ -25,6 +25,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 
+from camrep import pose_encodings
 from camrep.comparison import archive as archive_lib
 from camrep.comparison import plan as plan_lib
 from camrep.regression import runs
@@ -69,7 +70,7 @@ class Job:
       return runs.is_finished(self.workdir)
     final = read_final(self.workdir)
     if self.kind == "synthesis":
-      return synthesis_done(final, self.argv)
+      return synthesis_done(final, self.argv, trained_cap(self.workdir))
     return _noise(self.workdir) is not None
 
   def command(self) -> str:
@@ -116,15 +117,35 @@ def _noise(workdir: str) -> dict | None:
     return None
 
 
-def synthesis_done(final: dict, argv: Sequence[str]) -> bool:
+def synthesis_done(final: dict, argv: Sequence[str], trained: int | None = None) -> bool:
   """A view-synthesis run is done when complete at the step cap its command gives
-  (`--config.total_steps`), or stopped earlier by its plateau rule: a raised cap resumes a run
-  that reached the old one."""
+  (`--config.total_steps`), or stopped earlier by its plateau rule under that cap (`trained`, the
+  cap it ran under; None where its record does not say: taken as that cap): a raised cap resumes
+  a run that reached the old one; one that stopped at its plateau under another cap is stale
+  (`stale_runs`: its rule's window and evaluations follow the cap)."""
   if final.get("complete") is not True:
     return False
   cap = flag_value(argv, "--config.total_steps")
-  stopped = bool((final.get("stopping") or {}).get("stopped_early"))
-  return cap is None or stopped or final.get("step") == int(cap)
+  if cap is None:
+    return True
+  if (final.get("stopping") or {}).get("stopped_early"):
+    return trained is None or trained == int(cap)
+  return final.get("step") == int(cap)
+
+
+def trained_cap(workdir: str) -> int | None:
+  """The step cap a view-synthesis run last trained under: its config's total_steps, or the
+  last change of it its final record lists (a resume with a raised cap); None without a
+  readable record that says."""
+  try:
+    run = runs.load(workdir)
+  except (FileNotFoundError, runs.DamagedRun):
+    return None
+  cap = run.config.get("total_steps")
+  for change in (run.final or {}).get("config_changes") or []:
+    if "total_steps" in (change.get("changes") or {}):
+      cap = change["changes"]["total_steps"][1]
+  return None if cap is None else int(cap)
 
 
 def flag_value(argv: Sequence[str], flag: str) -> str | None:
@@ -208,7 +229,7 @@ def synthesis_jobs(
   `--config.rep.kind=<kind>`, or "frozen_gen": the learned system with
   `--config.rep.freeze_generators=True`; a capture column's "car_<NAME>[_<kind>]"), into
   DIR/synthesis/<name>, on the prepared real data `data` names, with the plan's extra flags of
-  the setting (`Plan.synthesis_extra`)."""
+  the setting on its procedural data, or of a capture column (`Plan.synthesis_extra`)."""
   jobs = []
   for full in names:
     name, _, seed = full.partition("_seed")
@@ -228,7 +249,9 @@ def synthesis_jobs(
       argv.append("--config.rep.freeze_generators=True")
     elif kind and kind != "convdraw":
       argv.append(f"--config.rep.kind={kind}")
-    if kind != "convdraw" and not data_flags(cap or setting, data):  # procedural data only
+    if cap is not None:
+      argv += plan_lib.capture_synthesis_flags(plan)
+    elif kind != "convdraw" and not data_flags(setting, data):  # procedural data only
       argv += list(plan.synthesis_extra.get(setting, ()))
     argv += data_flags(cap or setting, data)
     if cap is not None:
@@ -641,6 +664,119 @@ def extension_jobs(launch: Launch) -> list[Job]:
 
 
 # --------------------------------------------------------------------------------------------
+# Runs made stale by a changed view-synthesis cap.
+
+STALE_DIR = "stale"
+"""Where a launch moves its stale runs, under DIR and the archive alike: <root>/stale/<the run's
+path>.stale-<cap>, outside every pattern that finds runs (`archive.RUN_PATTERNS`, the tables'
+globs), never deleted."""
+
+
+@dataclasses.dataclass(frozen=True)
+class StaleRun:
+  """A run a launch must train again because of a view-synthesis cap: a view-synthesis run that
+  stopped at its plateau under another cap (`trained`) than its command's (`cap`), whose plateau
+  rule's window and evaluations follow the cap; or a run that reads one (its pose system).
+
+  Attributes:
+    root: the launch's DIR or its archive.
+    rel: the run's path under `root` ("synthesis/<name>", "regression/<column>/<rep>/<run>",
+      "crossed/<column>/<run>").
+    synthesis: the name of the stale view-synthesis run (itself, or the one it reads).
+    trained: the cap that run trained under.
+    cap: the cap the launch's command gives it.
+  """
+
+  root: str
+  rel: str
+  synthesis: str
+  trained: int
+  cap: int
+
+  @property
+  def path(self) -> str:
+    return os.path.join(self.root, self.rel)
+
+  def aside(self) -> str:
+    """A free path <root>/stale/<rel>.stale-<trained>[.<n>] for it."""
+    base = os.path.join(self.root, STALE_DIR, f"{self.rel}.stale-{self.trained}")
+    path, n = base, 0
+    while os.path.exists(path):
+      n += 1
+      path = f"{base}.{n}"
+    return path
+
+  def describe(self) -> str:
+    why = (
+      f"stopped at its plateau under --config.total_steps={self.trained}, the plan's cap is "
+      f"{self.cap}"
+      if self.rel == os.path.join("synthesis", self.synthesis)
+      else f"reads synthesis/{self.synthesis}, stale (cap {self.trained}, the plan's {self.cap})"
+    )
+    return f"{self.path}: {why}"
+
+
+def synthesis_read(rel: str, plan: plan_lib.Plan) -> str | None:
+  """The name of the view-synthesis run whose pose system the regression or crossed run at `rel`
+  (its path under DIR) reads (`regression_job`, `crossed_job`), or None (a baseline, another
+  path)."""
+  parts = rel.split(os.sep)
+  if parts[0] == "regression" and len(parts) == 4:
+    column, rep, name = parts[1:]
+    if rep not in pose_encodings.REPRESENTATIONS or "_seed" not in name:
+      return None
+    suffix = plan_lib.synthesis_suffix(rep)
+    if suffix is None:
+      return None
+    return (
+      column + suffix + (f"_seed{name.rpartition('_seed')[2]}" if plan.paired_synthesis else "")
+    )
+  if parts[0] == "crossed" and len(parts) == 3 and "_syn" in parts[2]:
+    return f"{parts[1]}_seed{parts[2].rpartition('_syn')[2]}"
+  return None
+
+
+def stale_runs(launch: Launch) -> list[StaleRun]:
+  """The launch's view-synthesis runs, in DIR or its archive, that stopped at their plateau under
+  another cap than their command gives (complete at an old cap, a run resumes instead:
+  `synthesis_done`), and every run there that reads one of them."""
+  L = launch
+  roots = [L.out, *([L.archive] if L.archive else [])]
+  found, caps = [], {}
+  for j in L.synth:
+    cap = flag_value(j.argv, "--config.total_steps")
+    if cap is None:
+      continue
+    name = j.name.removeprefix("synthesis_")
+    for root in roots:
+      wd = os.path.join(root, "synthesis", name)
+      final, trained = read_final(wd), trained_cap(wd)
+      stopped = (final.get("stopping") or {}).get("stopped_early")
+      if final.get("complete") is True and stopped and trained not in (None, int(cap)):
+        caps[name] = (trained, int(cap))
+        found.append(StaleRun(root, os.path.join("synthesis", name), name, trained, int(cap)))
+  for root in roots if caps else ():
+    for rel in archive_lib.run_dirs(root):
+      name = synthesis_read(rel, L.plan)
+      if name in caps:
+        found.append(StaleRun(root, rel, name, *caps[name]))
+  return found
+
+
+def set_aside_stale(launch: Launch) -> list[tuple[str, str]]:
+  """Moves every stale run (`stale_runs`) to its `StaleRun.aside` path, with a line naming it;
+  the launch then trains it again. Returns the (old, new) paths."""
+  moved = []
+  for r in stale_runs(launch):
+    new = r.aside()
+    os.makedirs(os.path.dirname(new), exist_ok=True)
+    shutil.move(r.path, new)
+    print(f"stale: {r.describe()}; moved to {new}, trained again", flush=True)
+    moved.append((r.path, new))
+  return moved
+
+
+# --------------------------------------------------------------------------------------------
 # Running the jobs.
 
 
@@ -981,6 +1117,8 @@ def print_plan(launch: Launch, *, commands: bool, at_once: int = 1) -> None:
   ]
   for name, d in damaged:
     print(f"  {name}: {d}; the launch trains it again", flush=True)
+  for r in stale_runs(L):
+    print(f"  stale: {r.describe()}; the launch moves it to {r.aside()} and trains it again")
   crossed = crossed_jobs(L, None)
   if crossed:
     est_s = len(crossed) * plan.regression_s[setting_of(L.crossed)] + 60

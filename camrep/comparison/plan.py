@@ -21,6 +21,7 @@ from camrep import pose_encodings
 from camrep import settings as settings_lib
 from camrep.configs import common
 from camrep.configs import gqn_convdraw as gqn_convdraw_config
+from camrep.configs import regression as regression_config
 from camrep.data import sources
 
 PLANS_FILE = pathlib.Path(__file__).with_name("plans.toml")
@@ -61,7 +62,8 @@ class Plan:
       size says `controls = true`).
     synthesis_extra: per setting, --config flags its view-synthesis runs on procedural data add
       (the plateau rule on the validation split; 7-Scenes over all seven scenes' trajectories
-      where the :quick config learns from two).
+      where the :quick config learns from two); "capture": those of a capture column's runs
+      (`capture_synthesis_flags`).
     vectorise: the regression runs of one column and representation trained as one program
       (`camrep.regression.vectorised`: phase 1 one over the lrs, phase 2 one over the later seeds):
       {"step_speedup": member-steps per second of the program over the runs one after another,
@@ -265,6 +267,20 @@ def regression_flags(plan: Plan, setting: str) -> list[str]:
     f"--config.stop.min_improvement={plan.stop['min_improvement']:g}",
     f"--config.stop.window={plan.stop['window']:g}",
   ]
+
+
+def capture_synthesis_flags(plan: Plan) -> list[str]:
+  """A capture column's extra view-synthesis flags (`Plan.synthesis_extra["capture"]`); where they
+  evaluate on the validation split (carved from the capture's training views), also the car
+  regression's `data.validation_fraction` at the plan's variant, so that the run holds out the
+  views its regressions validate on (which `regression.pose_system.check_same_validation`
+  demands)."""
+  flags = list(plan.synthesis_extra.get("capture", ()))
+  if "--config.evals.split=validation" in flags:
+    args = ",".join(x for x in (settings_lib.CAR.name, plan.variant) if x)
+    fraction = regression_config.get_config(args).data.validation_fraction
+    flags.append(f"--config.data.validation_fraction={fraction:g}")
+  return flags
 
 
 def synthesis_flags(plan: Plan, setting: str, kind: str = "") -> list[str]:

@@ -61,6 +61,10 @@ def base() -> ml_collections.ConfigDict:
   c.data.num_workers = -1
   # Batches copied to the accelerators ahead of the step (0: none; each is copied when taken).
   c.data.device_prefetch = 2
+  # A prepared captures dataset with evals.split "validation": every round(1 / fraction)-th
+  # training view of each capture is held out for the evaluation (and not trained on), the views
+  # the regression validates on at its own data.validation_fraction (the same default).
+  c.data.validation_fraction = 0.1
 
   c.model = ml_collections.ConfigDict()
   c.model.width = 1.0
@@ -151,9 +155,10 @@ def base() -> ml_collections.ConfigDict:
 
   c.evals = ml_collections.ConfigDict()
   # The split of the held-out-view evaluation, whose PSNR the plateau rule (`stop`) reads:
-  # "test", or "validation" (held-out views of the training scenes apart from test, where the
-  # source has them: the procedural object, area and scene6dof families), so that the first
-  # stage never stops on the images a regression is tested on.
+  # "test", or "validation" (held-out views of the training scenes apart from test: the
+  # procedural object, area and scene6dof families' own; a prepared captures dataset's carved
+  # from its training views, data.validation_fraction), so that the first stage never stops on
+  # the images a regression is tested on.
   c.evals.split = "test"
   c.evals.num_scenes = 64  # held-out-view evaluation: scenes (one target view each)
   c.evals.batch_scenes = 16

@@ -55,6 +55,49 @@ def capture_facts(metadata: Mapping[str, Any]) -> list[dict[str, Any]]:
   return list(info.get("captures", [])) if info.get("kind") == "captures" else []
 
 
+def validation_every(fraction: float) -> int:
+  """k of a captures dataset's validation views (`validation_rows`): k = round(1 / fraction), at
+  least 2."""
+  return max(2, round(1.0 / fraction))
+
+
+def validation_rows(scene: np.ndarray, view: np.ndarray, every: int) -> np.ndarray:
+  """Which training views of a captures dataset validate: per capture every `every`-th view by
+  view id from view every // 2 on, never the last one (so each lies between training views, as
+  the held-out test views do); a capture with fewer views gives its middle view; one view alone
+  stays in training. The one rule of both stages: the regression's validation split
+  (`regression.views.split_validation`) and the held-out views of a view-synthesis run with
+  `--config.evals.split=validation` (`synthesis.components.make_pipeline`), both carved from the
+  prepared "train" split when it is read.
+
+  Args:
+    scene: int (N,) scene ids of the training views.
+    view: int (N,) their view ids.
+    every: k (`validation_every`).
+
+  Returns:
+    bool (N,): True for a validation view.
+  """
+  scene, view = np.asarray(scene), np.asarray(view)
+  out = np.zeros(len(scene), bool)
+  for s in np.unique(scene):
+    rows = np.flatnonzero(scene == s)
+    rows = rows[np.argsort(view[rows], kind="stable")]
+    picked = rows[every // 2 : len(rows) - 1 : every]
+    out[picked if len(picked) else rows[len(rows) // 2 :][:1]] = len(rows) > 1
+  return out
+
+
+def validation_description(fraction: float) -> str:
+  """How `validation_rows` chooses a captures dataset's validation views, in words (results.json,
+  record.json)."""
+  k = validation_every(fraction)
+  return (
+    f"every {k}th training view of each capture by view id (views {k // 2}, {k // 2 + k}, ..., "
+    "never the last), between training views as the held-out test views are; disjoint from test"
+  )
+
+
 def split_summary(metadata: Mapping[str, Any]) -> list[str]:
   """One line per capture: its role, views per split and the rule that made them (prepare's
   summary), e.g. "chair (seen): train 88, val 100, test 12; every 8th view held out (...)"."""

@@ -137,6 +137,33 @@ def check_same_world(workdir: str, syn_config, config, source: sources.Source) -
   )
 
 
+def check_same_validation(workdir: str, syn_config, config) -> None:
+  """Refuses a view-synthesis run on the same prepared captures dataset whose held-out views were
+  carved from its training views at another k than this regression's validation views (both
+  every k-th training view, `records.validation_rows`): its plateau rule read other views than
+  this regression validates on, and it trained on some of those.
+
+  Raises:
+    ConfigError: naming both fractions and the flag that makes them agree.
+  """
+  from camrep.data import records
+
+  if syn_config.evals.get("split", "test") != "validation" or not syn_config.data.get("dir", ""):
+    return
+  if sources.is_procedural(syn_config.data.source):
+    return  # the family's own validation split: no carve
+  theirs = float(syn_config.data.get("validation_fraction", 0.1))
+  ours = float(config.data.validation_fraction)
+  if records.validation_every(theirs) != records.validation_every(ours):
+    raise ConfigError(
+      f"synthesis_workdir {workdir} held out every {records.validation_every(theirs)}th training "
+      f"view (data.validation_fraction={theirs:g}) for its plateau rule, but this regression "
+      f"validates on every {records.validation_every(ours)}th (data.validation_fraction="
+      f"{ours:g}): pass --config.data.validation_fraction={theirs:g} so that both stages hold "
+      "out the same views"
+    )
+
+
 def load_pose_system(workdir: str, setting: settings_lib.Setting | str) -> dict[str, Any]:
   """The frozen pose input of a view-synthesis workdir, checked against the setting (a name is
   looked up); `restore_pose_system` with no regression data to check.
@@ -148,8 +175,8 @@ def restore_pose_system(
   workdir: str, setting: settings_lib.Setting, run=None, *, initial: bool = False
 ) -> dict[str, Any]:
   """The frozen pose input of a view-synthesis workdir, checked against the setting (and, given
-  the regression's `run`, a `config_schema.Resolved`, against its data and encoding:
-  `check_same_data`, `check_trained_encoding`).
+  the regression's `run`, a `config_schema.Resolved`, against its data, held-out views and
+  encoding: `check_same_data`, `check_same_validation`, `check_trained_encoding`).
 
   Restores the latest checkpoint with the synthesis `load_run` (which reads no data); with
   `initial`, the run's pose input as its init gave it (`Synthesizer.init_pose` of its root key),
@@ -178,6 +205,7 @@ def restore_pose_system(
   kind = syn_config.rep.get("kind", "grid")
   if run is not None:
     check_same_data(workdir, syn_config, run.config, run.source)
+    check_same_validation(workdir, syn_config, run.config)
     check_trained_encoding(workdir, run.encoding, syn_config)
   try:
     with ckpt_lib.Checkpointer(workdir, read_only=True) as ck:

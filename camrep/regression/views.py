@@ -119,12 +119,7 @@ class ViewSet:
 
   def subset(self, rows: np.ndarray) -> ViewSet:
     """The views at `rows` (int indices or a boolean mask), read by the same reader."""
-    i = self.index
-    sub = dataclasses.replace(
-      i, record=i.record[rows], index=i.index[rows], scene=i.scene[rows], view=i.view[rows],
-      pose=i.pose[rows],
-    )  # fmt: skip
-    return ViewSet(sub, self.read_images)
+    return ViewSet(self.index.subset(rows), self.read_images)
 
   def scene_ids(self) -> np.ndarray:
     """Sorted distinct scene ids."""
@@ -186,21 +181,6 @@ def load_split(family, split: str, *, cache_dir: str = "") -> ViewSet:
   return ViewSet(index, images.__getitem__)
 
 
-def validation_every(fraction: float) -> int:
-  """k of an interleaved validation split: every k-th training view, k = round(1 / fraction)
-  (at least 2)."""
-  return max(2, round(1.0 / fraction))
-
-
-def interleaved_description(fraction: float) -> str:
-  """How an interleaved validation split is chosen, in words (results.json, record.json)."""
-  k = validation_every(fraction)
-  return (
-    f"every {k}th training view of each capture by view id (views {k // 2}, {k // 2 + k}, ..., "
-    "never the last), between training views as the held-out test views are; disjoint from test"
-  )
-
-
 def split_validation(
   setting: settings_lib.Setting, views: ViewSet, fraction: float, *, interleaved: bool = False
 ) -> tuple[ViewSet, ViewSet]:
@@ -211,8 +191,7 @@ def split_validation(
   ceil(fraction * n_views) views by view id (at least one view stays in training), or with
   `interleaved` (captures, whose test views are every 8th of a capture's views: validation must
   interpolate as test does, not extrapolate past the last views) every k-th view by view id from
-  view k // 2 on, never the last (`validation_every`; else the middle view; one view alone stays
-  in training).
+  view k // 2 on, never the last (`records.validation_rows`, k = `records.validation_every`).
   """
   val = np.zeros(len(views), bool)
   ids = views.scene_ids()
@@ -222,11 +201,7 @@ def split_validation(
       raise ConfigError(f"validation would take all {len(ids)} training scenes")
     val = np.isin(views.scenes, ids[-k:])
   elif interleaved:
-    k = validation_every(fraction)
-    for s in ids:
-      rows = views.scene_rows(s)  # by view id
-      picked = rows[k // 2 : len(rows) - 1 : k]  # never the first or the last view
-      val[picked if len(picked) else rows[len(rows) // 2 :][:1]] = len(rows) > 1
+    val = records.validation_rows(views.scenes, views.views, records.validation_every(fraction))
   else:
     for s in ids:
       rows = views.scene_rows(s)
@@ -501,7 +476,7 @@ def make_real_data(config, source: sources.Source) -> Data:
     "validation": (
       f"last {d.validation_fraction:g} of the remaining training scenes"
       if gqn
-      else interleaved_description(d.validation_fraction)
+      else records.validation_description(d.validation_fraction)
       if interleaved
       else f"last {d.validation_fraction:g} of each training scene's views (by view id"
       + setting.validation_note

@@ -14,9 +14,9 @@ import jax
 
 from camrep import pose as P
 from camrep import settings
-from camrep.data import sources
+from camrep.data import records, sources
 from camrep.data.errors import DataError
-from camrep.data.feed import batches, fingerprint
+from camrep.data.feed import batches, fingerprint, storage
 from camrep.data.feed import pipeline as pipeline_lib
 from camrep.runtime import frame as frame_lib
 from camrep.runtime.runconfig import ConfigError
@@ -111,6 +111,28 @@ def num_workers(config) -> int:
   return pipeline_lib.default_num_workers() if n == -1 else n
 
 
+def carved_validation(config) -> int | None:
+  """k of a run whose held-out views are carved from a prepared captures dataset's training
+  split (`--config.evals.split=validation` on a capture, which has no validation split of its
+  own): every k-th training view of each capture by view id, k = round(1 /
+  data.validation_fraction) (`records.validation_rows`), the views a regression of the same
+  dataset validates on; `make_pipeline` trains on the other training views. None for every other
+  run (no carve: each split as stored).
+
+  Raises:
+    DataError: the prepared dataset cannot be found.
+  """
+  d = config.data
+  if config.evals.get("split", "test") != "validation" or not d.dir:
+    return None
+  if sources.is_procedural(d.source):
+    return None  # a prepared family stores its own validation split
+  path = storage.dataset_dir(d.dir, d.source, config=batches.prepared_config_name(d))
+  if not records.capture_facts(storage.load_metadata(path)):
+    return None
+  return records.validation_every(d.validation_fraction)
+
+
 def make_pipeline(
   config,
   split: str,
@@ -125,7 +147,9 @@ def make_pipeline(
   Data comes from `config.data.dir` (a prepared tfds directory) when set, its training batches
   decoded by `num_workers(config)` worker processes; otherwise from the procedural family, held
   in memory (`data.in_memory`) or rendered batch by batch. With `for_eval` the pipeline only
-  serves `scene_views` (a one-scene, one-view layout).
+  serves `scene_views` (a one-scene, one-view layout). A captures dataset with
+  `evals.split=validation` (`carved_validation`): "validation" is its training split's
+  validation views, "train" the rest of it.
   """
   d = config.data
   pcfg = pipeline_lib.PipelineConfig(
@@ -140,6 +164,15 @@ def make_pipeline(
   kw = dict(process_index=process_index, process_count=process_count)
   if d.dir:
     pcfg = dataclasses.replace(pcfg, num_workers=0 if for_eval else num_workers(config))
+    every = carved_validation(config)
+    if every is not None and split in ("train", "validation"):
+      held = split == "validation"
+
+      def select(index: storage.ViewIndex):
+        val = records.validation_rows(index.scene, index.view, every)
+        return val if held else ~val
+
+      kw["select"], split = select, "train"
     return pipeline_lib.tfds_pipeline(
       d.dir, d.source, split, pcfg, dataset_config=batches.prepared_config_name(d), **kw
     )

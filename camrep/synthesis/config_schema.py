@@ -109,6 +109,13 @@ SCHEMA: dict[str, V.Field] = {
     resume=_FREE,
   ),
   "data.device_prefetch": _F(V.NONNEG, resume=_FREE),
+  "data.validation_fraction": _F(
+    V.Rule("fraction"),
+    _U(
+      lambda c: c.evals.get("split", "test") == "validation" and _prepared(c),
+      "used by a prepared captures dataset with evals.split='validation' only",
+    ),
+  ),
   "model.width": _F(V.POSITIVE, _U(_not_mvt, _MVT_SIZE)),
   "model.image_size": _F(
     V.one_of(TABLE_IMAGE_SIZES),
@@ -237,14 +244,20 @@ def data_image_shape(config) -> tuple[tuple[int, int], str]:
 
 
 def check_data(config) -> None:
-  """The evaluation split against the data's splits, the model's image size against the data's
-  (before any data is read or step compiled)."""
+  """The evaluation split against the data's splits (a captures dataset's "validation" is carved
+  from its training views, `components.carved_validation`), the model's image size against the
+  data's (before any data is read or step compiled)."""
   split = config.evals.get("split", "test")
-  if config.data.source in sources.SOURCES and split not in sources.get(config.data.source).splits:
-    raise ConfigError(
-      f"--config.evals.split={split}: data.source {config.data.source!r} has no {split!r} split "
-      f"(it has {list(sources.get(config.data.source).splits)}); use --config.evals.split=test"
-    )
+  source = sources.SOURCES.get(config.data.source)
+  if source is not None and split not in source.splits:
+    carved = split == "validation" and bool(config.data.dir)
+    if not carved or components.carved_validation(config) is None:
+      raise ConfigError(
+        f"--config.evals.split={split}: data.source {config.data.source!r} has no {split!r} "
+        f"split (it has {list(source.splits)}; a prepared captures dataset holds out every "
+        "round(1 / data.validation_fraction)-th training view as one); use "
+        "--config.evals.split=test"
+      )
   if not sources.is_procedural(config.data.source) and not config.data.dir:
     return  # components.make_pipeline names the missing prepared directory
   (h, w), where = data_image_shape(config)

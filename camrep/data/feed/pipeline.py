@@ -644,8 +644,10 @@ def tfds_pipeline(
   version: str | None = None,
   process_index: int = 0,
   process_count: int = 1,
+  select: Callable[[storage.ViewIndex], np.ndarray] | None = None,
 ) -> BatchPipeline:
-  """A `BatchPipeline` over a split prepared by `camrep.data.prepare`.
+  """A `BatchPipeline` over a split prepared by `camrep.data.prepare`, or over the part of it
+  `select` keeps.
 
   Args:
     data_dir: the tfds data directory.
@@ -656,13 +658,18 @@ def tfds_pipeline(
     version: dataset version; defaults to the newest.
     process_index: this process.
     process_count: number of processes.
+    select: the split's `ViewIndex` -> bool (N,), the views to keep (a part carved from the
+      split when it is read, e.g. a captures dataset's validation views of its training split,
+      `records.validation_rows`); None: every view.
 
   Raises:
-    DataError: missing/empty data_dir, unknown dataset or split, layout too large.
+    DataError: missing/empty data_dir, unknown dataset or split, layout too large, nothing
+      selected.
   """
   stored = storage.load(data_dir, name, split, config=dataset_config, version=version)
+  index = stored.index if select is None else stored.index.subset(select(stored.index))
   return BatchPipeline(
-    stored.index,
+    index,
     stored.read_images,
     config,
     process_index=process_index,

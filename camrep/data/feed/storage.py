@@ -310,6 +310,14 @@ class ViewIndex:
     """Number of distinct scene ids."""
     return int(np.unique(self.scene).size)
 
+  def subset(self, rows: np.ndarray) -> ViewIndex:
+    """The views at `rows` (int positions or a bool (N,) mask); `record` still addresses the
+    split's record store."""
+    return dataclasses.replace(
+      self, record=self.record[rows], index=self.index[rows], scene=self.scene[rows],
+      view=self.view[rows], pose=self.pose[rows],
+    )  # fmt: skip
+
   def save(self, path: str | os.PathLike) -> None:
     """Writes the index as an .npz file."""
     np.savez(
