@@ -264,10 +264,13 @@ def check_data(config) -> None:
     )
 
 
-def validate(config, *, overridden: Iterable[str] = ()) -> None:
+def validate(config, *, overridden: Iterable[str] = ()) -> components.Resolved:
   """The whole pass: every field's rule, overridden fields the run ignores, `allow_changes`
   naming fields that exist, the run frame's checks (`frame.check_config`: the stopping rule),
   the cross-field checks of `components.check_config`, and the data-model checks.
+
+  Returns:
+    The config `components.Resolved` (the config itself unchanged).
 
   Raises:
     ConfigError: the first problem, naming the field, its value and what is allowed.
@@ -276,5 +279,6 @@ def validate(config, *, overridden: Iterable[str] = ()) -> None:
   V.check(config, SCHEMA, overridden=overridden)
   V.check_allow_changes(config, SCHEMA, extra=(workdir_lib.GLOBAL_BATCH,))
   frame_lib.check_config(config)
-  components.check_config(config)
+  run = components.check_config(config)
   check_data(config)
+  return run

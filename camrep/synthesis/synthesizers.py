@@ -1,9 +1,10 @@
-"""View-synthesis models behind one interface (paper sections 3.3-3.6), and `from_config`, the one
-place that maps a config to its model.
+"""View-synthesis models behind one interface (paper sections 3.3-3.6), and `model_class`, the one
+place that maps a config to its model's class (built on the run's `components.Resolved`).
 
 A `Synthesizer` holds a Flax module, the pose encoding that feeds it (`config.rep.kind`, see
-`camrep.pose_encodings`) and its losses. Its parameters are two groups, {"model": module params,
-"rep": the encoding's params}, each trained by its own optimiser (`step.train_step`):
+`camrep.pose_encodings`; `pose_input`) and its losses. Its parameters are two groups,
+{"model": module params, "rep": the encoding's params}, each trained by its own optimiser
+(`step.train_step`):
 
   model group  minimises the model's loss (`loss`): L_rec of eq. 9 for camrep's decoders, the
                negative ELBO for GQN's generator;
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING
 
 import flax.linen as nn
 import jax
@@ -36,6 +38,9 @@ from camrep.models import convdraw, mvt, relative_attention
 from camrep.models.composite import GQNSynthesis, TableSynthesis
 from camrep.runtime.runconfig import ConfigError
 from camrep.synthesis import conditionings
+
+if TYPE_CHECKING:
+  from camrep.synthesis.components import Resolved
 
 Array = jax.Array
 Params = dict
@@ -108,8 +113,8 @@ class Synthesizer(abc.ABC):
     config: the run's config.
     spec: the pose system (the DOFs whose columns the poses hold).
     module: the Flax module.
-    pose_encoding: the pose input (`pose_encodings.from_config`: the learned grid, GQN's
-      low-dim vector or the MLP).
+    pose_encoding: the pose input (`pose_input`: the learned grid, GQN's low-dim vector or the
+      MLP).
     loss_weight: lambda_1, the weight of `loss` in the rep group's objective.
     n_context: context views per scene (GQN layouts), None for per-scene tables.
     reads_context: the model encodes each scene's context views (GQN layouts).
@@ -132,23 +137,28 @@ class Synthesizer(abc.ABC):
   noise_on = "vectors"
 
   @classmethod
-  def check(cls, config, spec: P.PoseSystemSpec) -> None:
-    """Raises ConfigError where this model cannot run the config on pose system `spec` (beyond
+  def check(cls, run: Resolved) -> None:
+    """Raises ConfigError where this model cannot run the config on its pose system (beyond
     `check_config`'s layout checks); builds nothing but shapes."""
-    del config, spec
+    del run
 
-  def __init__(self, config, spec: P.PoseSystemSpec, module: nn.Module):
-    self.config, self.spec, self.module = config, spec, module
-    self.pose_encoding = pose_encodings.from_config(config, spec)
-    self.loss_weight = float(config.loss.rec_weight)
+  def __init__(self, run: Resolved, module: nn.Module, spec: P.PoseSystemSpec | None = None):
+    """The model of a resolved run (`components.Resolved`) around `module`, fed on pose system
+    `spec` (default: the run's, `run.spec`)."""
+    spec = run.spec if spec is None else spec
+    self.config, self.spec, self.module = run.config, spec, module
+    self.pose_encoding = pose_input(run, spec)
+    self.loss_weight = float(run.config.loss.rec_weight)
 
   def init(self, key: Array, batch: Mapping[str, Array]) -> Params:
-    """Initial parameters {"model", "rep"} shaped from one device's training batch."""
+    """Initial parameters {"model", "rep"} shaped from one device's training batch: the pose
+    input's from the second half of `key` (`init_pose`), the module's from the first
+    (`_init_module`, given the pose input's initial parameters)."""
     k_model, _ = jax.random.split(key)
     rep = self.init_pose(key)
     images = to_float_images(jnp.asarray(batch["image"]))
-    vecs = self.vectors(rep, jnp.asarray(batch["pose"]))
-    variables = self._init_module(k_model, images, vecs, jnp.asarray(batch["scene"]))
+    poses, scenes = jnp.asarray(batch["pose"]), jnp.asarray(batch["scene"])
+    variables = self._init_module(k_model, rep, images, poses, scenes)
     return {"model": variables["params"], "rep": rep}
 
   def init_pose(self, key: Array) -> Params:
@@ -158,8 +168,12 @@ class Synthesizer(abc.ABC):
     return self.pose_encoding.init(jax.random.split(key)[1])
 
   @abc.abstractmethod
-  def _init_module(self, key: Array, images: Array, vecs: Array, scenes: Array) -> dict:
-    """The module's variables, from float images (S, V, H, W, 3) and pose vectors (S, V, P)."""
+  def _init_module(
+    self, key: Array, params_rep: Params, images: Array, poses: Array, scenes: Array
+  ) -> dict:
+    """The module's variables, shaped from one device's training batch: float images
+    (S, V, H, W, 3), poses (S, V, P) and scene ids (S,), read through the pose input's initial
+    parameters `params_rep`."""
 
   @abc.abstractmethod
   def loss(
@@ -261,17 +275,17 @@ class GQNDecoder(_Decoder):
 
   reads_context = True
 
-  def __init__(self, config, spec, num_scenes: int | None = None):
+  def __init__(self, run: Resolved, num_scenes: int | None = None):
     del num_scenes  # the encoder gives the scene code
-    m = config.model
+    m = run.config.model
     module = GQNSynthesis(
-      width=m.width, gamma_offset=1.0 if m.gamma_init_one else 0.0, dtype=compute_dtype(config)
+      width=m.width, gamma_offset=1.0 if m.gamma_init_one else 0.0, dtype=run.dtype
     )
-    super().__init__(config, spec, module)
-    self.n_context = int(config.data.n_context)
+    super().__init__(run, module)
+    self.n_context = int(run.config.data.n_context)
 
-  def _init_module(self, key, images, vecs, scenes):
-    c = self.n_context
+  def _init_module(self, key, params_rep, images, poses, scenes):
+    c, vecs = self.n_context, self.vectors(params_rep, poses)
     return jax.jit(self.module.init)(key, images[:, :c], vecs[:, :c], vecs[:, c:])
 
   def _render(self, params_model, images, vecs, scenes):
@@ -293,8 +307,8 @@ class TableDecoder(_Decoder):
 
   reads_context = False
 
-  def __init__(self, config, spec, num_scenes: int):
-    m = config.model
+  def __init__(self, run: Resolved, num_scenes: int):
+    m = run.config.model
     module = TableSynthesis(
       num_scenes=num_scenes,
       scene_dim=m.scene_dim,
@@ -303,12 +317,12 @@ class TableDecoder(_Decoder):
       per_scene_norm=m.per_scene_norm,
       norm_eps=m.norm_eps,
       gamma_init_one=m.gamma_init_one,
-      dtype=compute_dtype(config),
+      dtype=run.dtype,
     )
-    super().__init__(config, spec, module)
+    super().__init__(run, module)
 
-  def _init_module(self, key, images, vecs, scenes):
-    return jax.jit(self.module.init)(key, scenes, vecs)
+  def _init_module(self, key, params_rep, images, poses, scenes):
+    return jax.jit(self.module.init)(key, scenes, self.vectors(params_rep, poses))
 
   def _render(self, params_model, images, vecs, scenes):
     pred, _ = self.module.apply({"params": params_model}, scenes, vecs)
@@ -329,11 +343,37 @@ class ConvDraw(Synthesizer):
   variants = {"sample": 1.0, "prior_mean": 0.0}
   reads_context = True
 
-  def __init__(self, config, spec):
-    m = config.model
+  @classmethod
+  def check(cls, run):
+    """The GQN task's layout and GQN's 7-D pose vector (rep.kind "lowdim"), every field the
+    generator reads (`GENERATOR_FIELDS`), float32."""
+    config = run.config
+    gqn_layout = TASKS.get(config.task) is GQNDecoder
+    if not gqn_layout or run.encoding is not pose_encodings.LowDimEncoding:
+      raise ConfigError(
+        "model.kind='convdraw' (GQN's generator) needs task='gqn' and rep.kind='lowdim' (its 7-D "
+        f"pose vector; the ELBO trains the model group only), got task={config.task!r}, "
+        f"rep.kind={run.encoding.name!r}"
+      )
+    missing = [f for f in GENERATOR_FIELDS if _field(config, f) is None]
+    if missing:
+      raise ConfigError(
+        f"model.kind='convdraw' (GQN's generator) reads config.{', config.'.join(missing)}, "
+        "which this config lacks: derive it from configs/gqn_convdraw.py, which sets them "
+        "(configs/common.py:base does not)"
+      )
+    if run.dtype is not None:
+      raise ConfigError(
+        f"model.dtype={config.model.dtype!r} is implemented for model.kind='decoder' only; "
+        "GQN's generator (convdraw) computes in float32"
+      )
+
+  def __init__(self, run: Resolved, num_scenes: int | None = None):
+    del num_scenes  # the context views give the scene
+    m = run.config.model
     module = convdraw.GQNConvDraw(width=m.width, steps=m.draw_steps, z_channels=m.z_channels)
-    super().__init__(config, spec, module)
-    self.n_context = int(config.data.n_context)
+    super().__init__(run, module)
+    self.n_context = int(run.config.data.n_context)
     self.loss_weight = 1.0  # the pose input has no parameters: the objective is the ELBO's
 
   @property
@@ -341,8 +381,8 @@ class ConvDraw(Synthesizer):
     """config.model.draw_temperature: 1 GQN's sample, 0 the prior mean."""
     return float(self.config.model.get("draw_temperature", 1.0))
 
-  def _init_module(self, key, images, vecs, scenes):
-    c = self.n_context
+  def _init_module(self, key, params_rep, images, poses, scenes):
+    c, vecs = self.n_context, self.vectors(params_rep, poses)
     keys = jax.random.split(key, images.shape[0])
     return jax.jit(self.module.init)(
       key, images[:, :c], vecs[:, :c], vecs[:, c:], images[:, c:], keys
@@ -402,14 +442,14 @@ class MVTSynthesizer(Synthesizer):
   # Every conditioning takes the noise test's noise the same way: on the query pose.
   noise_on = "pose"
 
-  def __init__(self, config, spec, num_scenes: int | None = None):
+  def __init__(self, run: Resolved, num_scenes: int | None = None):
     del num_scenes  # the context views give the scene
-    self.conditioning = conditionings.from_config(config, spec)
-    module = mvt.SIZES[config.model.size](dtype=compute_dtype(config))
+    self.conditioning = conditionings.from_config(run.config, run.spec)
+    module = mvt.SIZES[run.config.model.size](dtype=run.dtype)
     self.posed = mvt.PosedMVT(module, self.conditioning)
     # The learned conditionings' own pose system (one DOF per column) is the run's.
-    super().__init__(config, self.conditioning.spec or spec, module)
-    self.n_context = int(config.data.n_context)
+    super().__init__(run, module, self.conditioning.spec or run.spec)
+    self.n_context = int(run.config.data.n_context)
 
   @property
   def reads_pose_vectors(self) -> bool:
@@ -420,20 +460,20 @@ class MVTSynthesizer(Synthesizer):
     return self.conditioning.spec is not None
 
   @classmethod
-  def check(cls, config, spec):
+  def check(cls, run):
     """An unknown model.size or model.camera, rep.kind other than 'grid' (the learned
     conditionings' pose system), a conditioning the data or the pose system cannot feed, or a
     relative transform wider than a head."""
-    m = config.model
+    m, spec = run.config.model, run.spec
     if m.size not in mvt.SIZES:
       raise ConfigError(f"unknown model.size {m.size!r}; choose one of {tuple(mvt.SIZES)}")
-    if pose_encodings.ENCODINGS[pose_encodings.rep_kind(config)] is not pose_encodings.GridEncoding:
+    if run.encoding is not pose_encodings.GridEncoding:
       raise ConfigError(
         "task='mvt' reads the learned pose system through model.camera (learned_abs, "
-        f"learned_rel): rep.kind must be 'grid', got {config.rep.kind!r}"
+        f"learned_rel): rep.kind must be 'grid', got {run.encoding.name!r}"
       )
     try:
-      conditioning = conditionings.from_config(config, spec)
+      conditioning = conditionings.from_config(run.config, spec)
     except ValueError as e:
       raise ConfigError(f"--config.model.camera={m.camera!r}: {e}") from None
     if not conditioning.relative:
@@ -452,14 +492,16 @@ class MVTSynthesizer(Synthesizer):
         "the number of DOFs * rep.n_blocks * rep.block_size must fit in a head)"
       ) from None
 
-  def init(self, key, batch):
-    images = to_float_images(jnp.asarray(batch["image"]))
-    poses = jnp.asarray(batch["pose"])
-    c = self.n_context
-    return jax.jit(self.posed.init)(key, images[:, :c], poses[:, :c], poses[:, c:])
+  def init_pose(self, key):
+    """The conditioning's initial parameters (`CameraConditioning.init`; {} for the fixed
+    encodings), as `mvt.PosedMVT.init` draws them."""
+    return self.conditioning.init(jax.random.split(key)[1])
 
-  def _init_module(self, key, images, vecs, scenes):
-    raise NotImplementedError("MVTSynthesizer.init builds the parameters")
+  def _init_module(self, key, params_rep, images, poses, scenes):
+    """The transformer's variables on the cameras' codes (`mvt.PosedMVT.init`)."""
+    c = self.n_context
+    codes = self.posed.codes(params_rep, poses[:, :c], poses[:, c:], self.posed.grid(images))
+    return jax.jit(self.module.init)(key, images[:, :c], *codes)
 
   def _codes(self, params_rep, poses, grid, *, mode, keys, transform=None):
     """ViewCodes of poses (S, V, P): the conditioning's, or for one that reads the pose vectors
@@ -516,38 +558,15 @@ def _query_vectors(model: Synthesizer, params, batch, mode, keys, transform) -> 
   return P.concat(vecs if transform is None else transform(vecs), model.spec)
 
 
-def check_config(config) -> None:
+def check_config(run: Resolved) -> None:
   """Raises ConfigError on model / layout combinations the train step cannot run."""
+  config, encoding = run.config, run.encoding
   d = config.data
-  try:
-    kind, mkind, dtype = pose_encodings.rep_kind(config), model_kind(config), compute_dtype(config)
-  except ValueError as e:  # unknown rep.kind, model.kind, model.dtype
-    raise ConfigError(str(e)) from None
   context = reads_context(config)
-  encoding = pose_encodings.ENCODINGS[kind]
   if context and not 1 <= d.n_context < d.views_per_scene:
     raise ConfigError(
       f"data.n_context must be in [1, views_per_scene) so that each scene has query views, "
       f"got n_context={d.n_context}, views_per_scene={d.views_per_scene}"
-    )
-  if mkind == "convdraw" and (not context or encoding is not pose_encodings.LowDimEncoding):
-    raise ConfigError(
-      "model.kind='convdraw' (GQN's generator) needs task='gqn' and rep.kind='lowdim' (its 7-D "
-      f"pose vector; the ELBO trains the model group only), got task={config.task!r}, "
-      f"rep.kind={kind!r}"
-    )
-  if mkind == "convdraw":
-    missing = [f for f in GENERATOR_FIELDS if _field(config, f) is None]
-    if missing:
-      raise ConfigError(
-        f"model.kind='convdraw' (GQN's generator) reads config.{', config.'.join(missing)}, "
-        "which this config lacks: derive it from configs/gqn_convdraw.py, which sets them "
-        "(configs/common.py:base does not)"
-      )
-  if mkind == "convdraw" and dtype is not None:
-    raise ConfigError(
-      f"model.dtype={config.model.dtype!r} is implemented for model.kind='decoder' only; "
-      "GQN's generator (convdraw) computes in float32"
     )
   if config.loss.data_pairs and encoding.regularised and d.mode != "pairs":
     raise ConfigError(
@@ -571,12 +590,15 @@ TASKS: dict[str, type[Synthesizer]] = {
 configs/lvsm.py)."""
 
 
-def task_model(config) -> type[Synthesizer]:
-  """The decoder class of `config.task`.
+def model_class(config) -> type[Synthesizer]:
+  """The view-synthesis model's class: GQN's generator for `model.kind` "convdraw", else camrep's
+  model of `config.task` (`TASKS`).
 
   Raises:
-    ValueError: an unknown task.
+    ValueError: an unknown model.kind or task.
   """
+  if model_kind(config) == "convdraw":
+    return ConvDraw
   if config.task not in TASKS:
     raise ValueError(f"unknown task {config.task!r}; choose one of {tuple(TASKS)}")
   return TASKS[config.task]
@@ -594,15 +616,10 @@ def is_generator(config) -> bool:
   return model_kind(config) == "convdraw"
 
 
-def from_config(config, spec: P.PoseSystemSpec, num_scenes: int) -> Synthesizer:
-  """The view-synthesis model of a config: `config.model.kind` and `config.task` (`TASKS`) pick
-  it.
-
-  Args:
-    config: the run's config (checked by `check_config`).
-    spec: its pose system.
-    num_scenes: size of the per-scene tables (one past the largest training scene id).
-  """
-  if model_kind(config) == "convdraw":
-    return ConvDraw(config, spec)
-  return task_model(config)(config, spec, num_scenes)
+def pose_input(run: Resolved, spec: P.PoseSystemSpec) -> pose_encodings.PoseEncoding:
+  """The run's pose input (`run.encoding`) on pose system `spec`; GQN's low-dim vector takes the
+  rooms' camera height and pitch from `config.data.family` when the data's setting uses GQN's 7-D
+  vector (`Setting.gqn_pose_vector`)."""
+  family = run.config.data.family
+  camera = pose_encodings.gqn_lowdim_constants(family) if run.setting.gqn_pose_vector else None
+  return run.encoding.create(run.setting, spec, camera=camera)
