@@ -18,7 +18,7 @@ from camrep.configs import gqn, gqn_convdraw, shapenet_car
 from camrep.models import fastconv
 from camrep.models.composite import GQNSynthesis, TableSynthesis
 from camrep.runtime import runconfig
-from camrep.synthesis import components, synthesizers
+from camrep.synthesis import components
 from camrep.synthesis import step as step_lib
 
 pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
@@ -132,7 +132,7 @@ def test_fastconv_bfloat16_gradients():
 
 def test_model_dtype_config_checks():
   c = gqn.get_config("smoke")
-  assert c.model.dtype == "float32" and synthesizers.compute_dtype(c) is None
+  assert c.model.dtype == "float32" and components.resolve(c).dtype is None
   c.model.dtype = "bfloat16"
   components.check_config(c)
   assert components.make_model(components.resolve(c), 3).module.dtype == jnp.bfloat16

@@ -37,9 +37,10 @@ class Resolved:
     setting: the paper's setting of `data.source` (`camrep.settings`).
     spec: the setting's pose system with camrep's options (`pose_spec`).
     encoding: the pose input's `PoseEncoding` class (`rep.kind`, default "grid").
-    model: the `Synthesizer` class (`model.kind`, `task`: `synthesizers.model_class`).
-    dtype: the model's compute dtype (`model.dtype`: `synthesizers.compute_dtype`; None for
-      float32).
+    model: the `Synthesizer` class (`model.kind`, default "decoder", and `task`:
+      `synthesizers.model_class`).
+    dtype: the model's compute dtype (`model.dtype`, default "float32":
+      `synthesizers.compute_dtype`; None for float32).
   """
 
   config: ml_collections.ConfigDict
@@ -57,12 +58,13 @@ def resolve(config) -> Resolved:
   Raises:
     ConfigError: an unknown data.source, rep.kind, model.kind, model.dtype or task.
   """
-  kind = config.rep.get("kind", "grid")
+  kind, m = config.rep.get("kind", "grid"), config.model
   try:
     setting_ = setting(config)
     if kind not in pose_encodings.SYNTHESIS_KINDS:
       raise ValueError(f"unknown rep.kind {kind!r}; choose one of {pose_encodings.SYNTHESIS_KINDS}")
-    model, dtype = synthesizers.model_class(config), synthesizers.compute_dtype(config)
+    model = synthesizers.model_class(m.get("kind", "decoder"), config.task)
+    dtype = synthesizers.compute_dtype(m.get("dtype", "float32"))
   except ValueError as e:
     raise ConfigError(str(e)) from None
   spec = _pose_spec(setting_, config.rep)

@@ -78,19 +78,15 @@ def to_float_images(images: Array) -> Array:
   return images.astype(jnp.float32) * (2.0 / 255.0) - 1.0
 
 
-def compute_dtype(config):
-  """The dtype of the model's computation from `config.model.dtype` (absent: float32)."""
-  name = config.model.get("dtype", "float32")
+def compute_dtype(name: str):
+  """The dtype of the model's computation that `model.dtype` names (`COMPUTE_DTYPES`).
+
+  Raises:
+    ValueError: an unknown name.
+  """
   if name not in COMPUTE_DTYPES:
     raise ValueError(f"unknown model.dtype {name!r}; choose one of {tuple(COMPUTE_DTYPES)}")
   return COMPUTE_DTYPES[name]
-
-
-def model_kind(config) -> str:
-  kind = config.model.get("kind", "decoder")
-  if kind not in MODEL_KINDS:
-    raise ValueError(f"unknown model.kind {kind!r}; choose one of {MODEL_KINDS}")
-  return kind
 
 
 def scene_keys(key: Array, num_scenes: int) -> Array:
@@ -150,30 +146,16 @@ class Synthesizer(abc.ABC):
     self.pose_encoding = pose_input(run, spec)
     self.loss_weight = float(run.config.loss.rec_weight)
 
+  @abc.abstractmethod
   def init(self, key: Array, batch: Mapping[str, Array]) -> Params:
-    """Initial parameters {"model", "rep"} shaped from one device's training batch: the pose
-    input's from the second half of `key` (`init_pose`), the module's from the first
-    (`_init_module`, given the pose input's initial parameters)."""
-    k_model, _ = jax.random.split(key)
-    rep = self.init_pose(key)
-    images = to_float_images(jnp.asarray(batch["image"]))
-    poses, scenes = jnp.asarray(batch["pose"]), jnp.asarray(batch["scene"])
-    variables = self._init_module(k_model, rep, images, poses, scenes)
-    return {"model": variables["params"], "rep": rep}
+    """Initial parameters {"model", "rep"} shaped from one device's training batch; "rep" is
+    `init_pose(key)`."""
 
+  @abc.abstractmethod
   def init_pose(self, key: Array) -> Params:
     """The pose input's initial parameters, `init(key, ...)["rep"]` without the model's (the
     "untrained" control target reads them; jitted, as `step.init_fn` runs `init`, for the same
     bits)."""
-    return self.pose_encoding.init(jax.random.split(key)[1])
-
-  @abc.abstractmethod
-  def _init_module(
-    self, key: Array, params_rep: Params, images: Array, poses: Array, scenes: Array
-  ) -> dict:
-    """The module's variables, shaped from one device's training batch: float images
-    (S, V, H, W, 3), poses (S, V, P) and scene ids (S,), read through the pose input's initial
-    parameters `params_rep`."""
 
   @abc.abstractmethod
   def loss(
@@ -249,7 +231,27 @@ class Synthesizer(abc.ABC):
     )
 
 
-class _Decoder(Synthesizer):
+class _VectorFed(Synthesizer):
+  """A module fed the pose input's vectors (`vectors`: camrep's decoders, GQN's generator): the
+  pose input's parameters from the second half of `init`'s key, the module's from the first."""
+
+  def init(self, key, batch):
+    k_model, _ = jax.random.split(key)
+    rep = self.init_pose(key)
+    images = to_float_images(jnp.asarray(batch["image"]))
+    vecs = self.vectors(rep, jnp.asarray(batch["pose"]))
+    variables = self._init_module(k_model, images, vecs, jnp.asarray(batch["scene"]))
+    return {"model": variables["params"], "rep": rep}
+
+  def init_pose(self, key):
+    return self.pose_encoding.init(jax.random.split(key)[1])
+
+  @abc.abstractmethod
+  def _init_module(self, key: Array, images: Array, vecs: Array, scenes: Array) -> dict:
+    """The module's variables, from float images (S, V, H, W, 3) and pose vectors (S, V, P)."""
+
+
+class _Decoder(_VectorFed):
   """camrep's decoders: trained on L_rec = mean over target images of the sum over pixels of
   (x_hat - x)^2 (eq. 9); `_render` maps (images, pose vectors, scenes) to (prediction, target)."""
 
@@ -284,8 +286,8 @@ class GQNDecoder(_Decoder):
     super().__init__(run, module)
     self.n_context = int(run.config.data.n_context)
 
-  def _init_module(self, key, params_rep, images, poses, scenes):
-    c, vecs = self.n_context, self.vectors(params_rep, poses)
+  def _init_module(self, key, images, vecs, scenes):
+    c = self.n_context
     return jax.jit(self.module.init)(key, images[:, :c], vecs[:, :c], vecs[:, c:])
 
   def _render(self, params_model, images, vecs, scenes):
@@ -321,8 +323,8 @@ class TableDecoder(_Decoder):
     )
     super().__init__(run, module)
 
-  def _init_module(self, key, params_rep, images, poses, scenes):
-    return jax.jit(self.module.init)(key, scenes, self.vectors(params_rep, poses))
+  def _init_module(self, key, images, vecs, scenes):
+    return jax.jit(self.module.init)(key, scenes, vecs)
 
   def _render(self, params_model, images, vecs, scenes):
     pred, _ = self.module.apply({"params": params_model}, scenes, vecs)
@@ -334,7 +336,7 @@ class TableDecoder(_Decoder):
     return pred
 
 
-class ConvDraw(Synthesizer):
+class ConvDraw(_VectorFed):
   """GQN's generator (`camrep.models.convdraw`), trained on its negative ELBO with the pixel std
   annealed by the step (config.loss.sigma_*) and an optional KL weight schedule
   (config.loss.kl_*); fed GQN's 7-D pose vector (rep.kind "lowdim", no parameters). Predictions
@@ -381,8 +383,8 @@ class ConvDraw(Synthesizer):
     """config.model.draw_temperature: 1 GQN's sample, 0 the prior mean."""
     return float(self.config.model.get("draw_temperature", 1.0))
 
-  def _init_module(self, key, params_rep, images, poses, scenes):
-    c, vecs = self.n_context, self.vectors(params_rep, poses)
+  def _init_module(self, key, images, vecs, scenes):
+    c = self.n_context
     keys = jax.random.split(key, images.shape[0])
     return jax.jit(self.module.init)(
       key, images[:, :c], vecs[:, :c], vecs[:, c:], images[:, c:], keys
@@ -492,16 +494,17 @@ class MVTSynthesizer(Synthesizer):
         "the number of DOFs * rep.n_blocks * rep.block_size must fit in a head)"
       ) from None
 
+  def init(self, key, batch):
+    """`mvt.PosedMVT.init` on the training layout (views [:C] context, [C:] queries)."""
+    images = to_float_images(jnp.asarray(batch["image"]))
+    poses = jnp.asarray(batch["pose"])
+    c = self.n_context
+    return jax.jit(self.posed.init)(key, images[:, :c], poses[:, :c], poses[:, c:])
+
   def init_pose(self, key):
     """The conditioning's initial parameters (`CameraConditioning.init`; {} for the fixed
-    encodings), as `mvt.PosedMVT.init` draws them."""
+    encodings), drawn as `mvt.PosedMVT.init` draws them."""
     return self.conditioning.init(jax.random.split(key)[1])
-
-  def _init_module(self, key, params_rep, images, poses, scenes):
-    """The transformer's variables on the cameras' codes (`mvt.PosedMVT.init`)."""
-    c = self.n_context
-    codes = self.posed.codes(params_rep, poses[:, :c], poses[:, c:], self.posed.grid(images))
-    return jax.jit(self.module.init)(key, images[:, :c], *codes)
 
   def _codes(self, params_rep, poses, grid, *, mode, keys, transform=None):
     """ViewCodes of poses (S, V, P): the conditioning's, or for one that reads the pose vectors
@@ -590,18 +593,20 @@ TASKS: dict[str, type[Synthesizer]] = {
 configs/lvsm.py)."""
 
 
-def model_class(config) -> type[Synthesizer]:
+def model_class(kind: str, task: str) -> type[Synthesizer]:
   """The view-synthesis model's class: GQN's generator for `model.kind` "convdraw", else camrep's
-  model of `config.task` (`TASKS`).
+  model of `task` (`TASKS`).
 
   Raises:
     ValueError: an unknown model.kind or task.
   """
-  if model_kind(config) == "convdraw":
+  if kind not in MODEL_KINDS:
+    raise ValueError(f"unknown model.kind {kind!r}; choose one of {MODEL_KINDS}")
+  if kind == "convdraw":
     return ConvDraw
-  if config.task not in TASKS:
-    raise ValueError(f"unknown task {config.task!r}; choose one of {tuple(TASKS)}")
-  return TASKS[config.task]
+  if task not in TASKS:
+    raise ValueError(f"unknown task {task!r}; choose one of {tuple(TASKS)}")
+  return TASKS[task]
 
 
 def reads_context(config) -> bool:
@@ -612,8 +617,9 @@ def reads_context(config) -> bool:
 
 
 def is_generator(config) -> bool:
-  """Whether the config's model is GQN's generator (ConvDRAW, trained on its ELBO)."""
-  return model_kind(config) == "convdraw"
+  """Whether the config's model is GQN's generator (ConvDRAW, trained on its ELBO): `model.kind`
+  "convdraw" (another unknown kind: False; the schema's rule names it)."""
+  return config.model.get("kind", "decoder") == "convdraw"
 
 
 def pose_input(run: Resolved, spec: P.PoseSystemSpec) -> pose_encodings.PoseEncoding:
