@@ -8,7 +8,8 @@ are derived from it.
 
 `validate(config, overridden=...)` is the stage's one validation: every field's rule, the
 cross-field checks, and the data-model checks (image size) made against the family's or the
-prepared dataset's own record before any data is read or anything compiled. `python -m
+prepared dataset's own record before any data is read or anything compiled; it returns the
+config `components.Resolved` (its names looked up once) that the stage builds on. `python -m
 camrep.main` runs it first (with the command line's overrides) and `train.train_and_evaluate`
 runs it again; it raises `ConfigError` (or `DataError` for a prepared directory that cannot be
 found).
