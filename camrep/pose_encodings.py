@@ -34,7 +34,7 @@ their matrix is a rotation about +z, so 6 or 9 numbers carry one angle. Every he
 loss group, "position" or "orientation".
 
 `ENCODINGS` is the one registry; `get` looks a name up, `create` builds one for a setting and
-pose system, `from_config` builds a view-synthesis run's.
+pose system (a view-synthesis run's: `synthesis.synthesizers.pose_input`).
 """
 
 from __future__ import annotations
@@ -53,7 +53,6 @@ from typing_extensions import override
 from camrep import pose as P
 from camrep import rotations
 from camrep import settings as settings_lib
-from camrep.data import sources
 
 Array = jax.Array
 Params = Any
@@ -892,21 +891,3 @@ def create(
   else:
     spec = None
   return cls.create(setting, spec, **options)
-
-
-def rep_kind(config) -> str:
-  """The config's view-synthesis pose input (`config.rep.kind`, default "grid"), checked."""
-  kind = config.rep.get("kind", "grid")
-  if kind not in SYNTHESIS_KINDS:
-    raise ValueError(f"unknown rep.kind {kind!r}; choose one of {SYNTHESIS_KINDS}")
-  return kind
-
-
-def from_config(config, spec: P.PoseSystemSpec) -> PoseEncoding:
-  """The pose input of a view-synthesis run: `config.rep.kind` picks the encoding; GQN's low-dim
-  vector takes the rooms' camera height and pitch from `config.data.family` when the data's
-  setting uses GQN's 7-D vector (`Setting.gqn_pose_vector`)."""
-  cls = ENCODINGS[rep_kind(config)]
-  setting = sources.setting_of(config.data.source)
-  camera = gqn_lowdim_constants(config.data.family) if setting.gqn_pose_vector else None
-  return cls.create(setting, spec, camera=camera)

@@ -29,7 +29,7 @@ pipes = [
   components.make_pipeline(config, "train", num_devices=1, process_index=p, process_count=2)
   for p in range(2)
 ]
-model = components.make_model(config, components.num_train_scenes(pipes[0]))
+model = components.make_model(components.resolve(config), components.num_train_scenes(pipes[0]))
 tx = step_lib.make_optimizers(config)
 state = step_lib.init_fn(config, model, tx)()
 pstate = step_lib.replicate(state, 2)

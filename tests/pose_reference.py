@@ -18,11 +18,12 @@ import os
 
 import jax
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 
 from camrep import pose as P
 from camrep import pose_encodings
+from camrep.configs import gqn
+from camrep.synthesis import components, synthesizers
 
 PATH = os.path.join(os.path.dirname(os.path.abspath(__file__)), "data", "pose_reference.npz")
 
@@ -83,11 +84,14 @@ def _flat(prefix: str, tree) -> dict:
   return out
 
 
-def _lowdim_config(source: str):
-  c = ml_collections.ConfigDict()
-  c.rep = {"kind": "lowdim"}
-  c.data = {"source": source, "family": {"camera_height": 0.3, "pitch": -0.2}}
-  return c
+def _lowdim_input(source: str, spec: P.PoseSystemSpec) -> pose_encodings.LowDimEncoding:
+  """The view-synthesis low-dim input of a run on `source` whose rooms have camera height 0.3 and
+  pitch -0.2 (`synthesizers.pose_input`; GQN's 7-D vector on the rooms setting only)."""
+  c = gqn.get_config("smoke")
+  c.rep.kind = "lowdim"
+  c.data.source = source
+  c.data.family = {"camera_height": 0.3, "pitch": -0.2}
+  return synthesizers.pose_input(components.resolve(c), spec)
 
 
 def _params_and_noisy(spec: P.PoseSystemSpec, seed: jax.Array, poses: jax.Array):
@@ -164,7 +168,7 @@ def _spec_outputs(
       out[f"{d.name}/direction"] = P.direction_loss(params, spec, d.name, max_shift=3)
   # The other pose inputs.
   for source in ("rooms", "object"):
-    vecs = pose_encodings.from_config(_lowdim_config(source), spec).embed({}, poses)
+    vecs = _lowdim_input(source, spec).embed({}, poses)
     out.update(_flat(f"lowdim_{source}", vecs))
   mlp_input = pose_encodings.MlpEncoding(spec)
   mlp = mlp_input.init(key(4))

@@ -58,7 +58,7 @@ PUBLIC = {
   "camrep.regression.driver": ("run",),
   "camrep.regression.targets": ("encoding", "head_specs", "encode", "decode"),
   "camrep.settings": ("Setting", "register", "get", "names"),
-  "camrep.pose_encodings": ("PoseEncoding", "HeadSpec", "get", "create", "from_config"),
+  "camrep.pose_encodings": ("PoseEncoding", "HeadSpec", "get", "create"),
   "camrep.runtime.cli": ("UsageError", "fail", "call", "main", "run", "parse_flags"),
   "camrep.configs": ("path", "resolve", "define_config_flag"),
 }

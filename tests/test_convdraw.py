@@ -131,7 +131,7 @@ def test_config_variants_build():
   for variant in (None, "quick", "smoke"):
     c = gqn_convdraw.get_config(variant)
     components.check_config(c)
-    assert isinstance(components.make_model(c, 7).module, convdraw.GQNConvDraw)
+    assert isinstance(components.make_model(components.resolve(c), 7).module, convdraw.GQNConvDraw)
   c = gqn_convdraw.get_config()
   assert (c.model.draw_steps, c.loss.sigma_initial, c.loss.sigma_final) == (12, 2.0, 0.7)
   assert (c.loss.sigma_anneal_steps, c.optax.anneal_steps) == (200_000, 1_600_000)

@@ -18,7 +18,7 @@ from camrep import pose_encodings, settings
 from camrep.configs import gibson, gqn, seven_scenes, shapenet_car
 from camrep.runtime import checkpoint as ckpt_lib
 from camrep.runtime import writers
-from camrep.synthesis import components, heldout, restore, train
+from camrep.synthesis import components, heldout, restore, synthesizers, train
 from camrep.synthesis import evaluate as ev
 from camrep.synthesis import gram as gram_lib
 from camrep.synthesis import noise as noise_lib
@@ -187,7 +187,7 @@ def test_other_pose_inputs_train_and_take_noise(kind, tmp_path):
   run = restore.load_run(str(tmp_path))
   spec = run.spec
   poses = jnp.asarray([[0.1, -0.2, 1.0], [0.5, 0.3, 4.0]], jnp.float32)
-  pose_input = pose_encodings.from_config(run.config, spec)
+  pose_input = synthesizers.pose_input(components.resolve(run.config), spec)
   vecs = pose_input.embed(run.params["rep"], poses)
   betas = noise_lib.grid_betas(run.params["rep"], spec, run.model)
   if kind == "lowdim":

@@ -46,7 +46,7 @@ def test_the_registry_builds_each_conditioning_on_its_pose_system():
   spec = components.pose_spec(_config("none"))  # rooms: polar (x, y) + yaw
   assert spec.names == ("xy", "yaw")
   for name in CAMERAS:
-    model = components.make_model(_config(name), 4)
+    model = components.make_model(components.resolve(_config(name)), 4)
     learned = isinstance(model.conditioning, cc.LearnedAbsolute | cc.LearnedRelative)
     # The learned pair share one system with one DOF per column; the others keep the setting's.
     assert model.spec.names == (("x", "y", "yaw") if learned else ("xy", "yaw")), name
@@ -61,7 +61,7 @@ def test_predict_is_the_posed_transformer_on_the_heldout_layout():
   feed `PosedMVT` the same way; "rep" comes from the conditioning's own init (learned_rel's
   generators at init_scale, not the pose system's 1e-3)."""
   config = _config("learned_rel")
-  model = components.make_model(config, 4)
+  model = components.make_model(components.resolve(config), 4)
   rng = np.random.default_rng(0)
   batch = {
     "image": rng.integers(0, 256, (2, 4, 64, 64, 3), dtype=np.uint8),
@@ -73,6 +73,14 @@ def test_predict_is_the_posed_transformer_on_the_heldout_layout():
   params = model.init(jax.random.key(0), batch)
   gen = params["rep"]["x"][P.GENERATOR]
   assert float(jnp.std(gen)) > 0.5  # init_scale 2, not the pose system's 1e-3
+  # The synthesizers' one `init`: "rep" is `init_pose`'s (the conditioning's, as the regression's
+  # "untrained" control reads it), "model" the posed transformer's on the cameras' codes.
+  images = batch["image"].astype(np.float32) / 127.5 - 1.0
+  poses = batch["pose"]
+  posed = jax.jit(model.posed.init)(jax.random.key(0), images[:, :2], poses[:, :2], poses[:, 2:])
+  rep = jax.jit(model.init_pose)(jax.random.key(0))
+  for want, got in ((posed, params), (posed["rep"], rep)):
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, atol=1e-6), want, got)
   heldout = {
     "context_image": batch["image"][:, :2],
     "context_pose": batch["pose"][:, :2],
@@ -154,7 +162,7 @@ def test_a_capture_trains_and_evaluates_in_the_car_setting(tmp_path):
     config_schema.validate(config)
     final = train.train_and_evaluate(config, str(tmp_path / camera), log=lambda line: None)
     assert np.isfinite(final["eval/psnr"])
-    model = components.make_model(config, 1)
+    model = components.make_model(components.resolve(config), 1)
     assert model.spec.names == ("azimuth", "polar")
     if camera == "prope":
       assert model.conditioning.cameras == cc.ObjectCameras(

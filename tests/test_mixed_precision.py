@@ -18,7 +18,7 @@ from camrep.configs import gqn, gqn_convdraw, shapenet_car
 from camrep.models import fastconv
 from camrep.models.composite import GQNSynthesis, TableSynthesis
 from camrep.runtime import runconfig
-from camrep.synthesis import components, synthesizers
+from camrep.synthesis import components
 from camrep.synthesis import step as step_lib
 
 pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
@@ -41,13 +41,13 @@ def _runs(dtypes: tuple[str, ...], steps: int) -> dict:
   init_key, loop_key = jax.random.split(jax.random.key(0))
   fields = ("image", "pose", "scene")
   batches = [{k: pipe.batch(s)[k] for k in fields} for s in range(steps)]
-  model = components.make_model(config, components.num_train_scenes(pipe))
+  model = components.make_model(components.resolve(config), components.num_train_scenes(pipe))
   tx = step_lib.make_optimizers(config)
   state = step_lib.create_train_state(init_key, model, tx, batches[0])
   out = {}
   for name in dtypes:
     config.model.dtype = name
-    model = components.make_model(config, components.num_train_scenes(pipe))
+    model = components.make_model(components.resolve(config), components.num_train_scenes(pipe))
     p_step = step_lib.make_p_train_step(model, tx, pose_steps=config.optax.pose_steps)
     pstate, metrics = step_lib.replicate(state, 1), []  # a fresh copy: the step donates it
     for b in batches:
@@ -132,10 +132,10 @@ def test_fastconv_bfloat16_gradients():
 
 def test_model_dtype_config_checks():
   c = gqn.get_config("smoke")
-  assert c.model.dtype == "float32" and synthesizers.compute_dtype(c) is None
+  assert c.model.dtype == "float32" and components.resolve(c).dtype is None
   c.model.dtype = "bfloat16"
   components.check_config(c)
-  assert components.make_model(c, 3).module.dtype == jnp.bfloat16
+  assert components.make_model(components.resolve(c), 3).module.dtype == jnp.bfloat16
   c.model.dtype = "float16"
   with pytest.raises(runconfig.ConfigError, match="model.dtype"):
     components.check_config(c)
@@ -145,4 +145,4 @@ def test_model_dtype_config_checks():
     components.check_config(c)
   c = shapenet_car.get_config("smoke")
   c.model.dtype = "bfloat16"
-  assert components.make_model(c, 3).module.dtype == jnp.bfloat16
+  assert components.make_model(components.resolve(c), 3).module.dtype == jnp.bfloat16

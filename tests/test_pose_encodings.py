@@ -11,13 +11,15 @@ import math
 
 import jax
 import jax.numpy as jnp
-import ml_collections
 import numpy as np
 import pytest
 
 from camrep import pose as P
 from camrep import pose_encodings as E
 from camrep import settings
+from camrep.configs import gqn
+from camrep.runtime.runconfig import ConfigError
+from camrep.synthesis import components, synthesizers
 from tests.utils import assert_close
 
 pytestmark = pytest.mark.usefixtures("fast_compile")
@@ -31,11 +33,11 @@ GQN_SMALL = P.PoseSystemSpec(
 POSES = jnp.asarray([[0.1, -0.2, 1.0], [0.5, 0.3, 5.9]], jnp.float32)
 
 
-def _config(kind, source="rooms", family=None):
-  c = ml_collections.ConfigDict()
-  c.rep = {"kind": kind}
-  c.data = {"source": source, "family": family or {}}
-  return c
+def _input(kind, source="rooms", family=None):
+  """The pose input of a view-synthesis run on GQN_SMALL (`synthesizers.pose_input`)."""
+  c = gqn.get_config("smoke")
+  c.rep.kind, c.data.source, c.data.family = kind, source, family or {}
+  return synthesizers.pose_input(components.resolve(c), GQN_SMALL)
 
 
 def test_one_registry_of_every_encoding():
@@ -147,17 +149,17 @@ def test_gram_and_spread_of_the_grid_and_of_the_others():
 def test_the_view_synthesis_factory():
   kinds = {"grid": E.GridEncoding, "lowdim": E.LowDimEncoding, "mlp": E.MlpEncoding}
   for kind, cls in kinds.items():
-    enc = E.from_config(_config(kind), GQN_SMALL)
+    enc = _input(kind)
     assert type(enc) is cls and isinstance(enc, E.PoseEncoding)
     assert enc.setting is settings.GQN and enc.spec == GQN_SMALL
     params = enc.init(jax.random.key(0))
     v = jax.jit(lambda p, x, enc=enc: enc.embed(p, x))(params, POSES)
     assert set(v) == {"xy", "yaw"}
     assert jax.jit(lambda p, v, enc=enc: enc.decode(p, v))(params, v).shape == POSES.shape
-  with pytest.raises(ValueError, match="rep.kind"):
-    E.from_config(_config("spline"), GQN_SMALL)
-  with pytest.raises(ValueError, match="rep.kind"):
-    E.from_config(_config("quat"), GQN_SMALL)  # a regression target only
+  with pytest.raises(ConfigError, match="rep.kind"):
+    _input("spline")
+  with pytest.raises(ConfigError, match="rep.kind"):
+    _input("quat")  # a regression target only
   grid = E.GridEncoding(GQN_SMALL, refine_steps=0)
   params = grid.init(jax.random.key(1))
   v = grid.embed(params, POSES)
@@ -179,7 +181,7 @@ def test_lowdim_takes_explicit_constants_and_inverts():
     E.LowDimEncoding(GQN_SMALL, camera_height=0.3)
   # The factory reads the rooms' constants from the family given, the renderer's defaults else,
   # for a setting whose low-dim input is GQN's 7-D vector.
-  enc = E.from_config(_config("lowdim", family={"camera_height": 0.7}), GQN_SMALL)
+  enc = _input("lowdim", family={"camera_height": 0.7})
   assert enc.camera_height == 0.7 and enc.pitch == E.gqn_lowdim_constants({})[1]
   assert settings.GQN.gqn_pose_vector and not settings.CAR.gqn_pose_vector
-  assert E.from_config(_config("lowdim", source="object"), GQN_SMALL).camera_height is None
+  assert _input("lowdim", source="object").camera_height is None

@@ -78,7 +78,7 @@ def test_the_record_holds_the_resolved_family_spec_and_fingerprint(gqn_smoke_run
   config = gqn.get_config("smoke")
   assert workdir_lib.read_stored_config(gqn_smoke_run)["data"]["family"] == {}  # the user's
   record = workdir_lib.read_record(gqn_smoke_run)
-  assert record == json.loads(json.dumps(components.run_record(config)))
+  assert record == json.loads(json.dumps(components.run_record(components.resolve(config))))
   data = record["data"]
   assert data["kind"] == "procedural" and data["family"]["wall_style"] == "tinted"
   assert data["family"]["num_train_scenes"] == 4  # the small preset's
@@ -143,7 +143,7 @@ def test_an_old_workdir_without_a_record_resumes_with_a_warning_and_gains_one(ru
   warnings = [x for x in lines if x.startswith("warning:")]
   assert len(warnings) == 1 and f"has no {workdir_lib.RECORD_FILE}" in warnings[0]
   assert workdir_lib.read_record(str(run_copy)) == json.loads(
-    json.dumps(components.run_record(config))
+    json.dumps(components.run_record(components.resolve(config)))
   )
   assert workdir_lib.read_history(str(run_copy))[-1]["changes"] == {"total_steps": [4, 6]}
 
@@ -217,7 +217,7 @@ def test_non_finite_stop_says_whether_the_restored_checkpoint_was_verified():
 
 
 def test_record_differences_accept_gained_fields_and_name_changed_ones():
-  old = components.run_record(gqn.get_config("smoke"))
+  old = components.run_record(components.resolve(gqn.get_config("smoke")))
   new = json.loads(json.dumps(old))
   new["data"]["family"]["fog"] = 0.0  # a parameter camrep gained: its default keeps the images
   new["data"]["fingerprint"] = new["data"]["world"] = "sha256:other"  # follows from it

@@ -72,7 +72,7 @@ def test_restore_or_init_and_pose_system_render_nothing(gqn_smoke_run, tmp_path,
   # The trainer's restore (train.train_and_evaluate): template from `step.init_fn`, whose batch is
   # `batches.dummy_batch`; the model's table size from `batches.describe`.
   model = components.make_model(
-    config, int(batches.describe(config.data, "train").scene_ids.max()) + 1
+    components.resolve(config), int(batches.describe(config.data, "train").scene_ids.max()) + 1
   )
   init = step_lib.init_fn(config, model, step_lib.make_optimizers(config))
   _refuse_views(monkeypatch)
@@ -99,7 +99,7 @@ def test_dummy_batch_has_the_pipeline_layout_and_gives_the_same_init():
     info = batches.describe(config.data, "train")
     np.testing.assert_array_equal(info.scene_ids, pipe.all_scene_ids)
     # The init reads shapes only: a fresh start from the dummy equals one from batch 0.
-    model = components.make_model(config, components.num_train_scenes(pipe))
+    model = components.make_model(components.resolve(config), components.num_train_scenes(pipe))
     key = jax.random.key(config.seed)
     tx = step_lib.make_optimizers(config)
     from_real = step_lib.create_train_state(key, model, tx, real).params

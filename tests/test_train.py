@@ -36,7 +36,7 @@ def test_configs_build(name, variant):
   assert spec.pose_dim == {"gqn": 3, "shapenet_car": 2, "gibson": 3, "seven_scenes": 6}[name]
   for key in ("total_steps", "ckpt_every_steps", "eval_every_steps", "log_every_steps"):
     assert config[key] > 0
-  model = components.make_model(config, 7)
+  model = components.make_model(components.resolve(config), 7)
   expected = GQNSynthesis if name == "gqn" else TableSynthesis
   assert isinstance(model.module, expected) and config.task == ("gqn" if name == "gqn" else "table")
   if variant is None:  # paper settings (digest 3)

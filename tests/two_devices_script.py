@@ -22,7 +22,7 @@ assert jax.local_device_count() == n_dev, jax.devices()
 config = gqn.get_config("smoke")
 config.data.scenes_per_device = 2 // n_dev  # the same global batch of 2 scenes
 pipe = components.make_pipeline(config, "train", num_devices=n_dev)
-model = components.make_model(config, components.num_train_scenes(pipe))
+model = components.make_model(components.resolve(config), components.num_train_scenes(pipe))
 tx = step_lib.make_optimizers(config)
 init_key, loop_key = step_lib.root_keys(config)
 state = step_lib.create_train_state(init_key, model, tx, pipe.batch(0))

@@ -231,7 +231,7 @@ def input_bound(
   if stub:
     p_step, state = host_lib.stub_step(n_dev)
   else:
-    model = components.make_model(config, components.num_train_scenes(own))
+    model = components.make_model(components.resolve(config), components.num_train_scenes(own))
     tx = step_lib.make_optimizers(config)
     b0 = own.batch(0)
     init = {k: jnp.asarray(b0[k]) for k in ("image", "pose", "scene")}

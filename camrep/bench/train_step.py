@@ -192,7 +192,7 @@ class StepTimer:
     import numpy as np
 
     pipe = components.make_pipeline(config, "train", num_devices=num_devices)
-    model = components.make_model(config, components.num_train_scenes(pipe))
+    model = components.make_model(components.resolve(config), components.num_train_scenes(pipe))
     tx = step_lib.make_optimizers(config)
     init_key, keys = jax.random.split(jax.random.key(0))
     b0 = pipe.batch(0)
@@ -507,7 +507,7 @@ def breakdown(width: float, scenes: int, reps: int) -> dict[str, tuple[float, fl
     img, _ = dec.apply(p, scene, q_vec)
     return jnp.sum(img**2)
 
-  synth = components.make_model(config, 1)
+  synth = components.make_model(components.resolve(config), 1)
 
   def rot_loss(r):
     return synth.pose_loss(r, {}, jax.random.key(2))[0]

@@ -133,7 +133,7 @@ def parameter_counts(plan: TransformerPlan, column: str = "rooms") -> dict[str, 
   for camera in plan.cameras:
     config = _config(plan.variant(column)).copy_and_resolve_references()
     config.model.camera = camera
-    model = components.make_model(config, 1)
+    model = components.make_model(components.resolve(config), 1)
     spec, d = model.spec, config.data
     size = 64
     batch = {

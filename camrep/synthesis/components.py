@@ -1,7 +1,8 @@
-"""The parts of a view-synthesis run, built from its config (paper section 4.1): the setting,
-the pose system, the model (`synthesizers.from_config`), the data pipelines and the training
-batches on the devices; `check_config` refuses combinations the train step cannot run before
-anything is built.
+"""The parts of a view-synthesis run, built from its config (paper section 4.1): what the
+config's names stand for, looked up once (`resolve`: the setting, the pose system, the pose
+input's and the model's classes, the compute dtype), the model (`make_model`), the data pipelines
+and the training batches on the devices; `check_config` refuses combinations the train step
+cannot run before anything is built.
 """
 
 from __future__ import annotations
@@ -9,11 +10,13 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Iterator
+from typing import Any
 
 import jax
+import ml_collections
 
 from camrep import pose as P
-from camrep import settings
+from camrep import pose_encodings, settings
 from camrep.data import records, sources
 from camrep.data.errors import DataError
 from camrep.data.feed import batches, fingerprint, storage
@@ -25,22 +28,68 @@ from camrep.synthesis import synthesizers
 Array = jax.Array
 
 
+@dataclasses.dataclass(frozen=True)
+class Resolved:
+  """A view-synthesis config and what its names stand for, looked up once (`resolve`).
+
+  Attributes:
+    config: the run's config.
+    setting: the paper's setting of `data.source` (`camrep.settings`).
+    spec: the setting's pose system with camrep's options (`pose_spec`).
+    encoding: the pose input's `PoseEncoding` class (`rep.kind`, default "grid").
+    model: the `Synthesizer` class (`model.kind`, default "decoder", and `task`:
+      `synthesizers.model_class`).
+    dtype: the model's compute dtype (`model.dtype`, default "float32":
+      `synthesizers.compute_dtype`; None for float32).
+  """
+
+  config: ml_collections.ConfigDict
+  setting: settings.Setting
+  spec: P.PoseSystemSpec
+  encoding: type[pose_encodings.PoseEncoding]
+  model: type[synthesizers.Synthesizer]
+  dtype: Any
+
+
+def resolve(config) -> Resolved:
+  """The config `Resolved`: each name looked up once. Builds nothing (`check_config` checks the
+  fields together; a workdir's config was checked when it was written).
+
+  Raises:
+    ConfigError: an unknown data.source, rep.kind, model.kind, model.dtype or task.
+  """
+  kind, m = config.rep.get("kind", "grid"), config.model
+  try:
+    setting_ = setting(config)
+    if kind not in pose_encodings.SYNTHESIS_KINDS:
+      raise ValueError(f"unknown rep.kind {kind!r}; choose one of {pose_encodings.SYNTHESIS_KINDS}")
+    model = synthesizers.model_class(m.get("kind", "decoder"), config.task)
+    dtype = synthesizers.compute_dtype(m.get("dtype", "float32"))
+  except ValueError as e:
+    raise ConfigError(str(e)) from None
+  spec = _pose_spec(setting_, config.rep)
+  return Resolved(config, setting_, spec, pose_encodings.ENCODINGS[kind], model, dtype)
+
+
 def setting(config) -> settings.Setting:
   """The paper's setting of the config's data source (`camrep.settings`)."""
   return sources.setting_of(config.data.source)
 
 
-def check_config(config) -> None:
+def check_config(config) -> Resolved:
   """Raises ConfigError on combinations the train step cannot run (e.g. GQN layouts without
-  query views, or data-pair rotation losses on a batch that holds no pairs)."""
+  query views, or data-pair rotation losses on a batch that holds no pairs).
+
+  Returns:
+    The config `Resolved`.
+  """
+  run = resolve(config)
   try:
-    setting(config)
     num_workers(config)
-  except ValueError as e:  # unknown data.source; num_workers
+  except ValueError as e:
     raise ConfigError(str(e)) from None
-  synthesizers.check_config(config)
-  if config.task in synthesizers.TASKS:  # an unknown task: the schema's rule names it
-    synthesizers.task_model(config).check(config, pose_spec(config))
+  synthesizers.check_config(run)
+  run.model.check(run)
   if config.total_steps < 1:
     raise ConfigError(f"total_steps must be >= 1, got {config.total_steps}")
   rule = frame_lib.stopping_rule(config)
@@ -49,13 +98,17 @@ def check_config(config) -> None:
       f"--config.stop.min_improvement={rule.min_improvement:g}: the plateau rule is checked at "
       "the held-out evaluations; set --config.eval_every_steps > 0"
     )
+  return run
 
 
 def pose_spec(config) -> P.PoseSystemSpec:
   """The pose system of the config's setting (`Setting.pose_spec`: its DOFs and ranges), with
   camrep's options (config.rep)."""
-  r = config.rep
-  return setting(config).pose_spec(
+  return _pose_spec(setting(config), config.rep)
+
+
+def _pose_spec(setting_: settings.Setting, r) -> P.PoseSystemSpec:
+  return setting_.pose_spec(
     angle_spacing=math.radians(r.angle_spacing_deg),
     periodic=r.periodic,
     position_spacing=r.position_spacing,
@@ -81,7 +134,7 @@ def spec_record(spec: P.PoseSystemSpec) -> dict:
 RECORD_VERSION = 1
 
 
-def run_record(config) -> dict:
+def run_record(run: Resolved) -> dict:
   """What decides a run's data and model beyond its config (the workdir's record.json, checked
   at resume by `runtime.workdir.check_record`): {"version", "data": `fingerprint.data_record`
   (the family's resolved parameters or the prepared dataset's identity, and their
@@ -92,14 +145,19 @@ def run_record(config) -> dict:
   """
   return {
     "version": RECORD_VERSION,
-    "data": fingerprint.data_record(config.data),
-    "pose_spec": spec_record(pose_spec(config)),
+    "data": fingerprint.data_record(run.config.data),
+    "pose_spec": spec_record(run.spec),
   }
 
 
-def make_model(config, num_scenes: int) -> synthesizers.Synthesizer:
-  """The config's view-synthesis model on its pose system (`synthesizers.from_config`)."""
-  return synthesizers.from_config(config, pose_spec(config), num_scenes)
+def make_model(run: Resolved, num_scenes: int) -> synthesizers.Synthesizer:
+  """The run's view-synthesis model (`run.model`) on its pose system.
+
+  Args:
+    run: the config `Resolved`.
+    num_scenes: size of the per-scene tables (one past the largest training scene id).
+  """
+  return run.model(run, num_scenes)
 
 
 def num_workers(config) -> int:

@@ -8,7 +8,8 @@ are derived from it.
 
 `validate(config, overridden=...)` is the stage's one validation: every field's rule, the
 cross-field checks, and the data-model checks (image size) made against the family's or the
-prepared dataset's own record before any data is read or anything compiled. `python -m
+prepared dataset's own record before any data is read or anything compiled; it returns the
+config `components.Resolved` (its names looked up once) that the stage builds on. `python -m
 camrep.main` runs it first (with the command line's overrides) and `train.train_and_evaluate`
 runs it again; it raises `ConfigError` (or `DataError` for a prepared directory that cannot be
 found).
@@ -277,10 +278,13 @@ def check_data(config) -> None:
     )
 
 
-def validate(config, *, overridden: Iterable[str] = ()) -> None:
+def validate(config, *, overridden: Iterable[str] = ()) -> components.Resolved:
   """The whole pass: every field's rule, overridden fields the run ignores, `allow_changes`
   naming fields that exist, the run frame's checks (`frame.check_config`: the stopping rule),
   the cross-field checks of `components.check_config`, and the data-model checks.
+
+  Returns:
+    The config `components.Resolved` (the config itself unchanged).
 
   Raises:
     ConfigError: the first problem, naming the field, its value and what is allowed.
@@ -289,5 +293,6 @@ def validate(config, *, overridden: Iterable[str] = ()) -> None:
   V.check(config, SCHEMA, overridden=overridden)
   V.check_allow_changes(config, SCHEMA, extra=(workdir_lib.GLOBAL_BATCH,))
   frame_lib.check_config(config)
-  components.check_config(config)
+  run = components.check_config(config)
   check_data(config)
+  return run

@@ -76,9 +76,10 @@ def load_run(workdir: str, *, step: int | None = None) -> Run:
   from camrep.runtime import checkpoint as ckpt_lib
 
   config = workdir_lib.read_config(workdir)
+  resolved = components.resolve(config)
   # Today's defaults must rebuild the data and pose system that trained it (record.json; a
   # workdir written before camrep kept one is not checked).
-  workdir_lib.check_record(workdir, components.run_record(config), what="restore")
+  workdir_lib.check_record(workdir, components.run_record(resolved), what="restore")
   try:
     checkpointer = ckpt_lib.Checkpointer(workdir, read_only=True)
   except ckpt_lib.CheckpointError:
@@ -94,7 +95,7 @@ def load_run(workdir: str, *, step: int | None = None) -> Run:
     # As train.train_and_evaluate, with the training layout's shapes from the config alone
     # (`batches.describe` / `dummy_batch`): a restore reads and renders no data.
     info = batches.describe(config.data, "train")
-    model = components.make_model(config, int(info.scene_ids.max()) + 1)
+    model = components.make_model(resolved, int(info.scene_ids.max()) + 1)
     init = step_lib.init_fn(config, model, step_lib.make_optimizers(config))
     state, restored = step_lib.restore_state(checkpointer, init, step=step)
   finally:

@@ -1,9 +1,10 @@
-"""View-synthesis models behind one interface (paper sections 3.3-3.6), and `from_config`, the one
-place that maps a config to its model.
+"""View-synthesis models behind one interface (paper sections 3.3-3.6), and `model_class`, the one
+place that maps a config to its model's class (built on the run's `components.Resolved`).
 
 A `Synthesizer` holds a Flax module, the pose encoding that feeds it (`config.rep.kind`, see
-`camrep.pose_encodings`) and its losses. Its parameters are two groups, {"model": module params,
-"rep": the encoding's params}, each trained by its own optimiser (`step.train_step`):
+`camrep.pose_encodings`; `pose_input`) and its losses. Its parameters are two groups,
+{"model": module params, "rep": the encoding's params}, each trained by its own optimiser
+(`step.train_step`):
 
   model group  minimises the model's loss (`loss`): L_rec of eq. 9 for camrep's decoders, the
                negative ELBO for GQN's generator;
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING
 
 import flax.linen as nn
 import jax
@@ -36,6 +38,9 @@ from camrep.models import convdraw, mvt, relative_attention
 from camrep.models.composite import GQNSynthesis, TableSynthesis
 from camrep.runtime.runconfig import ConfigError
 from camrep.synthesis import conditionings
+
+if TYPE_CHECKING:
+  from camrep.synthesis.components import Resolved
 
 Array = jax.Array
 Params = dict
@@ -73,19 +78,15 @@ def to_float_images(images: Array) -> Array:
   return images.astype(jnp.float32) * (2.0 / 255.0) - 1.0
 
 
-def compute_dtype(config):
-  """The dtype of the model's computation from `config.model.dtype` (absent: float32)."""
-  name = config.model.get("dtype", "float32")
+def compute_dtype(name: str):
+  """The dtype of the model's computation that `model.dtype` names (`COMPUTE_DTYPES`).
+
+  Raises:
+    ValueError: an unknown name.
+  """
   if name not in COMPUTE_DTYPES:
     raise ValueError(f"unknown model.dtype {name!r}; choose one of {tuple(COMPUTE_DTYPES)}")
   return COMPUTE_DTYPES[name]
-
-
-def model_kind(config) -> str:
-  kind = config.model.get("kind", "decoder")
-  if kind not in MODEL_KINDS:
-    raise ValueError(f"unknown model.kind {kind!r}; choose one of {MODEL_KINDS}")
-  return kind
 
 
 def scene_keys(key: Array, num_scenes: int) -> Array:
@@ -108,8 +109,8 @@ class Synthesizer(abc.ABC):
     config: the run's config.
     spec: the pose system (the DOFs whose columns the poses hold).
     module: the Flax module.
-    pose_encoding: the pose input (`pose_encodings.from_config`: the learned grid, GQN's
-      low-dim vector or the MLP).
+    pose_encoding: the pose input (`pose_input`: the learned grid, GQN's low-dim vector or the
+      MLP).
     loss_weight: lambda_1, the weight of `loss` in the rep group's objective.
     n_context: context views per scene (GQN layouts), None for per-scene tables.
     reads_context: the model encodes each scene's context views (GQN layouts).
@@ -132,34 +133,29 @@ class Synthesizer(abc.ABC):
   noise_on = "vectors"
 
   @classmethod
-  def check(cls, config, spec: P.PoseSystemSpec) -> None:
-    """Raises ConfigError where this model cannot run the config on pose system `spec` (beyond
+  def check(cls, run: Resolved) -> None:
+    """Raises ConfigError where this model cannot run the config on its pose system (beyond
     `check_config`'s layout checks); builds nothing but shapes."""
-    del config, spec
+    del run
 
-  def __init__(self, config, spec: P.PoseSystemSpec, module: nn.Module):
-    self.config, self.spec, self.module = config, spec, module
-    self.pose_encoding = pose_encodings.from_config(config, spec)
-    self.loss_weight = float(config.loss.rec_weight)
+  def __init__(self, run: Resolved, module: nn.Module, spec: P.PoseSystemSpec | None = None):
+    """The model of a resolved run (`components.Resolved`) around `module`, fed on pose system
+    `spec` (default: the run's, `run.spec`)."""
+    spec = run.spec if spec is None else spec
+    self.config, self.spec, self.module = run.config, spec, module
+    self.pose_encoding = pose_input(run, spec)
+    self.loss_weight = float(run.config.loss.rec_weight)
 
+  @abc.abstractmethod
   def init(self, key: Array, batch: Mapping[str, Array]) -> Params:
-    """Initial parameters {"model", "rep"} shaped from one device's training batch."""
-    k_model, _ = jax.random.split(key)
-    rep = self.init_pose(key)
-    images = to_float_images(jnp.asarray(batch["image"]))
-    vecs = self.vectors(rep, jnp.asarray(batch["pose"]))
-    variables = self._init_module(k_model, images, vecs, jnp.asarray(batch["scene"]))
-    return {"model": variables["params"], "rep": rep}
+    """Initial parameters {"model", "rep"} shaped from one device's training batch; "rep" is
+    `init_pose(key)`."""
 
+  @abc.abstractmethod
   def init_pose(self, key: Array) -> Params:
     """The pose input's initial parameters, `init(key, ...)["rep"]` without the model's (the
     "untrained" control target reads them; jitted, as `step.init_fn` runs `init`, for the same
     bits)."""
-    return self.pose_encoding.init(jax.random.split(key)[1])
-
-  @abc.abstractmethod
-  def _init_module(self, key: Array, images: Array, vecs: Array, scenes: Array) -> dict:
-    """The module's variables, from float images (S, V, H, W, 3) and pose vectors (S, V, P)."""
 
   @abc.abstractmethod
   def loss(
@@ -235,7 +231,27 @@ class Synthesizer(abc.ABC):
     )
 
 
-class _Decoder(Synthesizer):
+class _VectorFed(Synthesizer):
+  """A module fed the pose input's vectors (`vectors`: camrep's decoders, GQN's generator): the
+  pose input's parameters from the second half of `init`'s key, the module's from the first."""
+
+  def init(self, key, batch):
+    k_model, _ = jax.random.split(key)
+    rep = self.init_pose(key)
+    images = to_float_images(jnp.asarray(batch["image"]))
+    vecs = self.vectors(rep, jnp.asarray(batch["pose"]))
+    variables = self._init_module(k_model, images, vecs, jnp.asarray(batch["scene"]))
+    return {"model": variables["params"], "rep": rep}
+
+  def init_pose(self, key):
+    return self.pose_encoding.init(jax.random.split(key)[1])
+
+  @abc.abstractmethod
+  def _init_module(self, key: Array, images: Array, vecs: Array, scenes: Array) -> dict:
+    """The module's variables, from float images (S, V, H, W, 3) and pose vectors (S, V, P)."""
+
+
+class _Decoder(_VectorFed):
   """camrep's decoders: trained on L_rec = mean over target images of the sum over pixels of
   (x_hat - x)^2 (eq. 9); `_render` maps (images, pose vectors, scenes) to (prediction, target)."""
 
@@ -261,14 +277,14 @@ class GQNDecoder(_Decoder):
 
   reads_context = True
 
-  def __init__(self, config, spec, num_scenes: int | None = None):
+  def __init__(self, run: Resolved, num_scenes: int | None = None):
     del num_scenes  # the encoder gives the scene code
-    m = config.model
+    m = run.config.model
     module = GQNSynthesis(
-      width=m.width, gamma_offset=1.0 if m.gamma_init_one else 0.0, dtype=compute_dtype(config)
+      width=m.width, gamma_offset=1.0 if m.gamma_init_one else 0.0, dtype=run.dtype
     )
-    super().__init__(config, spec, module)
-    self.n_context = int(config.data.n_context)
+    super().__init__(run, module)
+    self.n_context = int(run.config.data.n_context)
 
   def _init_module(self, key, images, vecs, scenes):
     c = self.n_context
@@ -293,8 +309,8 @@ class TableDecoder(_Decoder):
 
   reads_context = False
 
-  def __init__(self, config, spec, num_scenes: int):
-    m = config.model
+  def __init__(self, run: Resolved, num_scenes: int):
+    m = run.config.model
     module = TableSynthesis(
       num_scenes=num_scenes,
       scene_dim=m.scene_dim,
@@ -303,9 +319,9 @@ class TableDecoder(_Decoder):
       per_scene_norm=m.per_scene_norm,
       norm_eps=m.norm_eps,
       gamma_init_one=m.gamma_init_one,
-      dtype=compute_dtype(config),
+      dtype=run.dtype,
     )
-    super().__init__(config, spec, module)
+    super().__init__(run, module)
 
   def _init_module(self, key, images, vecs, scenes):
     return jax.jit(self.module.init)(key, scenes, vecs)
@@ -320,7 +336,7 @@ class TableDecoder(_Decoder):
     return pred
 
 
-class ConvDraw(Synthesizer):
+class ConvDraw(_VectorFed):
   """GQN's generator (`camrep.models.convdraw`), trained on its negative ELBO with the pixel std
   annealed by the step (config.loss.sigma_*) and an optional KL weight schedule
   (config.loss.kl_*); fed GQN's 7-D pose vector (rep.kind "lowdim", no parameters). Predictions
@@ -329,11 +345,37 @@ class ConvDraw(Synthesizer):
   variants = {"sample": 1.0, "prior_mean": 0.0}
   reads_context = True
 
-  def __init__(self, config, spec):
-    m = config.model
+  @classmethod
+  def check(cls, run):
+    """The GQN task's layout and GQN's 7-D pose vector (rep.kind "lowdim"), every field the
+    generator reads (`GENERATOR_FIELDS`), float32."""
+    config = run.config
+    gqn_layout = TASKS.get(config.task) is GQNDecoder
+    if not gqn_layout or run.encoding is not pose_encodings.LowDimEncoding:
+      raise ConfigError(
+        "model.kind='convdraw' (GQN's generator) needs task='gqn' and rep.kind='lowdim' (its 7-D "
+        f"pose vector; the ELBO trains the model group only), got task={config.task!r}, "
+        f"rep.kind={run.encoding.name!r}"
+      )
+    missing = [f for f in GENERATOR_FIELDS if _field(config, f) is None]
+    if missing:
+      raise ConfigError(
+        f"model.kind='convdraw' (GQN's generator) reads config.{', config.'.join(missing)}, "
+        "which this config lacks: derive it from configs/gqn_convdraw.py, which sets them "
+        "(configs/common.py:base does not)"
+      )
+    if run.dtype is not None:
+      raise ConfigError(
+        f"model.dtype={config.model.dtype!r} is implemented for model.kind='decoder' only; "
+        "GQN's generator (convdraw) computes in float32"
+      )
+
+  def __init__(self, run: Resolved, num_scenes: int | None = None):
+    del num_scenes  # the context views give the scene
+    m = run.config.model
     module = convdraw.GQNConvDraw(width=m.width, steps=m.draw_steps, z_channels=m.z_channels)
-    super().__init__(config, spec, module)
-    self.n_context = int(config.data.n_context)
+    super().__init__(run, module)
+    self.n_context = int(run.config.data.n_context)
     self.loss_weight = 1.0  # the pose input has no parameters: the objective is the ELBO's
 
   @property
@@ -402,14 +444,14 @@ class MVTSynthesizer(Synthesizer):
   # Every conditioning takes the noise test's noise the same way: on the query pose.
   noise_on = "pose"
 
-  def __init__(self, config, spec, num_scenes: int | None = None):
+  def __init__(self, run: Resolved, num_scenes: int | None = None):
     del num_scenes  # the context views give the scene
-    self.conditioning = conditionings.from_config(config, spec)
-    module = mvt.SIZES[config.model.size](dtype=compute_dtype(config))
+    self.conditioning = conditionings.from_config(run.config, run.spec)
+    module = mvt.SIZES[run.config.model.size](dtype=run.dtype)
     self.posed = mvt.PosedMVT(module, self.conditioning)
     # The learned conditionings' own pose system (one DOF per column) is the run's.
-    super().__init__(config, self.conditioning.spec or spec, module)
-    self.n_context = int(config.data.n_context)
+    super().__init__(run, module, self.conditioning.spec or run.spec)
+    self.n_context = int(run.config.data.n_context)
 
   @property
   def reads_pose_vectors(self) -> bool:
@@ -420,20 +462,20 @@ class MVTSynthesizer(Synthesizer):
     return self.conditioning.spec is not None
 
   @classmethod
-  def check(cls, config, spec):
+  def check(cls, run):
     """An unknown model.size or model.camera, rep.kind other than 'grid' (the learned
     conditionings' pose system), a conditioning the data or the pose system cannot feed, or a
     relative transform wider than a head."""
-    m = config.model
+    m, spec = run.config.model, run.spec
     if m.size not in mvt.SIZES:
       raise ConfigError(f"unknown model.size {m.size!r}; choose one of {tuple(mvt.SIZES)}")
-    if pose_encodings.ENCODINGS[pose_encodings.rep_kind(config)] is not pose_encodings.GridEncoding:
+    if run.encoding is not pose_encodings.GridEncoding:
       raise ConfigError(
         "task='mvt' reads the learned pose system through model.camera (learned_abs, "
-        f"learned_rel): rep.kind must be 'grid', got {config.rep.kind!r}"
+        f"learned_rel): rep.kind must be 'grid', got {run.encoding.name!r}"
       )
     try:
-      conditioning = conditionings.from_config(config, spec)
+      conditioning = conditionings.from_config(run.config, spec)
     except ValueError as e:
       raise ConfigError(f"--config.model.camera={m.camera!r}: {e}") from None
     if not conditioning.relative:
@@ -453,13 +495,16 @@ class MVTSynthesizer(Synthesizer):
       ) from None
 
   def init(self, key, batch):
+    """`mvt.PosedMVT.init` on the training layout (views [:C] context, [C:] queries)."""
     images = to_float_images(jnp.asarray(batch["image"]))
     poses = jnp.asarray(batch["pose"])
     c = self.n_context
     return jax.jit(self.posed.init)(key, images[:, :c], poses[:, :c], poses[:, c:])
 
-  def _init_module(self, key, images, vecs, scenes):
-    raise NotImplementedError("MVTSynthesizer.init builds the parameters")
+  def init_pose(self, key):
+    """The conditioning's initial parameters (`CameraConditioning.init`; {} for the fixed
+    encodings), drawn as `mvt.PosedMVT.init` draws them."""
+    return self.conditioning.init(jax.random.split(key)[1])
 
   def _codes(self, params_rep, poses, grid, *, mode, keys, transform=None):
     """ViewCodes of poses (S, V, P): the conditioning's, or for one that reads the pose vectors
@@ -516,38 +561,15 @@ def _query_vectors(model: Synthesizer, params, batch, mode, keys, transform) -> 
   return P.concat(vecs if transform is None else transform(vecs), model.spec)
 
 
-def check_config(config) -> None:
+def check_config(run: Resolved) -> None:
   """Raises ConfigError on model / layout combinations the train step cannot run."""
+  config, encoding = run.config, run.encoding
   d = config.data
-  try:
-    kind, mkind, dtype = pose_encodings.rep_kind(config), model_kind(config), compute_dtype(config)
-  except ValueError as e:  # unknown rep.kind, model.kind, model.dtype
-    raise ConfigError(str(e)) from None
   context = reads_context(config)
-  encoding = pose_encodings.ENCODINGS[kind]
   if context and not 1 <= d.n_context < d.views_per_scene:
     raise ConfigError(
       f"data.n_context must be in [1, views_per_scene) so that each scene has query views, "
       f"got n_context={d.n_context}, views_per_scene={d.views_per_scene}"
-    )
-  if mkind == "convdraw" and (not context or encoding is not pose_encodings.LowDimEncoding):
-    raise ConfigError(
-      "model.kind='convdraw' (GQN's generator) needs task='gqn' and rep.kind='lowdim' (its 7-D "
-      f"pose vector; the ELBO trains the model group only), got task={config.task!r}, "
-      f"rep.kind={kind!r}"
-    )
-  if mkind == "convdraw":
-    missing = [f for f in GENERATOR_FIELDS if _field(config, f) is None]
-    if missing:
-      raise ConfigError(
-        f"model.kind='convdraw' (GQN's generator) reads config.{', config.'.join(missing)}, "
-        "which this config lacks: derive it from configs/gqn_convdraw.py, which sets them "
-        "(configs/common.py:base does not)"
-      )
-  if mkind == "convdraw" and dtype is not None:
-    raise ConfigError(
-      f"model.dtype={config.model.dtype!r} is implemented for model.kind='decoder' only; "
-      "GQN's generator (convdraw) computes in float32"
     )
   if config.loss.data_pairs and encoding.regularised and d.mode != "pairs":
     raise ConfigError(
@@ -571,15 +593,20 @@ TASKS: dict[str, type[Synthesizer]] = {
 configs/lvsm.py)."""
 
 
-def task_model(config) -> type[Synthesizer]:
-  """The decoder class of `config.task`.
+def model_class(kind: str, task: str) -> type[Synthesizer]:
+  """The view-synthesis model's class: GQN's generator for `model.kind` "convdraw", else camrep's
+  model of `task` (`TASKS`).
 
   Raises:
-    ValueError: an unknown task.
+    ValueError: an unknown model.kind or task.
   """
-  if config.task not in TASKS:
-    raise ValueError(f"unknown task {config.task!r}; choose one of {tuple(TASKS)}")
-  return TASKS[config.task]
+  if kind not in MODEL_KINDS:
+    raise ValueError(f"unknown model.kind {kind!r}; choose one of {MODEL_KINDS}")
+  if kind == "convdraw":
+    return ConvDraw
+  if task not in TASKS:
+    raise ValueError(f"unknown task {task!r}; choose one of {tuple(TASKS)}")
+  return TASKS[task]
 
 
 def reads_context(config) -> bool:
@@ -590,19 +617,15 @@ def reads_context(config) -> bool:
 
 
 def is_generator(config) -> bool:
-  """Whether the config's model is GQN's generator (ConvDRAW, trained on its ELBO)."""
-  return model_kind(config) == "convdraw"
+  """Whether the config's model is GQN's generator (ConvDRAW, trained on its ELBO): `model.kind`
+  "convdraw" (another unknown kind: False; the schema's rule names it)."""
+  return config.model.get("kind", "decoder") == "convdraw"
 
 
-def from_config(config, spec: P.PoseSystemSpec, num_scenes: int) -> Synthesizer:
-  """The view-synthesis model of a config: `config.model.kind` and `config.task` (`TASKS`) pick
-  it.
-
-  Args:
-    config: the run's config (checked by `check_config`).
-    spec: its pose system.
-    num_scenes: size of the per-scene tables (one past the largest training scene id).
-  """
-  if model_kind(config) == "convdraw":
-    return ConvDraw(config, spec)
-  return task_model(config)(config, spec, num_scenes)
+def pose_input(run: Resolved, spec: P.PoseSystemSpec) -> pose_encodings.PoseEncoding:
+  """The run's pose input (`run.encoding`) on pose system `spec`; GQN's low-dim vector takes the
+  rooms' camera height and pitch from `config.data.family` when the data's setting uses GQN's 7-D
+  vector (`Setting.gqn_pose_vector`)."""
+  family = run.config.data.family
+  camera = pose_encodings.gqn_lowdim_constants(family) if run.setting.gqn_pose_vector else None
+  return run.encoding.create(run.setting, spec, camera=camera)

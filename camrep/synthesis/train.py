@@ -153,9 +153,9 @@ def train_and_evaluate(
     FloatingPointError: a loss or gradient became non-finite (the last checkpoint is kept).
     WorkdirError: the workdir cannot be written.
   """
-  config_schema.validate(config)  # before anything is written
+  run = config_schema.validate(config)  # before anything is written
   lead = jax.process_index() == 0  # several processes: only process 0 logs, evaluates, writes
-  record = components.run_record(config)  # the data and pose system, library defaults included
+  record = components.run_record(run)  # the data and pose system, library defaults included
   rule = frame_lib.stopping_rule(config)
   # What the steps depend on besides the config (recorded per start, checked at resume).
   topology = frame_lib.topology(
@@ -178,7 +178,7 @@ def train_and_evaluate(
 
     # Build the data and the model; restore the latest checkpoint or initialise.
     train_pipe, test_pipe = components.make_pipelines(config)
-    model = components.make_model(config, components.num_train_scenes(train_pipe))
+    model = components.make_model(run, components.num_train_scenes(train_pipe))
     tx = step_lib.make_optimizers(config)
     init = step_lib.init_fn(config, model, tx)
     state, start = frame.restore_or_init(
