@@ -21,6 +21,7 @@ import pytest
 
 from camrep.runtime import writers
 from camrep.synthesis import restore
+from tests.utils import one_device_env
 
 pytestmark = pytest.mark.slow
 
@@ -35,10 +36,7 @@ def _free_port() -> int:
 
 
 def _env():
-  env = dict(os.environ)
-  env.pop("XLA_FLAGS", None)
-  env["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
-  return env
+  return one_device_env()  # one device, whatever the calling process forced; the same in every run
 
 
 def _start_two(workdir, *overrides) -> list[subprocess.Popen]:
