@@ -10,7 +10,8 @@ Usage (from the repository root):
 import os
 import sys
 
-os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
+flags = os.environ.get("XLA_FLAGS", "")  # the suite's compile options, then the devices
+os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count=2".strip()
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402

@@ -21,6 +21,7 @@ import pytest
 
 from camrep.runtime import writers
 from camrep.synthesis import restore
+from tests.utils import one_device_env
 
 pytestmark = pytest.mark.slow
 
@@ -35,10 +36,7 @@ def _free_port() -> int:
 
 
 def _env():
-  env = dict(os.environ)
-  env.pop("XLA_FLAGS", None)
-  env["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
-  return env
+  return one_device_env()  # one device, whatever the calling process forced; the same in every run
 
 
 def _start_two(workdir, *overrides) -> list[subprocess.Popen]:
@@ -63,63 +61,65 @@ def _start_two(workdir, *overrides) -> list[subprocess.Popen]:
   ]
 
 
-def test_two_processes_train_as_one(tmp_path):
-  workdir = tmp_path / "run"
-  procs = _start_two(
-    workdir,
-    f"--config.total_steps={STEPS}",
-    "--config.ckpt_every_steps=3",
-    "--config.log_every_steps=1",
-  )
-  ref = tmp_path / "ref.npz"
-  r = subprocess.run(
-    [sys.executable, "-m", "tests.multiprocess_reference", str(STEPS), str(ref)],
-    cwd=ROOT,
-    env=_env(),
-    capture_output=True,
-    text=True,
-    timeout=600,
-  )
-  outs = [p.communicate(timeout=600)[0] for p in procs]
-  for p, out in zip(procs, outs, strict=True):
-    assert p.returncode == 0, out[-3000:]
-  assert r.returncode == 0, r.stderr[-3000:]
-  assert "process 0/2" in outs[0] and "process 1/2" in outs[1]
-
-  want = np.load(ref)
-  rows = [x for x in writers.read_metrics(str(workdir)) if "train/loss" in x]
-  assert [x["step"] for x in rows] == list(range(1, STEPS + 1))  # one writer: process 0
-  for row in rows:
-    for key in ("train/loss", "train/rec", "train/rot_xy", "train/grad_norm_model"):
-      assert row[key] == float(want[f"metric/{row['step']}/{key}"]), (row["step"], key)
-  assert sorted(os.listdir(workdir / "checkpoints")) == ["3", "6"]
-  run = restore.load_run(str(workdir))
-  assert run.step == STEPS
-  flat = jax.tree_util.tree_flatten_with_path(run.params)[0]
-  for path, value in flat:
-    np.testing.assert_array_equal(np.asarray(value), want["param/" + jax.tree_util.keystr(path)])
-
-
-def test_sigterm_to_one_process_stops_both_with_a_checkpoint(tmp_path):
+def test_two_processes_train_as_one_and_sigterm_to_one_stops_both_with_a_checkpoint(tmp_path):
+  """One 2-process run (checkpoints every 3 steps, evaluation at step 4) against the 1-process
+  reference for its first STEPS steps; once it has logged them, SIGTERM to process 1 alone stops
+  both, each saving the last step's checkpoint and exiting 0."""
   workdir = tmp_path / "run"
   procs = _start_two(
     workdir,
     "--config.total_steps=100000",
-    "--config.ckpt_every_steps=100000",
-    "--config.eval_every_steps=100000",
+    "--config.ckpt_every_steps=3",
+    "--config.max_to_keep=100000",
     "--config.log_every_steps=1",
   )
+  ref = tmp_path / "ref.npz"
+  reference = subprocess.Popen(
+    [sys.executable, "-m", "tests.multiprocess_reference", str(STEPS), str(ref)],
+    cwd=ROOT,
+    env=_env(),
+    stdout=subprocess.PIPE,
+    stderr=subprocess.STDOUT,
+    text=True,
+  )
   path = workdir / "metrics.jsonl"
-  deadline = time.monotonic() + 300
-  while not (path.exists() and any('"train/loss"' in x for x in path.read_text().splitlines())):
-    assert time.monotonic() < deadline and all(p.poll() is None for p in procs)
+
+  def logged_steps() -> list[int]:
+    if not path.exists():
+      return []
+    return [json.loads(x)["step"] for x in path.read_text().splitlines() if '"train/loss"' in x]
+
+  deadline = time.monotonic() + 600
+  while max(logged_steps(), default=0) < STEPS:
+    alive = all(p.poll() is None for p in procs)
+    assert time.monotonic() < deadline and alive, [p.communicate()[0][-3000:] for p in procs]
     time.sleep(0.1)
   procs[1].send_signal(signal.SIGTERM)  # the other process is not signalled
   outs = [p.communicate(timeout=300)[0] for p in procs]
   for p, out in zip(procs, outs, strict=True):
     assert p.returncode == 0, out[-3000:]
     assert "checkpoint saved" in out
-  steps = os.listdir(workdir / "checkpoints")
-  assert len(steps) == 1 and int(steps[0]) < 100000
-  last = max(json.loads(x)["step"] for x in path.read_text().splitlines())
-  assert int(steps[0]) == last
+  assert "process 0/2" in outs[0] and "process 1/2" in outs[1]
+  out = reference.communicate(timeout=600)[0]
+  assert reference.returncode == 0, out[-3000:]
+
+  # Stopped by the signal, not by the step count; the stop step's checkpoint is the last one.
+  rows = [x for x in writers.read_metrics(str(workdir)) if "train/loss" in x]
+  last = rows[-1]["step"]
+  assert f"stopping at step {last} on " in outs[0]
+  assert [x["step"] for x in rows] == list(range(1, last + 1))  # one writer: process 0
+  assert STEPS <= last < 100000
+  evals = [x["step"] for x in writers.read_metrics(str(workdir)) if "eval/psnr" in x]
+  assert evals and evals[0] == 4, evals  # the 2 processes evaluate together, without a hang
+  saved = sorted(int(s) for s in os.listdir(workdir / "checkpoints"))
+  assert saved == sorted({*range(3, last + 1, 3), last})
+
+  want = np.load(ref)
+  for row in rows[:STEPS]:
+    for key in ("train/loss", "train/rec", "train/rot_xy", "train/grad_norm_model"):
+      assert row[key] == float(want[f"metric/{row['step']}/{key}"]), (row["step"], key)
+  run = restore.load_run(str(workdir), step=STEPS)  # saved by the 2 processes together
+  assert run.step == STEPS
+  flat = jax.tree_util.tree_flatten_with_path(run.params)[0]
+  for path_, value in flat:
+    np.testing.assert_array_equal(np.asarray(value), want["param/" + jax.tree_util.keystr(path_)])

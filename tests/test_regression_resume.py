@@ -22,6 +22,7 @@ import pytest
 
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime import writers
+from tests.utils import one_device_env
 
 pytestmark = [pytest.mark.xdist_group("regression_resume"), pytest.mark.slow]
 
@@ -45,10 +46,7 @@ def _flags(workdir, cache) -> list[str]:
 
 
 def _env():
-  env = dict(os.environ)
-  env.pop("XLA_FLAGS", None)
-  env["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"  # compile in seconds; the same in every run
-  return env
+  return one_device_env()  # one device, whatever the calling process forced; the same in every run
 
 
 def _start(workdir, cache) -> subprocess.Popen:

@@ -24,6 +24,7 @@ from camrep.configs import gqn
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime import writers
 from camrep.synthesis import restore, train
+from tests.utils import one_device_env
 
 # One xdist worker runs the module, so the reference run is made once.
 pytestmark = [pytest.mark.xdist_group("resume"), pytest.mark.slow]
@@ -47,10 +48,7 @@ def _flags(workdir) -> list[str]:
 
 
 def _env():
-  env = dict(os.environ)
-  env.pop("XLA_FLAGS", None)  # one device, whatever the calling process forced
-  env["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"  # compile in seconds; the same in every run
-  return env
+  return one_device_env()  # one device, whatever the calling process forced; the same in every run
 
 
 def _run(workdir, kill_in_save: int = 0) -> subprocess.CompletedProcess:

@@ -19,6 +19,8 @@ import venv
 
 import pytest
 
+from tests.utils import one_device_env
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.slow
@@ -69,8 +71,8 @@ def fresh_venv(path: pathlib.Path) -> pathlib.Path:
 
 
 def _env() -> dict[str, str]:
-  env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "XLA_FLAGS")}
-  env["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"  # compile in seconds
+  env = one_device_env()  # compile in seconds
+  env.pop("PYTHONPATH", None)
   return env
 
 

@@ -7,7 +7,8 @@ import os
 import sys
 
 n_dev, steps, out = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3]
-os.environ["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={n_dev}"
+flags = os.environ.get("XLA_FLAGS", "")  # the suite's compile options, then the devices
+os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={n_dev}".strip()
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402

@@ -113,3 +113,15 @@ def regression_hparams(setting: str, representation: str):
   c = regression_config.get_config(f"{setting},smoke")
   c.representation = representation
   return learner.resolve_hparams(c, pose_encodings.get(representation))
+
+
+def one_device_env() -> dict[str, str]:
+  """This process's environment for a subprocess on one host device: XLA_FLAGS without a forced
+  device count (the suite's other compile options kept), most XLA optimisations off."""
+  env = dict(os.environ)
+  flags = env.pop("XLA_FLAGS", "").split()
+  kept = [f for f in flags if not f.startswith("--xla_force_host_platform_device_count")]
+  if kept:
+    env["XLA_FLAGS"] = " ".join(kept)
+  env["JAX_DISABLE_MOST_OPTIMIZATIONS"] = "1"
+  return env
