@@ -12,7 +12,7 @@ import pytest
 
 from camrep.configs import regression as regression_config
 from camrep.configs import shapenet_car
-from camrep.data import prepare, records
+from camrep.data import records
 from camrep.data.feed import pipeline as pipeline_lib
 from camrep.data.feed import storage
 from camrep.regression import config_schema as reg_schema
@@ -20,7 +20,7 @@ from camrep.regression import pose_system
 from camrep.regression import views as views_lib
 from camrep.runtime import runconfig
 from camrep.synthesis import components, config_schema, train
-from tests.test_captures import rig, write_llff
+from tests.test_captures import prepared_llff
 
 pytestmark = [pytest.mark.usefixtures("fast_compile")]
 
@@ -44,11 +44,7 @@ def poison(monkeypatch):
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory):
   """One LLFF capture of 40 views, prepared with --preset small (64 px; every 8th view test)."""
-  tmp = tmp_path_factory.mktemp("capture")
-  root = write_llff(tmp / "obj", rig(40)[0], rng=np.random.default_rng(3))
-  data = tmp / "data"
-  prepare.prepare_source("llff", data, input_path=str(root), preset="small", progress=False)
-  return str(data)
+  return prepared_llff(tmp_path_factory.mktemp("capture"))
 
 
 def _config(data, split="validation"):

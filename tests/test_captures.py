@@ -147,6 +147,15 @@ COLMAP_MODELS = {"SIMPLE_PINHOLE": (0, 3), "PINHOLE": (1, 4), "SIMPLE_RADIAL": (
                  "OPENCV": (4, 8), "OPENCV_FISHEYE": (5, 8)}  # fmt: skip
 
 
+def prepared_llff(tmp: pathlib.Path, n_views: int = 40) -> str:
+  """An LLFF capture of `n_views` views on `rig`, prepared with --preset small (64 px; every 8th
+  view test) under `tmp`; returns the dataset directory."""
+  root = write_llff(tmp / "obj", rig(n_views)[0], rng=np.random.default_rng(3))
+  data = tmp / "data"
+  prepare.prepare_source("llff", data, input_path=str(root), preset="small", progress=False)
+  return str(data)
+
+
 def colmap_params(model: str) -> list[float]:
   return {
     "SIMPLE_PINHOLE": [30.0, 16.0, 12.0],

@@ -11,13 +11,13 @@ import pytest
 
 from camrep import settings
 from camrep.configs import regression as regression_config
-from camrep.data import prepare, records
+from camrep.data import records
 from camrep.regression import config_schema as reg_schema
 from camrep.regression import driver
 from camrep.regression import views as views_lib
 from camrep.runtime import runconfig
 from camrep.runtime import workdir as workdir_lib
-from tests.test_captures import rig, write_llff
+from tests.test_captures import prepared_llff
 
 
 def _views(n_scenes, n_views):
@@ -49,11 +49,7 @@ def test_interleaved_validation_lies_between_training_views():
 
 @pytest.fixture(scope="module")
 def capture(tmp_path_factory):
-  tmp = tmp_path_factory.mktemp("capture")
-  root = write_llff(tmp / "obj", rig(40)[0], rng=np.random.default_rng(3))
-  data = tmp / "data"
-  prepare.prepare_source("llff", data, input_path=str(root), preset="small", progress=False)
-  return str(data)
+  return prepared_llff(tmp_path_factory.mktemp("capture"))
 
 
 def _config(data):
