@@ -216,6 +216,25 @@ def _lock(out: str) -> workdir_lib.WorkdirLock:
   return lock
 
 
+def _locked(out: str, archive: str, body) -> tuple[list[str], str] | int:
+  """Runs a launch's `body()` (-> the failed jobs' names) holding DIR's lock, with SIGTERM taken
+  as Ctrl-C: (failed, the time it took as text), or 130 after a stop (one line on what is kept
+  and how to resume, `interrupted_message`)."""
+  lock = _lock(out)
+  old_handler = signal.signal(signal.SIGTERM, _interrupt)
+  t0 = time.perf_counter()
+  try:
+    failed = body()
+  except KeyboardInterrupt:  # Ctrl-C, `kill`, or `timeout` around a chunk: a stop, not a crash
+    took = progress_lib.format_duration(time.perf_counter() - t0)
+    print(f"\n{interrupted_message(took, archive)}", file=sys.stderr, flush=True)
+    return 130
+  finally:
+    signal.signal(signal.SIGTERM, old_handler)
+    lock.release()
+  return failed, progress_lib.format_duration(time.perf_counter() - t0)
+
+
 def run(argv: Sequence[str] | None = None) -> int:
   """The launcher; returns its exit status (raises cli.UsageError on a user's mistake)."""
   args = parse_args(argv)
@@ -234,25 +253,22 @@ def run(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:  # `--dry_run | head -1`: the reader has what it wanted
       os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 0
-  lock = _lock(launch.out)
-  old_handler = signal.signal(signal.SIGTERM, _interrupt)
-  t0 = time.perf_counter()
-  try:
+  deadline = None
+
+  def body() -> list[str]:
+    nonlocal deadline
     launch_lib.set_aside_stale(launch)  # before the archive's stale records come back
     if launch.archive:
       n = archive_lib.restore(launch.archive, launch.out)
       print(f"restored {n} finished runs from the archive {launch.archive}", flush=True)
     launch_lib.print_plan(launch, commands=False, at_once=args.jobs)
     deadline = time.monotonic() + 3600 * args.max_hours if args.max_hours > 0 else None
-    failed = launch_lib.execute(launch, at_once=args.jobs, deadline=deadline)
-  except KeyboardInterrupt:  # Ctrl-C, `kill`, or `timeout` around a chunk: a stop, not a crash
-    took = progress_lib.format_duration(time.perf_counter() - t0)
-    print(f"\n{interrupted_message(took, launch.archive)}", file=sys.stderr, flush=True)
-    return 130
-  finally:
-    signal.signal(signal.SIGTERM, old_handler)
-    lock.release()
-  took = progress_lib.format_duration(time.perf_counter() - t0)
+    return launch_lib.execute(launch, at_once=args.jobs, deadline=deadline)
+
+  ran = _locked(launch.out, launch.archive, body)
+  if isinstance(ran, int):
+    return ran
+  failed, took = ran
   if deadline is not None and time.monotonic() > deadline:
     print(
       f"--max_hours {args.max_hours:g} reached after {took}: runs not started; run the same "
@@ -275,21 +291,16 @@ def run_transformer(args: argparse.Namespace) -> int:
   if args.dry_run:
     transformer.print_plan(launch, commands=True, at_once=args.jobs)
     return 0
-  lock = _lock(launch.out)
-  old_handler = signal.signal(signal.SIGTERM, _interrupt)
-  t0 = time.perf_counter()
-  try:
+
+  def body() -> list[str]:
     transformer.print_plan(launch, commands=False, at_once=args.jobs)
     deadline = time.monotonic() + 3600 * args.max_hours if args.max_hours > 0 else None
-    failed = transformer.execute(launch, at_once=args.jobs, deadline=deadline)
-  except KeyboardInterrupt:
-    took = progress_lib.format_duration(time.perf_counter() - t0)
-    print(f"\n{interrupted_message(took, '')}", file=sys.stderr, flush=True)
-    return 130
-  finally:
-    signal.signal(signal.SIGTERM, old_handler)
-    lock.release()
-  took = progress_lib.format_duration(time.perf_counter() - t0)
+    return transformer.execute(launch, at_once=args.jobs, deadline=deadline)
+
+  ran = _locked(launch.out, "", body)
+  if isinstance(ran, int):
+    return ran
+  failed, took = ran
   if failed:
     print(f"finished in {took} with {len(failed)} failures: {', '.join(failed)}", flush=True)
     return 1
