@@ -6,7 +6,7 @@ Commands (run from the repository root):
 
   python -m camrep.data.prepare --source=rooms --data_dir=/tmp/tfds --preset=small
   python -m camrep.data.prepare --source=object --data_dir=/tmp/tfds --config.num_train_scenes=20
-  python -m camrep.data.prepare --source=nerf --input=../shared/data/captures/chair \
+  python -m camrep.data.prepare --source=nerf --input=path/to/chair \
       --data_dir=/tmp/capture --preset=small
   python -m camrep.data.prepare --source=gqn --input=/data/gqn-datasets --data_dir=/tmp/tfds \
       --config.max_files=2
