@@ -154,11 +154,12 @@ def check_same_validation(workdir: str, syn_config, config) -> None:
     return  # the family's own validation split: no carve
   theirs = float(syn_config.data.get("validation_fraction", 0.1))
   ours = float(config.data.validation_fraction)
-  if records.validation_every(theirs) != records.validation_every(ours):
+  k_theirs, k_ours = records.validation_every(theirs), records.validation_every(ours)
+  if k_theirs != k_ours:
     raise ConfigError(
-      f"synthesis_workdir {workdir} held out every {records.validation_every(theirs)}th training "
+      f"synthesis_workdir {workdir} held out every {k_theirs}th training "
       f"view (data.validation_fraction={theirs:g}) for its plateau rule, but this regression "
-      f"validates on every {records.validation_every(ours)}th (data.validation_fraction="
+      f"validates on every {k_ours}th (data.validation_fraction="
       f"{ours:g}): pass --config.data.validation_fraction={theirs:g} so that both stages hold "
       "out the same views"
     )
