@@ -180,10 +180,8 @@ def check(config) -> Resolved:
   Raises:
     ConfigError: naming the field and what is allowed.
   """
-  try:
-    setting = settings_lib.get(config.setting)
-  except ValueError as e:
-    raise ConfigError(str(e)) from None
+  source = check_source(config.data, config.setting)
+  setting = source.setting
   if config.representation not in T.REPRESENTATIONS:
     raise ConfigError(
       f"unknown representation {config.representation!r}; choose one of {T.REPRESENTATIONS}"
@@ -195,7 +193,6 @@ def check(config) -> Resolved:
       "view-synthesis run: pass --config.synthesis_workdir=DIR (a `python -m camrep.main` "
       f"workdir of setting {setting.name!r})"
     )
-  source = check_source(config.data, setting)
   try:
     hparams = learner.resolve_hparams(config, encoding)
   except ValueError as e:
@@ -215,14 +212,19 @@ def check(config) -> Resolved:
   return Resolved(config, setting, encoding, source, hparams)
 
 
-def check_source(d, setting: settings_lib.Setting) -> sources.Source:
-  """The data source of a config's data section `d` (data.source, or the setting's procedural
-  family when it is empty). Refuses a data.source of another setting, a real source without an
-  existing data.dir, and a procedural one with a data.dir.
+def check_source(d, setting: settings_lib.Setting | str) -> sources.Source:
+  """The data source of a config's data section `d` (data.source, or the procedural family of
+  `setting`, a name or a `Setting`, when it is empty). Refuses an unknown setting, a data.source
+  of another setting, a real source without an existing data.dir, and a procedural one with a
+  data.dir.
 
   Raises:
     ConfigError: as above.
   """
+  try:
+    setting = settings_lib.get(setting)
+  except ValueError as e:
+    raise ConfigError(str(e)) from None
   name = d.get("source", "")
   if not name:
     procedural = sources.get(sources.procedural_of(setting))

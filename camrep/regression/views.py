@@ -443,6 +443,15 @@ def make_real_data(config, source: sources.Source) -> Data:
     full_train = full_train.subset(~np.isin(full_train.scenes, ids[-k:]))
   interleaved = interleaved_validation(meta)
   train, val = split_validation(setting, full_train, d.validation_fraction, interleaved=interleaved)
+  if gqn:  # how the validation views were chosen, in words (results.json)
+    validation_rule = f"last {d.validation_fraction:g} of the remaining training scenes"
+  elif interleaved:
+    validation_rule = records.validation_description(d.validation_fraction)
+  else:
+    validation_rule = (
+      f"last {d.validation_fraction:g} of each training scene's views "
+      f"(by view id{setting.validation_note})"
+    )
   if len(train) == 0 or len(val) == 0:
     raise ConfigError(f"{path}: the training split is too small to carve a validation part")
   evals = {"validation": EvalSet(val, val if gqn else None)}
@@ -473,15 +482,7 @@ def make_real_data(config, source: sources.Source) -> Data:
     "train_split": "train" if not gqn else "train minus the held-out test scenes",
     "train_views": len(train),
     "train_scenes": len(train.scene_ids()),
-    "validation": (
-      f"last {d.validation_fraction:g} of the remaining training scenes"
-      if gqn
-      else records.validation_description(d.validation_fraction)
-      if interleaved
-      else f"last {d.validation_fraction:g} of each training scene's views (by view id"
-      + setting.validation_note
-      + ")"
-    ),
+    "validation": validation_rule,
     "test_split": config.evals.test_split,
     "streamed": bool(d.get("stream", False)),
     "splits": {name: plan.get(name, "") for name in wanted},
