@@ -24,7 +24,12 @@ from camrep.synthesis import restore, train
 from camrep.synthesis import step as step_lib
 
 # Two view-synthesis runs and two regressions: ~3 min on the loaded 2-core CPU.
-pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
+# One worker for the module: its two trained runs (module fixtures) are then built once.
+pytestmark = [
+  pytest.mark.usefixtures("fast_compile"),
+  pytest.mark.slow,
+  pytest.mark.xdist_group("controls"),
+]
 
 
 def _synthesis(tmp_path_factory, name, **rep):

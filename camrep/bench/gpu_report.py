@@ -35,8 +35,9 @@ Each phase writes DIR/gpu_report_<phase>.json; every call rewrites DIR/gpu_repor
 from the phase files present (and those of --merge folders), so the last merge is the report.
 The exit status is 1 when a phase of the call failed (its error is in its file and the report).
 `--dry_run` prints the plan and the commands, imports nothing heavy and runs on any machine.
-`--variant smoke` runs every phase at the :smoke sizes (a check of the code: 140 s on a 2-core
-CPU at load ~1.5 with a cold compilation cache, figures meaningless; the tests run it).
+`--variant smoke` runs every phase at the :smoke sizes in one child process (a check of the code:
+113 s on a 2-core CPU at load ~1.2 with a cold compilation cache, figures meaningless; the tests
+run it).
 
   python -m camrep.bench.gpu_report --dry_run                       # the plan and the commands
   python -m camrep.bench.gpu_report --phases env,step --out $OUT    # on the GPU machine
@@ -152,7 +153,22 @@ def plan_lines(variant: str) -> list[str]:
 
 
 # ---------------------------------------------------------------------------------------------
-# Phases (each runs in its own process: `--child PHASE`).
+# Phases (a child process runs them: `--child PHASE[,PHASE...]`).
+
+# The float32 step's timer of this process, shared by `step` and `profile` when one child runs
+# both (the smoke check): it is traced and compiled once.
+_STEP_TIMERS: dict[tuple[bool, str], object] = {}
+
+
+def _step_timer(smoke: bool, dtype: str):
+  """The `train_step.StepTimer` of `_step_config(smoke)` in `dtype`, built once a process."""
+  from camrep.bench import train_step as bts
+
+  if (smoke, dtype) not in _STEP_TIMERS:
+    config = _step_config(smoke)
+    config.model.dtype = dtype
+    _STEP_TIMERS[smoke, dtype] = bts.StepTimer(config)
+  return _STEP_TIMERS[smoke, dtype]
 
 
 def _device_memory() -> dict:
@@ -213,9 +229,7 @@ def phase_step(args) -> dict:
   timers = {}
   # At smoke one dtype: each is its own program, and compiling is most of a check's time.
   for dtype in ("float32",) if smoke else ("float32", "bfloat16"):
-    config = _step_config(smoke)
-    config.model.dtype = dtype
-    timers[dtype] = (bts.StepTimer(config), dtype)
+    timers[dtype] = (_step_timer(smoke, dtype), dtype)
   res = bts.interleaved(
     timers,
     rounds=1 if smoke else args.rounds,
@@ -223,6 +237,7 @@ def phase_step(args) -> dict:
     peak_n=256 if smoke else 8192 if on_gpu else 2048,
     peak_reps=1 if smoke else 10 if on_gpu else 3,
   )
+  config = _step_config(smoke)
   res["width"], res["scenes"] = config.model.width, config.data.scenes_per_device
   res["memory"] = _device_memory()
   return res
@@ -271,10 +286,8 @@ def phase_profile(args) -> dict:
   """Where the float32 paper-size step's time goes: a jax.profiler trace of 10 steps."""
   import jax
 
-  from camrep.bench import train_step as bts
-
   smoke = args.variant == SMOKE
-  timer = bts.StepTimer(_step_config(smoke))
+  timer = _step_timer(smoke, "float32")
   timer.times(1 if smoke else 3)
   steps = 1 if smoke else 10
   folder = tempfile.mkdtemp(prefix="gpu_report_trace_")
@@ -667,15 +680,22 @@ def _parse(argv):
 
 
 def _child(args) -> int:
-  try:
-    result = run_phase(args.child, args)
-  except Exception as e:  # noqa: BLE001 - recorded in the report, the other phases go on
-    import traceback
+  """Runs the phases named by --child in turn, each result (or its error) written as it ends."""
+  deadline = time.perf_counter() + args.budget_s
+  for phase in args.child.split(","):
+    t0 = time.perf_counter()
+    args.budget_s = deadline - t0  # what is left of the call's budget
+    print(f"=== phase {phase} ({args.budget_s:.0f} s left)", flush=True)
+    try:
+      result = run_phase(phase, args)
+    except Exception as e:  # noqa: BLE001 - recorded in the report, the other phases go on
+      import traceback
 
-    traceback.print_exc()
-    result = {"error": f"{type(e).__name__}: {e}"}
-  with open(os.path.join(args.out, f"gpu_report_{args.child}.json"), "w") as f:
-    json.dump(result, f, indent=1, default=float)
+      traceback.print_exc()
+      result = {"error": f"{type(e).__name__}: {e}"}
+    with open(os.path.join(args.out, f"gpu_report_{phase}.json"), "w") as f:
+      json.dump(result, f, indent=1, default=float)
+    print(f"=== phase {phase}: {time.perf_counter() - t0:.0f} s", flush=True)
   return 0
 
 
@@ -700,33 +720,37 @@ def main(argv=None) -> int:
     env.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
   deadline = time.perf_counter() + args.budget_s
   failed = []
-  for phase in args.phases:
+  # On a GPU each phase has a process of its own (its memory peak, and a crash, stay its own);
+  # the smoke check runs them all in one, which imports the library and builds the smoke step
+  # once (about 40 s less of a 2-core CPU's time).
+  groups = [args.phases] if args.variant == SMOKE else [[p] for p in args.phases]
+  for group in groups:
     left = deadline - time.perf_counter()
-    path = os.path.join(args.out, f"gpu_report_{phase}.json")
-    if os.path.exists(path):  # an earlier call's result must not stand for this one's
-      os.remove(path)
+    paths = {p: os.path.join(args.out, f"gpu_report_{p}.json") for p in group}
+    for path in paths.values():
+      if os.path.exists(path):  # an earlier call's result must not stand for this one's
+        os.remove(path)
     if left < 30:
-      with open(path, "w") as f:
-        json.dump({"error": f"not run: the call's {args.budget_s:.0f} s budget was spent"}, f)
+      for path in paths.values():
+        with open(path, "w") as f:
+          json.dump({"error": f"not run: the call's {args.budget_s:.0f} s budget was spent"}, f)
       continue
-    print(f"=== phase {phase} ({left:.0f} s left)", flush=True)
-    argv = [sys.executable, "-m", "camrep.bench.gpu_report", "--child", phase, "--out", args.out]
-    argv += ["--variant", args.variant, "--steps", str(args.steps), "--rounds", str(args.rounds)]
-    argv += ["--budget_s", str(left)]
-    t0 = time.perf_counter()
+    argv = [sys.executable, "-m", "camrep.bench.gpu_report", "--child", ",".join(group)]
+    argv += ["--out", args.out, "--variant", args.variant, "--steps", str(args.steps)]
+    argv += ["--rounds", str(args.rounds), "--budget_s", str(left)]
+    died = "the phase's process died without a result (memory?)"
     try:
       subprocess.run(argv, env=env, timeout=left, check=False, cwd=ROOT)
     except subprocess.TimeoutExpired:
-      with open(path, "w") as f:
-        json.dump({"error": f"timed out after {left:.0f} s"}, f)
-    if not os.path.exists(path):
-      with open(path, "w") as f:
-        json.dump({"error": "the phase's process died without a result (memory?)"}, f)
-    with open(path) as f:
-      error = json.load(f).get("error")
-    if error:
-      failed.append(f"{phase} ({error})")
-    print(f"=== phase {phase}: {time.perf_counter() - t0:.0f} s", flush=True)
+      died = f"timed out after {left:.0f} s"
+    for phase, path in paths.items():
+      if not os.path.exists(path):
+        with open(path, "w") as f:
+          json.dump({"error": died}, f)
+      with open(path) as f:
+        error = json.load(f).get("error")
+      if error:
+        failed.append(f"{phase} ({error})")
   phases = load_phases([*args.merge, args.out])
   write_report(args.out, phases)
   print(render_markdown(phases))
