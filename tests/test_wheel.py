@@ -23,7 +23,8 @@ from tests.utils import one_device_env
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
-pytestmark = pytest.mark.slow
+# One worker for the module: the wheel and its environment (a module fixture) are built once.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("wheel")]
 
 
 def _offline_build_possible() -> bool:
