@@ -37,7 +37,13 @@ from camrep.synthesis import train as synthesis_train
 from experiments import table1, table2
 from tests import readers_fixtures as fx
 
-pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
+# One worker for the module: each source's prepared data and view-synthesis run (module
+# fixtures, made on first use) are then made once.
+pytestmark = [
+  pytest.mark.usefixtures("fast_compile"),
+  pytest.mark.slow,
+  pytest.mark.xdist_group("regression_real"),
+]
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 _SHARED = pathlib.Path(os.environ.get("CAMREP_SHARED", ROOT.parent / "shared"))
