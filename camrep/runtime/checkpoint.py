@@ -190,6 +190,26 @@ class _HeldStderr:
     return self._restore().count(b"\n")
 
 
+class _AbandonedSaveTasks(logging.Filter):
+  """Drops asyncio's "Task exception was never retrieved" records. After a failed save, Orbax's
+  other write tasks of that save fail too (their directory is gone) and are garbage-collected
+  unread, sometimes after the held stderr was dropped and the save's one error printed; each
+  would print a traceback under that error, which already says what happened."""
+
+  def filter(self, record: logging.LogRecord) -> bool:
+    return not record.getMessage().startswith("Task exception was never retrieved")
+
+
+_ABANDONED_SAVE_TASKS = _AbandonedSaveTasks()
+
+
+def _quiet_abandoned_save_tasks() -> None:
+  """Installs `_AbandonedSaveTasks` on the asyncio logger for the rest of the process."""
+  log = logging.getLogger("asyncio")
+  if _ABANDONED_SAVE_TASKS not in log.filters:
+    log.addFilter(_ABANDONED_SAVE_TASKS)
+
+
 def _to_abstract(x: Any) -> Any:
   """Maps a template leaf to what `StandardRestore` expects (shape/dtype/sharding)."""
   if isinstance(x, jax.ShapeDtypeStruct):
@@ -394,6 +414,7 @@ class Checkpointer:
       except CheckpointError:
         # The failed save's writer threads end meanwhile (printing their tracebacks, and
         # sometimes recreating the tmp directory): remove it again once they are done.
+        _quiet_abandoned_save_tasks()
         time.sleep(0.2)
         self._remove_tmp_dirs()
         held.drop()
