@@ -69,35 +69,17 @@ def pytest_configure(config):
     os.environ[name.upper()] = str(value)
 
 
-# Memory maps of this process above which `_release_compiled_programs` drops JAX's caches.
-MAPS_LIMIT = 30_000
-
-
-def memory_maps() -> int:
-  """This process's number of memory maps (lines of /proc/self/maps); MAPS_LIMIT where it
-  cannot be read."""
-  try:
-    with open("/proc/self/maps", "rb") as f:
-      return sum(1 for _ in f)
-  except OSError:
-    return MAPS_LIMIT
-
-
 @pytest.fixture(scope="module", autouse=True)
 def _release_compiled_programs():
-  """Drops JAX's in-memory compilation caches after a test module once the process holds
-  MAPS_LIMIT memory maps.
+  """Drops JAX's in-memory compilation caches after each test module.
 
   Every executable XLA:CPU compiles keeps its JIT code mapped while a cache holds it; an xdist
   worker that ran ~900 tests held ~46,500 memory maps, near Linux's `vm.max_map_count` (65,530),
-  and twice died inside XLA (an abort, a segfault) when a late test compiled a large step.
-  Clearing after every module kept it far below but cost each module's teardown (clear and
-  collect) and the next modules' hits; a module that needs a dropped program again recompiles
-  it, mostly from the persistent cache above."""
+  and twice died inside XLA (an abort, a segfault) when a late test compiled a large step. A
+  module that needs a program again recompiles it, mostly from the persistent cache above."""
   yield
-  if memory_maps() >= MAPS_LIMIT:
-    jax.clear_caches()
-    gc.collect()
+  jax.clear_caches()
+  gc.collect()
 
 
 @pytest.fixture(autouse=True)
