@@ -35,10 +35,6 @@ def _free_port() -> int:
     return s.getsockname()[1]
 
 
-def _env():
-  return one_device_env()  # one device, whatever the calling process forced; the same in every run
-
-
 def _start_two(workdir, *overrides) -> list[subprocess.Popen]:
   port = _free_port()
   flags = [
@@ -52,7 +48,7 @@ def _start_two(workdir, *overrides) -> list[subprocess.Popen]:
     subprocess.Popen(
       [sys.executable, "-m", "camrep.main", *flags, f"--process_id={i}"],
       cwd=ROOT,
-      env=_env(),
+      env=one_device_env(),
       stdout=subprocess.PIPE,
       stderr=subprocess.STDOUT,
       text=True,
@@ -77,7 +73,7 @@ def test_two_processes_train_as_one_and_sigterm_to_one_stops_both_with_a_checkpo
   reference = subprocess.Popen(
     [sys.executable, "-m", "tests.multiprocess_reference", str(STEPS), str(ref)],
     cwd=ROOT,
-    env=_env(),
+    env=one_device_env(),
     stdout=subprocess.PIPE,
     stderr=subprocess.STDOUT,
     text=True,

@@ -45,15 +45,11 @@ def _flags(workdir, cache) -> list[str]:
   ]
 
 
-def _env():
-  return one_device_env()  # one device, whatever the calling process forced; the same in every run
-
-
 def _start(workdir, cache) -> subprocess.Popen:
   return subprocess.Popen(
     [sys.executable, "-m", SCRIPT, *_flags(workdir, cache)],
     cwd=ROOT,
-    env=_env(),
+    env=one_device_env(),
     stdout=subprocess.PIPE,
     stderr=subprocess.PIPE,
     text=True,
@@ -64,7 +60,7 @@ def _run(workdir, cache) -> subprocess.CompletedProcess:
   return subprocess.run(
     [sys.executable, "-m", SCRIPT, *_flags(workdir, cache)],
     cwd=ROOT,
-    env={**_env(), "SLOW_STEP_S": "0"},
+    env={**one_device_env(), "SLOW_STEP_S": "0"},
     capture_output=True,
     text=True,
     timeout=600,

@@ -47,15 +47,11 @@ def _flags(workdir) -> list[str]:
   ]
 
 
-def _env():
-  return one_device_env()  # one device, whatever the calling process forced; the same in every run
-
-
 def _run(workdir, kill_in_save: int = 0) -> subprocess.CompletedProcess:
   return subprocess.run(
     [sys.executable, "-m", SCRIPT, str(kill_in_save), *_flags(workdir)],
     cwd=ROOT,
-    env=_env(),
+    env=one_device_env(),
     capture_output=True,
     text=True,
     timeout=600,
@@ -66,7 +62,7 @@ def _start(workdir) -> subprocess.Popen:
   return subprocess.Popen(
     [sys.executable, "-m", SCRIPT, "0", *_flags(workdir)],
     cwd=ROOT,
-    env=_env(),
+    env=one_device_env(),
     stdout=subprocess.PIPE,
     stderr=subprocess.STDOUT,
     text=True,
