@@ -492,14 +492,14 @@ def test_a_stopped_launch_lets_its_run_save_before_it_ends(rc, tmp_path, monkeyp
     "time.sleep(30)\n"
   )
   job = launch.Job("slow", [sys.executable, "-c", code], "", 1)
-  calls = []
+  log = tmp_path / "logs" / "slow.log"
   real_wait = launch._wait
 
-  def wait(proc, timeout):  # Ctrl-C arrives once the run has set up its handler
-    calls.append(1)
-    if len(calls) == 3:
+  def wait(proc, timeout):  # Ctrl-C arrives once the run has set up its handler (a loaded
+    rc = real_wait(proc, timeout)  # machine can take seconds to start Python)
+    if rc is None and "ready" in log.read_text().splitlines():
       raise KeyboardInterrupt
-    return real_wait(proc, timeout)
+    return rc
 
   monkeypatch.setattr(launch, "_wait", wait)
   with pytest.raises(KeyboardInterrupt):
