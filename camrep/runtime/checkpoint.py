@@ -414,7 +414,6 @@ class Checkpointer:
       except CheckpointError:
         # The failed save's writer threads end meanwhile (printing their tracebacks, and
         # sometimes recreating the tmp directory): remove it again once they are done.
-        _quiet_abandoned_save_tasks()
         time.sleep(0.2)
         self._remove_tmp_dirs()
         held.drop()
@@ -444,7 +443,9 @@ class Checkpointer:
     self._bad_steps.clear()
 
   def _raise_save_error(self, exc: Exception, step: int | None) -> None:
-    """Cleans up after a failed save and re-raises, as CheckpointError for I/O errors."""
+    """Cleans up after a failed save and re-raises, as CheckpointError for I/O errors. Called
+    where the failure surfaces: in `save`, or in `wait_until_finished` for an async save."""
+    _quiet_abandoned_save_tasks()
     self._unhashed_step = None
     self._recover()
     if _is_disk_full(exc):
