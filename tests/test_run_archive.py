@@ -495,8 +495,10 @@ def test_a_stopped_launch_lets_its_run_save_before_it_ends(rc, tmp_path, monkeyp
   log = tmp_path / "logs" / "slow.log"
   real_wait = launch._wait
 
-  def wait(proc, timeout):  # Ctrl-C arrives once the run has set up its handler (a loaded
-    rc = real_wait(proc, timeout)  # machine can take seconds to start Python)
+  # Ctrl-C arrives once the run says it has set up its handler (a loaded machine can take
+  # seconds to start Python).
+  def wait(proc, timeout):
+    rc = real_wait(proc, timeout)
     if rc is None and "ready" in log.read_text().splitlines():
       raise KeyboardInterrupt
     return rc
