@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import json
 import os
+import pathlib
 
 import numpy as np
 import pytest
 
 from camrep.comparison import command, transformer
+from camrep.comparison import launch as launch_lib
 from camrep.regression import stats
 from camrep.synthesis import conditionings
 from experiments import lvsm_table
@@ -146,3 +148,63 @@ def test_parameter_counts_share_the_trunk(column):
     assert counts[camera]["model"] == trunk, camera
   assert counts["raymap"]["model"] > trunk and counts["learned_abs"]["model"] > trunk
   assert counts["learned_rel"]["rep"] > 0 and counts["prope"]["rep"] == 0
+
+
+def _fake_run_job(ran):
+  """A `launch.run_job` that writes what a finished run (or its noise test) leaves, in order."""
+
+  def run_job(job, logs, *, index, env=None):
+    ran.append(job.name)
+    wd = pathlib.Path(job.workdir)
+    if job.kind == "synthesis":
+      camera, seed = wd.name.rsplit("_seed", 1)
+      _run(wd.parent.parent, wd.parent.name, camera, int(seed), 18.0, noise=False)
+      (wd / "checkpoints" / "100").mkdir(parents=True)
+    elif job.kind == "evaluate":
+      curve = [18.0 - a for a in ALPHAS]
+      noise = {"alphas": ALPHAS, "psnr": curve, "ssim": [0.5] * 4, "noise_on": "pose"}
+      (wd / "eval" / "noise.json").write_text(json.dumps(noise))
+    return True
+
+  return run_job
+
+
+def test_a_launch_archives_each_run_with_its_noise_test_and_resumes_from_the_archive(
+  tmp_path, monkeypatch, capsys
+):
+  """`--archive`: each run's noise test follows it at once, every record is in the archive with
+  its noise curve, a launch on an empty DIR restores them and trains nothing, and a restored run
+  whose noise test is missing (archived before it ran) is trained again with it."""
+  ran = []
+  monkeypatch.setattr(launch_lib, "run_job", _fake_run_job(ran))
+  plan = transformer.plans()["lvsm_quick"]
+  counts = {c: {"model": 1000, "rep": 0} for c in plan.cameras}
+  monkeypatch.setattr(transformer, "parameter_counts", lambda plan, column="rooms": counts)
+  archive = tmp_path / "archive"
+
+  def launch(out):
+    ran.clear()
+    return command.main(["--size", "lvsm_quick", "--out", str(out), "--archive", str(archive)])
+
+  assert launch(tmp_path / "first") == 0
+  n = len(plan.cameras) * len(plan.seeds) * len(plan.columns)
+  cells = [name.removeprefix("lvsm_") for name in ran[:-1] if name.startswith("lvsm_")]
+  assert len(cells) == n and ran[-1] == "lvsm_table"
+  assert ran[:-1] == [f"{kind}_{cell}" for cell in cells for kind in ("lvsm", "noise")]
+  kept = [p.name for p in archive.glob("lvsm/*/*/*")]  # one compact record per run, nothing else
+  assert kept == ["run.json"] * n
+  first = json.loads((archive / "lvsm" / "rooms" / "none_seed0" / "run.json").read_text())
+  assert first["kind"] == "synthesis" and first["noise"]["noise_on"] == "pose"
+
+  assert launch(tmp_path / "second") == 0
+  assert ran == ["lvsm_table"] and f"restored {n} finished runs" in capsys.readouterr().out
+  assert launch_lib.archived_only(str(tmp_path / "second" / "lvsm" / "car" / "prope_seed1"))
+
+  cut = archive / "lvsm" / "car" / "gta_seed2" / "run.json"
+  record = json.loads(cut.read_text())
+  del record["noise"]
+  cut.write_text(json.dumps(record))
+  assert launch(tmp_path / "third") == 0
+  assert ran == ["lvsm_car_gta_seed2", "noise_car_gta_seed2", "lvsm_table"]
+  assert "lvsm_car_gta_seed2: its record is from the archive" in capsys.readouterr().out
+  assert "noise" in json.loads(cut.read_text())

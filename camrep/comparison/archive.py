@@ -19,8 +19,11 @@ import shutil
 
 from camrep.regression import runs
 
-# Run workdirs inside a launch's DIR, and the launch's own tables and figures.
-RUN_PATTERNS = ("synthesis/*", "regression/*/*/*", "crossed/*/*")
+# Run workdirs inside a launch's DIR, and the launch's own tables and figures. "lvsm/*/*" are a
+# transformer launch's view-synthesis runs (`camrep.comparison.transformer`).
+RUN_PATTERNS = ("synthesis/*", "lvsm/*/*", "regression/*/*/*", "crossed/*/*")
+# The top folders of view-synthesis runs: restored only where DIR has no workdir of that name.
+SYNTHESIS_ROOTS = ("synthesis", "lvsm")
 TOP_PATTERNS = ("*.md", "*.png", "*.pdf")
 
 
@@ -92,7 +95,7 @@ def restore(archive: str, out: str, *, warn=print) -> int:
     src, dst = os.path.join(archive, rel), os.path.join(out, rel)
     if not runs.is_finished(src) or runs.is_finished(dst):
       continue
-    if rel.startswith("synthesis") and os.path.exists(dst):
+    if rel.split(os.sep, 1)[0] in SYNTHESIS_ROOTS and os.path.exists(dst):
       continue
     try:
       record = runs.compact(runs.load(src, arrays=True))

@@ -287,17 +287,22 @@ def run(argv: Sequence[str] | None = None) -> int:
 
 def run_transformer(args: argparse.Namespace) -> int:
   """A transformer plan (`camrep.comparison.transformer`): its dry run, or its launch."""
-  launch = transformer.make_launch(args.plan, args.out, python=args.python, data=args.data)
+  launch = transformer.make_launch(
+    args.plan, args.out, python=args.python, data=args.data, archive=args.archive
+  )
   if args.dry_run:
     transformer.print_plan(launch, commands=True, at_once=args.jobs)
     return 0
 
   def body() -> list[str]:
+    if launch.archive:
+      n = archive_lib.restore(launch.archive, launch.out)
+      print(f"restored {n} finished runs from the archive {launch.archive}", flush=True)
     transformer.print_plan(launch, commands=False, at_once=args.jobs)
     deadline = time.monotonic() + 3600 * args.max_hours if args.max_hours > 0 else None
     return transformer.execute(launch, at_once=args.jobs, deadline=deadline)
 
-  ran = _locked(launch.out, "", body)
+  ran = _locked(launch.out, launch.archive, body)
   if isinstance(ran, int):
     return ran
   failed, took = ran

@@ -6,12 +6,19 @@ configs/lvsm.py (`camrep.synthesis.conditionings`): columns "rooms" and "car" (p
 each capture column `--data car_NAME=SOURCE:DIR` gives (the car setting on a prepared capture).
 Steps, each finished run skipped (a launch that stops resumes where it stopped):
 
-  1. view-synthesis runs into DIR/lvsm/<column>/<camera>_seed<k> (held-out PSNR/SSIM at the
-     trained and at `evals.context_counts` context views, train/steps_per_sec: the cost per step);
-  2. the noise test of each run on the query pose before conditioning (`camrep.synthesis.evaluate
-     --what=noise`, `noise.NOISE_ON` "pose": the same for every conditioning) into its eval/;
-  3. experiments/lvsm_table.py over DIR/lvsm -> DIR/lvsm_table.md and DIR/lvsm_noise.png
+  1. each view-synthesis run into DIR/lvsm/<column>/<camera>_seed<k> (held-out PSNR/SSIM at the
+     trained and at `evals.context_counts` context views, train/steps_per_sec: the cost per step),
+     seed-major (every cell's first seed before any second one), and as soon as it ends its noise
+     test on the query pose before conditioning (`camrep.synthesis.evaluate --what=noise`,
+     `noise.NOISE_ON` "pose": the same for every conditioning) into its eval/;
+  2. experiments/lvsm_table.py over DIR/lvsm -> DIR/lvsm_table.md and DIR/lvsm_noise.png
      (seed-level intervals and verdicts against the plan's baseline, raymap).
+
+`--archive DIR` (e.g. results/lvsm), as for the regression plans (`camrep.comparison.archive`):
+each run's compact record is written into DIR when the run ends and again with its noise curve,
+the table and figure when they are made, and a launch starts by restoring the records DIR holds,
+so a launch longer than a machine is kept goes on from a fresh clone. A restored run has no
+checkpoints: one whose noise test is missing is trained again.
 
 Parameter counts: the transformer trunk is the same for every conditioning; what differs is the
 conditioning's own input projection (raymap's 6 p^2 Pluecker features, learned_abs's v(p) into
@@ -25,9 +32,11 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
+import shutil
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from camrep.comparison import archive as archive_lib
 from camrep.comparison import launch as launch_lib
 from camrep.comparison import plan as plan_lib
 from camrep.runtime import progress as progress_lib
@@ -205,17 +214,29 @@ class TransformerLaunch:
   noise: list[launch_lib.Job]
   table: launch_lib.Job
   data: dict
+  archive: str = ""  # --archive: where each finished run's record is kept
 
 
 def make_launch(
-  plan: TransformerPlan, out: str, *, python: str = "python", data: Mapping[str, Any] | None = None
+  plan: TransformerPlan,
+  out: str,
+  *,
+  python: str = "python",
+  data: Mapping[str, Any] | None = None,
+  archive: str = "",
 ) -> TransformerLaunch:
-  """Every job of a transformer comparison into `out`."""
+  """Every job of a transformer comparison into `out` (records kept in `archive`, if given)."""
   out = os.path.abspath(out)
   data = {c: v for c, v in (data or {}).items() if isinstance(v, tuple)}
   synth = synthesis_jobs(plan, out, python, data)
   return TransformerLaunch(
-    plan, out, synth, noise_jobs(plan, synth, python), table_job(plan, out, python), data
+    plan,
+    out,
+    synth,
+    noise_jobs(plan, synth, python),
+    table_job(plan, out, python),
+    data,
+    os.path.abspath(archive) if archive else "",
   )
 
 
@@ -270,12 +291,40 @@ def print_plan(L: TransformerLaunch, *, commands: bool, at_once: int = 1) -> Non
 
 
 def execute(L: TransformerLaunch, *, at_once: int = 1, deadline: float | None = None):
-  """Runs what is not done: the training runs, their noise tests, the table. Returns the names
-  of the jobs that failed."""
+  """Runs what is not done: each training run followed by its noise test, the noise tests still
+  missing, the table; with an archive, records are copied into it after each job. Returns the
+  names of the jobs that failed."""
   logs = os.path.join(L.out, "logs")
+  noise_of = {s.name: n for s, n in zip(L.synth, L.noise, strict=True)}
+  for s in L.synth:  # a restored record cannot take its noise test: no checkpoints
+    if launch_lib.archived_only(s.workdir) and not noise_of[s.name].done():
+      print(
+        f"[transformer] {s.name}: its record is from the archive, without its noise test; "
+        "training it again",
+        flush=True,
+      )
+      shutil.rmtree(s.workdir)
+
+  def sync(_=None) -> None:
+    if L.archive:
+      archive_lib.sync(L.out, L.archive)
+
+  failed_noise = []
+  env = launch_lib.job_env(at_once)
+
+  def then_noise(job: launch_lib.Job) -> None:  # in the run's own worker, as soon as it ends
+    sync()
+    noise = noise_of[job.name]
+    if not noise.done():
+      if not launch_lib.run_job(noise, logs, index=f"noise of {job.name}", env=env):
+        failed_noise.append(noise.name)
+      sync()
+
   kw = dict(at_once=at_once, deadline=deadline)
-  failed = launch_lib.run_jobs(L.synth, logs, label="transformer: ", **kw)
+  failed = launch_lib.run_jobs(L.synth, logs, label="transformer: ", after=then_noise, **kw)
+  failed += failed_noise
   ready = [n for n, s in zip(L.noise, L.synth, strict=True) if s.done()]
-  failed += launch_lib.run_jobs(ready, logs, label="noise: ", **kw)
+  failed += launch_lib.run_jobs(ready, logs, label="noise: ", after=sync, **kw)
   failed += launch_lib.run_jobs([L.table], logs, label="", **{**kw, "at_once": 1})
+  sync()
   return failed
