@@ -200,6 +200,13 @@ def test_a_launch_archives_each_run_with_its_noise_test_and_resumes_from_the_arc
   assert ran == ["lvsm_table"] and f"restored {n} finished runs" in capsys.readouterr().out
   assert launch_lib.archived_only(str(tmp_path / "second" / "lvsm" / "car" / "prope_seed1"))
 
+  # A run finished in DIR before its noise test ran: the test runs first, and is archived.
+  out = tmp_path / "fourth"
+  wd = _run(out / "lvsm", "rooms", "gta", 1, 18.0, noise=False)
+  (wd / "checkpoints" / "100").mkdir(parents=True)
+  assert launch(out) == 0
+  assert ran == ["noise_rooms_gta_seed1", "lvsm_table"]
+
   cut = archive / "lvsm" / "car" / "gta_seed2" / "run.json"
   record = json.loads(cut.read_text())
   del record["noise"]

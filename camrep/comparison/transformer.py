@@ -291,9 +291,9 @@ def print_plan(L: TransformerLaunch, *, commands: bool, at_once: int = 1) -> Non
 
 
 def execute(L: TransformerLaunch, *, at_once: int = 1, deadline: float | None = None):
-  """Runs what is not done: each training run followed by its noise test, the noise tests still
-  missing, the table; with an archive, records are copied into it after each job. Returns the
-  names of the jobs that failed."""
+  """Runs what is not done: the noise tests of runs finished before, each training run followed
+  by its noise test, the table; with an archive, records are copied into it after each job.
+  Returns the names of the jobs that failed."""
   logs = os.path.join(L.out, "logs")
   noise_of = {s.name: n for s, n in zip(L.synth, L.noise, strict=True)}
   for s in L.synth:  # a restored record cannot take its noise test: no checkpoints
@@ -321,10 +321,12 @@ def execute(L: TransformerLaunch, *, at_once: int = 1, deadline: float | None = 
       sync()
 
   kw = dict(at_once=at_once, deadline=deadline)
-  failed = launch_lib.run_jobs(L.synth, logs, label="transformer: ", after=then_noise, **kw)
-  failed += failed_noise
+  sync()
+  # The noise tests of runs that finished before this launch, then each run with its own.
   ready = [n for n, s in zip(L.noise, L.synth, strict=True) if s.done()]
-  failed += launch_lib.run_jobs(ready, logs, label="noise: ", after=sync, **kw)
+  failed = launch_lib.run_jobs(ready, logs, label="noise: ", after=sync, **kw)
+  failed += launch_lib.run_jobs(L.synth, logs, label="transformer: ", after=then_noise, **kw)
+  failed += failed_noise
   failed += launch_lib.run_jobs([L.table], logs, label="", **{**kw, "at_once": 1})
   sync()
   return failed
