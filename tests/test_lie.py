@@ -293,9 +293,9 @@ def test_jacfwd_jacrev_numerical(method, point):
     v = rng.normal(size=(2, s))
     f = lambda P, t: lie.apply_exp_skew(lie.skew(P, block_size=s), t, v, method=method).ravel()
     for argnum, x in ((0, P), (1, t)):
-      g = (lambda x: f(x, t)) if argnum == 0 else (lambda x: f(P, x))
-      jf = np.asarray(jax.jacfwd(g)(x)).reshape(-1, x.size)
-      jr = np.asarray(jax.jacrev(g)(x)).reshape(-1, x.size)
+      g = jax.jit((lambda x: f(x, t)) if argnum == 0 else (lambda x: f(P, x)))
+      jf = np.asarray(jax.jit(jax.jacfwd(g))(x)).reshape(-1, x.size)
+      jr = np.asarray(jax.jit(jax.jacrev(g))(x)).reshape(-1, x.size)
       jn = jac_numerical(g, x)
       assert_close(jf, jr, atol=1e-10)
       assert_close(jf, jn, atol=1e-7)
@@ -322,11 +322,12 @@ def test_no_nan_gradient_and_matches_expm(method, case):
     P = lie.vee(B)[None]
     t = np.array([0.0 if case == "t_zero" else 0.8])
     v = rng.normal(size=(1, s))
-    g = jax.grad(_loss, argnums=(0, 1, 2))(P, t, v, method, s)
+    grad = jax.jit(jax.grad(_loss, argnums=(0, 1, 2)), static_argnums=(3, 4))
+    g = grad(P, t, v, method, s)
     for x in g:
       assert np.all(np.isfinite(np.asarray(x)))
     if method != "taylor2":
-      ge = jax.grad(_loss, argnums=(0, 1, 2))(P, t, v, "expm", s)
+      ge = grad(P, t, v, "expm", s)
       for a, b in zip(g, ge, strict=True):
         assert_close(a, b, atol=1e-9)
 
@@ -455,11 +456,12 @@ def test_spectral_even_planes_and_odd_fallback_match_expm(s, case):
         Bt = Bt[idx]
       return jnp.sum(lie.apply_exp_skew(Bt, t, v, method=method, index=index) * w)
 
+    out = jax.jit(lambda P, t, v: lie.apply_exp_skew(lie.skew(P, block_size=s), t, v, index=idx))
+    assert_close(out(P, t, v), np.einsum("nij,nj->ni", _expm_ref(B[idx], t), v), atol=1e-12)
+    grad = jax.jit(jax.grad(loss, argnums=(0, 1, 2)), static_argnums=3)
+    ge = grad(P, t, v, "expm", None)
     for index in (None, idx):
-      out = lie.apply_exp_skew(lie.skew(P, block_size=s), t, v, index=idx)
-      assert_close(out, np.einsum("nij,nj->ni", _expm_ref(B[idx], t), v), atol=1e-12)
-      g = jax.grad(loss, argnums=(0, 1, 2))(P, t, v, "spectral", index)
-      ge = jax.grad(loss, argnums=(0, 1, 2))(P, t, v, "expm", None)
+      g = grad(P, t, v, "spectral", index)
       for a, b in zip(g, ge, strict=True):
         assert_close(a, b, atol=1e-10)
 
@@ -500,10 +502,11 @@ def test_spectral_float32_bench_workload():
     return jnp.mean(jnp.sum((moved - v1) ** 2, -1)), moved
 
   f32 = [x.astype(np.float32) for x in (P, dl, v0, v1)]
-  (_, y), g = jax.value_and_grad(loss, argnums=(0, 2), has_aux=True)(*f32, "spectral")
+  value_and_grad = jax.jit(jax.value_and_grad(loss, argnums=(0, 2), has_aux=True), static_argnums=4)
+  (_, y), g = value_and_grad(*f32, "spectral")
   assert y.dtype == jnp.float32
   with x64():
-    (_, y64), g64 = jax.value_and_grad(loss, argnums=(0, 2), has_aux=True)(P, dl, v0, v1, "expm")
+    (_, y64), g64 = value_and_grad(P, dl, v0, v1, "expm")
   assert np.abs(np.asarray(y, np.float64) - np.asarray(y64)).max() < 2e-6
   for a, b in zip(g, g64, strict=True):
     b = np.asarray(b)
