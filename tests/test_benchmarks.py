@@ -145,3 +145,24 @@ def test_the_grid_benchmark_times_both_programs_against_the_runs_alone(tmp_path)
   for p in ("loop", "unrolled", "vmap"):
     assert out[p]["speedup"] > 0
     assert out[p]["member_steps_per_s"] == pytest.approx(4 * out[p]["steps_per_s_per_member"])
+
+
+def test_the_conditioning_benchmark_times_each_camera_against_the_baseline(capsys):
+  """`camrep.bench.conditionings` at :smoke: each conditioning's step built and timed in one
+  process, a row per camera and the ratios line; a camera it does not know is a usage error."""
+  from camrep.bench import conditionings
+
+  argv = ["--variant=smoke", "--cameras=raymap,learned_rel", "--steps=1", "--rounds=2"]
+  conditionings.main(argv)
+  out = capsys.readouterr().out
+  rows = [line for line in out.splitlines() if line.startswith(("| raymap", "| learned_rel"))]
+  assert len(rows) == 2 and rows[0].endswith("| 1.00 |")
+  last = out.strip().splitlines()[-1].split()
+  assert last[0] == "baseline=raymap" and last[1] == "raymap=1.000"
+  assert last[2].startswith("learned_rel=") and float(last[2].split("=")[1]) > 0
+  with pytest.raises(SystemExit):
+    conditionings.main(["--cameras=raymap,plucker"])
+  assert "unknown cameras ['plucker']" in capsys.readouterr().err
+  with pytest.raises(SystemExit):
+    conditionings.main(["--cameras=none", "--baseline=raymap"])
+  assert "--baseline raymap is not among --cameras" in capsys.readouterr().err
