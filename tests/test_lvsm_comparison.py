@@ -151,19 +151,24 @@ def test_parameter_counts_share_the_trunk(column):
 
 
 def _fake_run_job(ran):
-  """A `launch.run_job` that writes what a finished run (or its noise test) leaves, in order."""
+  """A `launch.run_job` that writes what a finished run (or its noise test) leaves, in order; the
+  table job is the real reader (without its figure)."""
 
   def run_job(job, logs, *, index, env=None):
     ran.append(job.name)
+    if job.kind == "table":
+      assert job.argv[-2] == "--png"
+      return lvsm_table.main(job.argv[2:-2]) == 0
     wd = pathlib.Path(job.workdir)
+    camera, seed = wd.name.rsplit("_seed", 1)
+    psnr = 18.0 + sorted(conditionings.CONDITIONINGS).index(camera) / 4
     if job.kind == "synthesis":
-      camera, seed = wd.name.rsplit("_seed", 1)
-      _run(wd.parent.parent, wd.parent.name, camera, int(seed), 18.0, noise=False)
+      source = {"rooms": "rooms", "car": "object"}[wd.parent.name]
+      _run(wd.parent.parent, wd.parent.name, camera, int(seed), psnr, source=source, noise=False)
       (wd / "checkpoints" / "100").mkdir(parents=True)
-    elif job.kind == "evaluate":
-      curve = [18.0 - a for a in ALPHAS]
-      noise = {"alphas": ALPHAS, "psnr": curve, "ssim": [0.5] * 4, "noise_on": "pose"}
-      (wd / "eval" / "noise.json").write_text(json.dumps(noise))
+    else:
+      noise = {"alphas": ALPHAS, "psnr": [psnr - a for a in ALPHAS], "noise_on": "pose"}
+      (wd / "eval" / "noise.json").write_text(json.dumps({**noise, "ssim": [0.5] * 4}))
     return True
 
   return run_job
@@ -173,8 +178,9 @@ def test_a_launch_archives_each_run_with_its_noise_test_and_resumes_from_the_arc
   tmp_path, monkeypatch, capsys
 ):
   """`--archive`: each run's noise test follows it at once, every record is in the archive with
-  its noise curve, a launch on an empty DIR restores them and trains nothing, and a restored run
-  whose noise test is missing (archived before it ran) is trained again with it."""
+  its noise curve, and so is the table of those records, made again after each; a launch on an
+  empty DIR restores them and trains nothing, and a restored run whose noise test is missing
+  (archived before it ran) is trained again with it."""
   ran = []
   monkeypatch.setattr(launch_lib, "run_job", _fake_run_job(ran))
   plan = transformer.plans()["lvsm_quick"]
@@ -186,18 +192,25 @@ def test_a_launch_archives_each_run_with_its_noise_test_and_resumes_from_the_arc
     ran.clear()
     return command.main(["--size", "lvsm_quick", "--out", str(out), "--archive", str(archive)])
 
+  def table_is_the_records():
+    made = tmp_path / "from_records.md"
+    assert lvsm_table.main(["--runs", str(archive / "lvsm"), "--out", str(made)]) == 0
+    assert (archive / "lvsm_table.md").read_text() == made.read_text()
+
   assert launch(tmp_path / "first") == 0
   n = len(plan.cameras) * len(plan.seeds) * len(plan.columns)
-  cells = [name.removeprefix("lvsm_") for name in ran[:-1] if name.startswith("lvsm_")]
-  assert len(cells) == n and ran[-1] == "lvsm_table"
-  assert ran[:-1] == [f"{kind}_{cell}" for cell in cells for kind in ("lvsm", "noise")]
+  cells = [name.removeprefix("lvsm_") for name in ran[::4][:-1]]
+  assert len(cells) == n and len(ran) == 4 * n + 1
+  table = "lvsm_table"
+  assert ran == [x for c in cells for x in (f"lvsm_{c}", table, f"noise_{c}", table)] + [table]
   kept = [p.name for p in archive.glob("lvsm/*/*/*")]  # one compact record per run, nothing else
   assert kept == ["run.json"] * n
   first = json.loads((archive / "lvsm" / "rooms" / "none_seed0" / "run.json").read_text())
   assert first["kind"] == "synthesis" and first["noise"]["noise_on"] == "pose"
+  table_is_the_records()
 
   assert launch(tmp_path / "second") == 0
-  assert ran == ["lvsm_table"] and f"restored {n} finished runs" in capsys.readouterr().out
+  assert ran == [table] and f"restored {n} finished runs" in capsys.readouterr().out
   assert launch_lib.archived_only(str(tmp_path / "second" / "lvsm" / "car" / "prope_seed1"))
 
   # A run finished in DIR before its noise test ran: the test runs first, and is archived.
@@ -205,13 +218,15 @@ def test_a_launch_archives_each_run_with_its_noise_test_and_resumes_from_the_arc
   wd = _run(out / "lvsm", "rooms", "gta", 1, 18.0, noise=False)
   (wd / "checkpoints" / "100").mkdir(parents=True)
   assert launch(out) == 0
-  assert ran == ["noise_rooms_gta_seed1", "lvsm_table"]
+  assert ran == ["noise_rooms_gta_seed1", table, table]
+  table_is_the_records()
 
   cut = archive / "lvsm" / "car" / "gta_seed2" / "run.json"
   record = json.loads(cut.read_text())
   del record["noise"]
   cut.write_text(json.dumps(record))
   assert launch(tmp_path / "third") == 0
-  assert ran == ["lvsm_car_gta_seed2", "noise_car_gta_seed2", "lvsm_table"]
+  assert ran == ["lvsm_car_gta_seed2", table, "noise_car_gta_seed2", table, table]
   assert "lvsm_car_gta_seed2: its record is from the archive" in capsys.readouterr().out
   assert "noise" in json.loads(cut.read_text())
+  table_is_the_records()

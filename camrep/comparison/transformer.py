@@ -16,9 +16,10 @@ Steps, each finished run skipped (a launch that stops resumes where it stopped):
 
 `--archive DIR` (e.g. results/lvsm), as for the regression plans (`camrep.comparison.archive`):
 each run's compact record is written into DIR when the run ends and again with its noise curve,
-the table and figure when they are made, and a launch starts by restoring the records DIR holds,
-so a launch longer than a machine is kept goes on from a fresh clone. A restored run has no
-checkpoints: one whose noise test is missing is trained again.
+each time with the table and figure made again from every finished run (DIR's table is always
+that of its records), and a launch starts by restoring the records DIR holds, so a launch longer
+than a machine is kept goes on from a fresh clone. A restored run has no checkpoints: one whose
+noise test is missing is trained again.
 
 Parameter counts: the transformer trunk is the same for every conditioning; what differs is the
 conditioning's own input projection (raymap's 6 p^2 Pluecker features, learned_abs's v(p) into
@@ -33,6 +34,7 @@ import dataclasses
 import functools
 import os
 import shutil
+import threading
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -292,7 +294,8 @@ def print_plan(L: TransformerLaunch, *, commands: bool, at_once: int = 1) -> Non
 
 def execute(L: TransformerLaunch, *, at_once: int = 1, deadline: float | None = None):
   """Runs what is not done: the noise tests of runs finished before, each training run followed
-  by its noise test, the table; with an archive, records are copied into it after each job.
+  by its noise test, the table; with an archive, the records, the table and the figure are
+  copied into it after each of those, so that its table is always that of its records.
   Returns the names of the jobs that failed."""
   logs = os.path.join(L.out, "logs")
   noise_of = {s.name: n for s, n in zip(L.synth, L.noise, strict=True)}
@@ -304,29 +307,34 @@ def execute(L: TransformerLaunch, *, at_once: int = 1, deadline: float | None = 
         flush=True,
       )
       shutil.rmtree(s.workdir)
+  env = launch_lib.job_env(at_once)
+  archiving = threading.Lock()  # one table at a time (jobs may run side by side)
 
-  def sync(_=None) -> None:
+  def archive(_=None) -> None:
     if L.archive:
-      archive_lib.sync(L.out, L.archive)
+      with archiving:
+        launch_lib.run_job(L.table, logs, index="table", env=env)  # a failure shows at the end
+        archive_lib.sync(L.out, L.archive)
 
   failed_noise = []
-  env = launch_lib.job_env(at_once)
 
   def then_noise(job: launch_lib.Job) -> None:  # in the run's own worker, as soon as it ends
-    sync()
+    archive()
     noise = noise_of[job.name]
     if not noise.done():
       if not launch_lib.run_job(noise, logs, index=f"noise of {job.name}", env=env):
         failed_noise.append(noise.name)
-      sync()
+      archive()
 
   kw = dict(at_once=at_once, deadline=deadline)
-  sync()
+  if L.archive:
+    archive_lib.sync(L.out, L.archive)
   # The noise tests of runs that finished before this launch, then each run with its own.
   ready = [n for n, s in zip(L.noise, L.synth, strict=True) if s.done()]
-  failed = launch_lib.run_jobs(ready, logs, label="noise: ", after=sync, **kw)
+  failed = launch_lib.run_jobs(ready, logs, label="noise: ", after=archive, **kw)
   failed += launch_lib.run_jobs(L.synth, logs, label="transformer: ", after=then_noise, **kw)
   failed += failed_noise
   failed += launch_lib.run_jobs([L.table], logs, label="", **{**kw, "at_once": 1})
-  sync()
+  if L.archive:
+    archive_lib.sync(L.out, L.archive)
   return failed
