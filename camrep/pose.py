@@ -430,11 +430,14 @@ def dof_rotation_loss(
     scalar loss.
   """
   d = spec.dof(name)
-  k0 = k1 = None
-  if key is not None:
-    k0, k1 = jax.random.split(key)
-  v0 = embed_dof(params, spec, name, value0, mode=mode, key=k0)
-  v1 = embed_dof(params, spec, name, value1, mode=mode, key=k1)
+  # Both ends in one embedding, mapped over the two ends (the grid is normalised and the
+  # generators are built once); end 0 and end 1 draw from the two halves of split(key).
+  ends = jnp.stack(jnp.broadcast_arrays(jnp.asarray(value0), jnp.asarray(value1)))
+  if key is None:
+    v0, v1 = jax.vmap(lambda x: embed_dof(params, spec, name, x, mode=mode))(ends)
+  else:
+    one = lambda x, k: embed_dof(params, spec, name, x, mode=mode, key=k)
+    v0, v1 = jax.vmap(one)(ends, jax.random.split(key))
   moved = d.rotate(params[name], spec, d.wrap_delta(value1 - value0), v0)
   return jnp.mean(jnp.sum((moved - v1) ** 2, axis=-1))
 
