@@ -149,6 +149,20 @@ class Dof(abc.ABC):
     B = lie.skew(params[GENERATOR], block_size=spec.block_size)
     return lie.apply_exp_blocks(B, delta, v, method=spec.exp_method, n_steps=spec.n_steps)
 
+  def stacking(self) -> Stacking | None:
+    """The constants that make this DOF one case of the shared 1-D rule, or None.
+
+    The rule: one pose column, parameters {"grid": (n_grid, d), "generator_coeffs": (n_blocks,
+    s(s-1)/2)}, unit grid vectors, `grid_index`, `rotate`, `wrap_delta` and `sample_pairs` as
+    `Dof` defines them, or as `AngularDof` does where `periodic`. `camrep.pose` traces the DOFs
+    of a system that follow it as one program (their grids in one table, their generators
+    stacked); a DOF that returns None (the polar DOFs, and any subclass that changes one of
+    those methods) is traced on its own.
+    """
+    if self.width != 1 or self.block_norm:
+      return None
+    return Stacking(self.low, self.spacing, self.n_grid, self.periodic)
+
   def wrap_delta(self, delta: Array) -> Array:
     """A difference of values as a move: wrapped to [-pi, pi) for periodic angles (camrep's fix:
     the authors' raw difference turns a pair straddling 0/360 degrees into a ~2 pi move)."""
@@ -216,6 +230,22 @@ class Dof(abc.ABC):
           f"(e.g. {worst:g}), which embed clamps to the end grid point and extrapolates"
         )
     return problems
+
+
+@dataclasses.dataclass(frozen=True)
+class Stacking:
+  """The constants of a DOF that follows the shared 1-D rule (`Dof.stacking`).
+
+  Attributes:
+    low, spacing: the grid's start and step, physical units.
+    n_grid: number of grid vectors.
+    periodic: grid index taken mod n_grid and moves wrapped to [-pi, pi) (`AngularDof`).
+  """
+
+  low: float
+  spacing: float
+  n_grid: int
+  periodic: bool
 
 
 @dataclasses.dataclass(frozen=True)
@@ -386,6 +416,11 @@ class PolarDof(Dof, metaclass=_PolarMeta):
   @override
   def columns(self, values):
     return values
+
+  @override
+  def stacking(self):
+    """None: the polar grid index, rotation and pairs are their own (two columns)."""
+    return None
 
   @override
   def grid_index(self, g, mode, key):

@@ -338,29 +338,30 @@ class GridEncoding(PoseEncoding):
     """lambda_2 sum_l L_rot,l + lambda_4 sum L_rot,theta (eqs. 9, 9.2), terms "rot_<dof>" and
     "dir_<dof>".
 
-    Extra pairs (`P.rotation_losses`) use `key` as given (the same on every device of a
-    pmapped step: the term is replicated); data pairs use `scene_keys` and are averaged as the
-    caller's batch is. A DOF's data-pair term is mixed 0.5 / 0.5 with its extra-pair term.
+    Extra pairs use `key` as given (the same on every device of a pmapped step: the term is
+    replicated); data pairs use `scene_keys` and are averaged as the caller's batch is. A DOF's
+    data-pair term is mixed 0.5 / 0.5 with its extra-pair term (`P.data_rotation_losses`; DOF i
+    of scene s draws from fold_in(scene key s, 1000 + i)).
     """
     spec, mode = self.spec, weights.mode
     key_pairs, k_quant = jax.random.split(key)
-    extra = P.rotation_losses(key_pairs, params, spec, n_pairs=weights.n_pairs, mode=mode)
-    keys = scene_keys(k_quant, pair_poses.shape[0]) if pair_poses is not None else None
-    terms = {}
-    for i, d in enumerate(spec.dofs):
-      loss = extra[d.name]
-      if pair_poses is not None:
-        S, V = pair_poses.shape[:2]
-        pairs = pair_poses.reshape(S, V // 2, 2, -1)[..., spec.columns(d.name)]
-        x0, x1 = d.values(pairs[:, :, 0]), d.values(pairs[:, :, 1])
-        kd = jax.vmap(lambda k, i=i: jax.random.fold_in(k, 1000 + i))(keys)
-        per_scene = jax.vmap(
-          lambda a, b, k, n=d.name: P.dof_rotation_loss(
-            params, spec, n, a, b, mode=mode, key=k if mode == "random" else None
-          )
-        )(x0, x1, kd)
-        loss = 0.5 * loss + 0.5 * jnp.mean(per_scene)
-      terms[f"rot_{d.name}"] = loss
+    data_pairs = data_keys = None
+    if pair_poses is not None:
+      S, V = pair_poses.shape[:2]
+      pairs = pair_poses.reshape(S, V // 2, 2, -1)
+      data_pairs = (pairs[:, :, 0], pairs[:, :, 1])
+      keys = scene_keys(k_quant, S)
+      data_keys = lambda i: jax.vmap(lambda k: jax.random.fold_in(k, 1000 + i))(keys)
+    rot = P.data_rotation_losses(
+      key_pairs,
+      params,
+      spec,
+      n_pairs=weights.n_pairs,
+      mode=mode,
+      data_pairs=data_pairs,
+      data_keys=data_keys,
+    )
+    terms = {f"rot_{n}": rot[n] for n in spec.names}
     total = weights.rot_weight * sum(terms.values())
     if weights.dir_weight:
       for d in spec.dofs:
