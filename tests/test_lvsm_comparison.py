@@ -230,3 +230,15 @@ def test_a_launch_archives_each_run_with_its_noise_test_and_resumes_from_the_arc
   assert "lvsm_car_gta_seed2: its record is from the archive" in capsys.readouterr().out
   assert "noise" in json.loads(cut.read_text())
   table_is_the_records()
+
+
+def test_the_committed_lvsm_table_is_that_of_its_records(tmp_path):
+  """results/lvsm, the comparison's archive: one compact record per finished run and the table
+  made from them, byte for byte (the launch remakes it after every run)."""
+  root = pathlib.Path(__file__).resolve().parent.parent / "results" / "lvsm"
+  files = {p.name for p in (root / "lvsm").rglob("*") if p.is_file()}
+  assert files == {"run.json"}
+  made = tmp_path / "table.md"
+  argv = ["--runs", str(root / "lvsm"), "--baseline", "raymap", "--out", str(made)]
+  assert lvsm_table.main(argv) == 0
+  assert made.read_text() == (root / "lvsm_table.md").read_text()
