@@ -6,6 +6,7 @@ processes: tests/test_resume.py::test_second_start_on_a_live_workdir_is_refused.
 from __future__ import annotations
 
 import json
+import math
 import os
 import pathlib
 import shutil
@@ -106,6 +107,31 @@ def test_lock_refuses_a_live_holder_and_names_it(tmp_path):
   (tmp_path / workdir_lib.LOCK_FILE).write_text(json.dumps(other))
   with pytest.raises(workdir_lib.WorkdirError, match="PID 1 on elsewhere.*delete the lock file"):
     workdir_lib.WorkdirLock(str(tmp_path)).acquire()
+
+
+def test_a_waiter_takes_a_lock_let_go_between_its_attempt_and_its_look(tmp_path):
+  """A waiter whose attempt fails, but whose holder lets go before it looks who holds the lock,
+  takes the lock (it once gave up with "in use by another run": seen under load, when an
+  evaluation waited for another); without a wait it still refuses at once."""
+  first = workdir_lib.WorkdirLock(str(tmp_path))
+  first.acquire()
+  waiter = workdir_lib.WorkdirLock(str(tmp_path))
+  look = waiter.live_holder
+
+  def released_before_the_look():
+    first.release()
+    return look()
+
+  waiter.live_holder = released_before_the_look
+  lines = []
+  waiter.acquire(wait=math.inf, log=lines.append, poll=0.01)
+  assert waiter.held and lines == []
+  assert json.loads((tmp_path / workdir_lib.LOCK_FILE).read_text())["pid"] == os.getpid()
+  waiter.release()
+  first.acquire()
+  with pytest.raises(workdir_lib.WorkdirError, match="in use by another run"):
+    workdir_lib.WorkdirLock(str(tmp_path)).acquire(wait=0.0)
+  first.release()
 
 
 def test_stale_lock_is_taken_over_with_a_warning(tmp_path):

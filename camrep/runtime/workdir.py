@@ -203,9 +203,12 @@ class WorkdirLock:
       try:
         return self._acquire()
       except WorkdirError:
-        h = self.live_holder()
-        if h is None or time.monotonic() + poll > deadline:
+        if time.monotonic() + poll > deadline:
           raise
+        h = self.live_holder()
+        if h is None:  # let go, died or not yet written since the attempt: look again
+          time.sleep(poll)
+          continue
         if not said:
           line = (
             f"waiting for PID {h.get('pid')} on {h.get('host')} (started "
