@@ -66,7 +66,7 @@ def test_run_records_workers_and_children_and_report_prints_them(tmp_path):
     "test_jits_in_a_child",
   ]
   assert {t["worker"] for t in tests} <= {"gw0", "gw1"}
-  _, events = suite_profile.load(out)
+  _, _, events = suite_profile.load(out)
   here = next(t["test"] for t in tests if t["test"].endswith("test_jits_here"))
   child = next(t["test"] for t in tests if t["test"].endswith("test_jits_in_a_child"))
   assert events[here][suite_profile.COMPILE + ":n"] >= 1  # the worker's own jit

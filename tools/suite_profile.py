@@ -97,9 +97,10 @@ def _read(path: pathlib.Path) -> list[dict]:
   return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
 
-def load(out: pathlib.Path) -> tuple[list[dict], dict[str, collections.Counter]]:
-  """The tests' records and, per test id, its JAX event totals (own process and children:
-  names prefixed by "child:" for the latter), "child_reported_cpu" included."""
+def load(out: pathlib.Path) -> tuple[list[dict], list[dict], dict[str, collections.Counter]]:
+  """The tests' records, the processes' records and, per test id, its JAX event totals (own
+  process and children: names prefixed by "child:" for the latter), "child_reported_cpu"
+  included."""
   tests, procs = _read(out / TESTS), _read(out / PROCS)
   events: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
   for p in procs:
@@ -110,7 +111,7 @@ def load(out: pathlib.Path) -> tuple[list[dict], dict[str, collections.Counter]]
           events[test][child + name] += value
     if child:
       events[p["parent_test"].rsplit(" (", 1)[0]]["child_reported_cpu"] += p["cpu"]
-  return tests, events
+  return tests, procs, events
 
 
 def _jax(c: collections.Counter, name: str) -> float:
@@ -129,7 +130,7 @@ def _row(wall, cpu, child, c) -> str:
 
 
 def report(out: pathlib.Path, top: int) -> str:
-  tests, events = load(out)
+  tests, procs, events = load(out)
   if not tests:
     raise SystemExit(f"error: {out / TESTS} has no tests")
   lines = [f"{len(tests)} tests; seconds ({COLUMNS}: JAX's, subprocesses included)", ""]
@@ -148,7 +149,6 @@ def report(out: pathlib.Path, top: int) -> str:
     c = events.get(t["test"], collections.Counter())
     lines.append(f"{_row(t['end'] - t['start'], t['cpu'], t['child_cpu'], c)}  {t['test']}")
   # Totals per kind of process, and how busy each worker was.
-  procs = _read(out / PROCS)
   kinds: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
   named: collections.Counter = collections.Counter()
   count: collections.Counter = collections.Counter()
