@@ -232,6 +232,62 @@ def test_a_launch_archives_each_run_with_its_noise_test_and_resumes_from_the_arc
   table_is_the_records()
 
 
+def test_settings_and_representations_narrow_a_launch_and_a_dry_run_counts_the_archive(
+  tmp_path, monkeypatch, capsys
+):
+  """`--settings gqn` keeps the rooms column only (no car, no capture column), `--representations`
+  the named cameras in the plan's order; a dry run on an empty DIR with that archive counts its
+  runs done (they are restored at launch) and writes nothing."""
+  ran = []
+  monkeypatch.setattr(launch_lib, "run_job", _fake_run_job(ran))
+  plan = transformer.plans()["lvsm_quick"]
+  counts = {c: {"model": 1000, "rep": 0} for c in plan.cameras}
+  monkeypatch.setattr(transformer, "parameter_counts", lambda plan, column="rooms": counts)
+  capture = tmp_path / "chair_prepared"
+  capture.mkdir()
+  archive = tmp_path / "archive"
+  argv = ["--size", "lvsm_quick", "--archive", str(archive), "--data", f"car_chair=nerf:{capture}"]
+  narrow = ["--settings", "gqn", "--representations", "learned_rel,raymap"]
+  assert command.main([*argv, "--out", str(tmp_path / "first"), *narrow]) == 0
+  cameras = ("raymap", "learned_rel")
+  assert [r for r in ran if r.startswith("lvsm_") and r != "lvsm_table"] == [
+    f"lvsm_rooms_{c}_seed{s}" for s in plan.seeds for c in cameras
+  ]
+  capsys.readouterr()
+
+  fresh = tmp_path / "fresh"
+  assert command.main([*argv, "--out", str(fresh), "--dry_run"]) == 0
+  text = capsys.readouterr().out
+  assert not fresh.exists()
+  runs = [line for line in text.splitlines() if "camrep.main" in line]
+  done = {line.split("--workdir=")[1].split()[0] for line in runs if line.startswith("[done]")}
+  assert done == {
+    str(fresh / "lvsm" / "rooms" / f"{c}_seed{s}") for s in plan.seeds for c in cameras
+  }
+  assert len(runs) == len(plan.cameras) * len(plan.seeds) * 3
+  noise = [line for line in text.splitlines() if "--what=noise" in line]
+  assert sum(line.startswith("[done]") for line in noise) == len(done)
+  assert "no capture column" not in text
+
+
+@pytest.mark.parametrize(
+  "extra, says",
+  [
+    (["--settings", "gibson"], "--settings gibson: --size lvsm_quick has no column of it"),
+    (["--representations", "quat"], "--representations quat: not a conditioning"),
+    (["--full_grid", "--crossed", "car"], "--full_grid, --crossed: flags of the regression plans"),
+    (["--noise_runs"], "--noise_runs: flags of the regression plans"),
+    (["--data", "gqn={dir}"], "--data gqn=DIR: --size lvsm_quick trains on its procedural"),
+  ],
+)
+def test_a_transformer_launch_refuses_what_it_would_ignore(tmp_path, capsys, extra, says):
+  extra = [x.format(dir=tmp_path) for x in extra]
+  argv = ["--size", "lvsm_quick", "--out", str(tmp_path / "cmp"), "--dry_run", *extra]
+  with pytest.raises(SystemExit) as e:
+    command.main(argv)
+  assert e.value.code == 2 and says in capsys.readouterr().err
+
+
 def test_the_committed_lvsm_table_is_that_of_its_records(tmp_path):
   """results/lvsm, the comparison's archive: one compact record per finished run and the table
   made from them, byte for byte (the launch remakes it after every run)."""

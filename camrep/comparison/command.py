@@ -37,8 +37,17 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
   )
   p.add_argument("--out", required=True, help="output directory (synthesis/, regression/, ...)")
   p.add_argument("--dry_run", action="store_true", help="print the commands and estimates only")
-  p.add_argument("--settings", default=",".join(plan_lib.SETTINGS), help="comma-separated subset")
-  p.add_argument("--representations", default="", help="comma-separated subset (default: all)")
+  p.add_argument(
+    "--settings",
+    default="",
+    help="comma-separated subset (default: all; a transformer plan's columns by their setting: "
+    "gqn the rooms, car the car and the captures)",
+  )
+  p.add_argument(
+    "--representations",
+    default="",
+    help="comma-separated subset (default: all; a transformer plan's camera conditionings)",
+  )
   p.add_argument("--full_grid", action="store_true", help="every seed at every learning rate")
   p.add_argument(
     "--no_vectorise",
@@ -100,7 +109,9 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
       f"--noise_kinds: unknown {sorted(set(kinds) - set(NOISE_KINDS))}; choose from {NOISE_KINDS}"
     )
   args.noise_kinds = kinds if args.noise_runs else []
-  args.settings = [s.strip() for s in args.settings.split(",") if s.strip()]
+  args.settings = [s.strip() for s in args.settings.split(",") if s.strip()] or list(
+    plan_lib.SETTINGS
+  )
   unknown = sorted(set(args.settings) - set(plan_lib.SETTINGS))
   if unknown:
     p.error(f"unknown settings {unknown}; choose from {plan_lib.SETTINGS}")
@@ -113,6 +124,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
   args.data = _data(p, args.data)
   if args.size in transformer.plans():
     args.plan = transformer.plans()[args.size]
+    _check_transformer_args(p, args)
     return args
   plan = sizes[args.size]
   if args.extend_grid is not None:
@@ -127,6 +139,35 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     if args.crossed not in columns or launch_lib.setting_of(args.crossed) not in args.settings:
       p.error(f"--crossed {args.crossed}: not a column of this launch ({columns})")
   return args
+
+
+# Flags of the regression plans, refused with a transformer plan rather than ignored.
+REGRESSION_ONLY = (
+  ("--full_grid", "full_grid", False),
+  ("--no_vectorise", "no_vectorise", False),
+  ("--skip_figures", "skip_figures", False),
+  ("--noise_runs", "noise_runs", False),
+  ("--extend_grid", "extend_grid", None),
+  ("--crossed", "crossed", ""),
+)
+
+
+def _check_transformer_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+  """A transformer plan takes --settings (its columns by setting) and --representations (its
+  cameras); the regression plans' own flags and real data for a setting are refused."""
+  given = [flag for flag, attr, default in REGRESSION_ONLY if getattr(args, attr) != default]
+  if given:
+    p.error(f"{', '.join(given)}: flags of the regression plans, not of --size {args.size}")
+  settings = [c for c, v in args.data.items() if not isinstance(v, tuple)]
+  if settings:
+    p.error(
+      f"--data {settings[0]}=DIR: --size {args.size} trains on its procedural columns and on "
+      "capture columns (--data car_NAME=SOURCE:DIR)"
+    )
+  try:
+    transformer.select(args.plan, args.settings, args.representations, args.data)
+  except ValueError as e:
+    p.error(str(e))
 
 
 def _data(p: argparse.ArgumentParser, items: Sequence[str]) -> dict:
@@ -288,7 +329,13 @@ def run(argv: Sequence[str] | None = None) -> int:
 def run_transformer(args: argparse.Namespace) -> int:
   """A transformer plan (`camrep.comparison.transformer`): its dry run, or its launch."""
   launch = transformer.make_launch(
-    args.plan, args.out, python=args.python, data=args.data, archive=args.archive
+    args.plan,
+    args.out,
+    python=args.python,
+    data=args.data,
+    archive=args.archive,
+    settings=args.settings,
+    cameras=args.representations,
   )
   if args.dry_run:
     transformer.print_plan(launch, commands=True, at_once=args.jobs)

@@ -14,6 +14,9 @@ Steps, each finished run skipped (a launch that stops resumes where it stopped):
   2. experiments/lvsm_table.py over DIR/lvsm -> DIR/lvsm_table.md and DIR/lvsm_noise.png
      (seed-level intervals and verdicts against the plan's baseline, raymap).
 
+`--settings` narrows the columns by their setting (gqn: rooms; car: car and the captures) and
+`--representations` the cameras; the regression plans' own flags are refused.
+
 `--archive DIR` (e.g. results/lvsm), as for the regression plans (`camrep.comparison.archive`):
 each run's compact record is written into DIR when the run ends and again with its noise curve,
 each time with the table and figure made again from every finished run (DIR's table is always
@@ -43,8 +46,15 @@ from camrep.comparison import launch as launch_lib
 from camrep.comparison import plan as plan_lib
 from camrep.runtime import progress as progress_lib
 
-# Columns of a plan that are procedural (the others are the captures of --data).
+# Columns of a plan that are procedural (the others are the captures of --data), and the
+# setting of each (`--settings` chooses columns by it; a capture column is the car setting's).
 COLUMNS = ("rooms", "car")
+SETTING_OF = {"rooms": "gqn", "car": "car"}
+
+
+def setting_of(column: str) -> str:
+  """The setting of a column: "gqn" for rooms, "car" for car and every capture column."""
+  return SETTING_OF.get(column, "car")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -166,6 +176,38 @@ def columns(plan: TransformerPlan, data: Mapping[str, Any] | None) -> list[str]:
   return [*plan.columns, *captures]
 
 
+def select(
+  plan: TransformerPlan,
+  settings: Sequence[str] = (),
+  cameras: Sequence[str] = (),
+  data: Mapping[str, Any] | None = None,
+) -> tuple[TransformerPlan, dict[str, Any]]:
+  """The plan narrowed to the columns of `settings` (by `setting_of`; the capture columns of
+  `data` follow the car setting) and to `cameras`, in the plan's order (empty: all), with the
+  capture columns of `data` it keeps. Raises ValueError on a camera the plan does not compare or
+  on settings none of whose columns it has."""
+  unknown = sorted(set(cameras) - set(plan.cameras))
+  if unknown:
+    raise ValueError(
+      f"--representations {','.join(unknown)}: not a conditioning of --size {plan.name} "
+      f"(choose from {','.join(plan.cameras)})"
+    )
+  every = columns(plan, data)
+  chosen = [c for c in every if not settings or setting_of(c) in settings]
+  if not chosen:
+    have = ", ".join(f"{setting_of(c)} ({c})" for c in every)
+    raise ValueError(
+      f"--settings {','.join(settings)}: --size {plan.name} has no column of it; its columns' "
+      f"settings: {have}"
+    )
+  narrowed = dataclasses.replace(
+    plan,
+    cameras=tuple(c for c in plan.cameras if not cameras or c in cameras),
+    columns=tuple(c for c in plan.columns if c in chosen),
+  )
+  return narrowed, {c: v for c, v in (data or {}).items() if c in chosen}
+
+
 def run_dir(out: str, column: str, camera: str, seed: int) -> str:
   return os.path.join(out, "lvsm", column, f"{camera}_seed{seed}")
 
@@ -226,10 +268,14 @@ def make_launch(
   python: str = "python",
   data: Mapping[str, Any] | None = None,
   archive: str = "",
+  settings: Sequence[str] = (),
+  cameras: Sequence[str] = (),
 ) -> TransformerLaunch:
-  """Every job of a transformer comparison into `out` (records kept in `archive`, if given)."""
+  """Every job of a transformer comparison into `out` (records kept in `archive`, if given), of
+  the columns of `settings` and the `cameras` (`select`; empty: all)."""
   out = os.path.abspath(out)
   data = {c: v for c, v in (data or {}).items() if isinstance(v, tuple)}
+  plan, data = select(plan, settings, cameras, data)
   synth = synthesis_jobs(plan, out, python, data)
   return TransformerLaunch(
     plan,
@@ -242,12 +288,23 @@ def make_launch(
   )
 
 
+def done(L: TransformerLaunch, job: launch_lib.Job) -> bool:
+  """Whether `job` is done in the launch's DIR, or will be once the archive is restored (its
+  run finished there, and DIR holds no workdir of its own that would be resumed instead)."""
+  if job.done():
+    return True
+  if not L.archive or os.path.exists(job.workdir):
+    return False
+  rel = os.path.relpath(job.workdir, L.out)
+  return dataclasses.replace(job, workdir=os.path.join(L.archive, rel)).done()
+
+
 def print_plan(L: TransformerLaunch, *, commands: bool, at_once: int = 1) -> None:
-  """The summary (runs, parameter counts, cost per step, estimate of what is not done yet);
-  with `commands`, every job with its estimate."""
+  """The summary (runs, parameter counts, cost per step, estimate of what is not done yet, the
+  archive's runs counted done); with `commands`, every job with its estimate."""
   fmt = progress_lib.format_duration
   plan = L.plan
-  todo = [j for j in L.synth + L.noise if not j.done()]
+  todo = [j for j in L.synth + L.noise if not done(L, j)]
   est = (sum(j.estimate_s for j in todo) + L.table.estimate_s) / at_once
   cols = columns(plan, L.data)
   at = f", {at_once} jobs at a time at best" if at_once > 1 else ""
@@ -258,7 +315,7 @@ def print_plan(L: TransformerLaunch, *, commands: bool, at_once: int = 1) -> Non
     f"is not done yet ({plan.where}){at}.",
     flush=True,
   )
-  if not L.data:
+  if not L.data and "car" in plan.columns:
     print(
       f"  no capture column: add --data {plan.capture} (the car setting on a shared capture)",
       flush=True,
@@ -288,7 +345,7 @@ def print_plan(L: TransformerLaunch, *, commands: bool, at_once: int = 1) -> Non
   if not commands:
     return
   for j in L.synth + L.noise:
-    print(f"[{'done' if j.done() else '~' + fmt(j.estimate_s)}] {j.command()}")
+    print(f"[{'done' if done(L, j) else '~' + fmt(j.estimate_s)}] {j.command()}")
   print(f"[~{fmt(L.table.estimate_s)}] {L.table.command()}")
 
 
