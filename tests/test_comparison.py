@@ -190,6 +190,12 @@ def test_converge_synthesis_to_its_plateau(tmp_path, capsys):
   draw = flags["synthesis_gqn_convdraw_seed0"]
   assert draw["--config.total_steps"] == "8000" and draw["--config.optax.anneal_steps"] == "6400"
   assert "--config.stop.window" not in draw
+  # On the car: the same, on the car's family (the config's `:object` variant).
+  car = next(j for j in the_launch.synth if j.name == "synthesis_car_convdraw_seed1")
+  assert "--config=configs/gqn_convdraw.py:object" in car.argv
+  assert flags["synthesis_car_convdraw_seed1"]["--config.total_steps"] == "8000"
+  assert "--config.stop.window" not in flags["synthesis_car_convdraw_seed1"]
+  assert car.estimate_s == the_launch.plan.synthesis_s["gqn_convdraw"]
   quick = importlib.import_module("camrep.configs.gqn_convdraw").get_config("quick")
   assert quick.optax.anneal_steps == 2000 * 8 // 10  # the fractions the stretch keeps
   # The flags fit the configs they go with: caps 4x their quick steps (the car 8x), the rule
@@ -412,9 +418,10 @@ def test_protocol_plan(tmp_path, capsys):
   noise = ["--size", "protocol", "--out", out, "--dry_run", "--noise_runs"]
   assert command.main([*noise, "--settings", "gibson,car"]) == 0
   text = capsys.readouterr().out
-  for name in ("gibson_lowdim_seed0", "gibson_mlp_seed0", "car_lowdim_seed0"):
+  for name in ("gibson_lowdim_seed0", "gibson_mlp_seed0", "car_lowdim_seed0", "car_convdraw_seed0"):
     assert f"--workdir={out}/synthesis/{name} " in text
-  assert "car_convdraw" not in text and "noise_gibson" in text
+  assert "gibson_convdraw" not in text and "noise_gibson" in text
+  assert "--config=configs/gqn_convdraw.py:object " in text
 
 
 def test_plan_refuses_convdraw_where_there_is_no_context(monkeypatch):
@@ -424,11 +431,14 @@ def test_plan_refuses_convdraw_where_there_is_no_context(monkeypatch):
       for s, v in plan._read()["settings"].items()
     }
   }
-  data["settings"]["car"]["noise_inputs"] = ["lowdim", "convdraw"]
+  data["settings"]["gibson"]["noise_inputs"] = ["lowdim", "convdraw"]
   monkeypatch.setattr(plan, "_read", lambda: data)
   plan.settings.cache_clear()
   try:
-    with pytest.raises(ValueError, match="convdraw.*reads context views"):
+    with pytest.raises(ValueError, match="convdraw.*reads context views.*no convdraw_variant"):
+      plan.settings()
+    data["settings"]["gibson"]["convdraw_variant"] = "area"  # not a variant of the config
+    with pytest.raises(ValueError, match="unknown config variant 'area'"):
       plan.settings()
   finally:
     plan.settings.cache_clear()

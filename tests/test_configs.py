@@ -110,3 +110,32 @@ def test_configs_resolve_as_before():
   # gqn_convdraw refuses `:medium`, as before.
   with pytest.raises(ValueError):
     _resolved("gqn_convdraw", "medium")
+
+
+@pytest.mark.parametrize("name", ["gqn_convdraw", "lvsm"])
+def test_an_object_variant_is_quick_on_the_car_settings_family(name):
+  """`:object` differs from `:quick` only in the data source, the family and the number of
+  evaluation scenes, which are configs/shapenet_car.py:quick's (the same held-out targets)."""
+  from camrep.configs import shapenet_car
+
+  def flat(tree, prefix=""):
+    out = {}
+    for k, v in tree.items():
+      out.update(flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+  module = importlib.import_module(f"camrep.configs.{name}")
+  quick, obj = (
+    flat(module.get_config("quick").to_dict()),
+    flat(module.get_config("object").to_dict()),
+  )
+  car = flat(shapenet_car.get_config("quick").to_dict())
+  differ = {k for k in quick.keys() | obj.keys() if quick.get(k) != obj.get(k)}
+  assert {k for k in differ if not k.startswith("data.family.")} == {
+    "data.source",
+    "evals.num_scenes",
+  }
+  family = {k: v for k, v in obj.items() if k.startswith("data.family.")}
+  assert family == {k: v for k, v in car.items() if k.startswith("data.family.")}
+  assert obj["data.source"] == car["data.source"] == "object"
+  assert obj["evals.num_scenes"] == car["evals.num_scenes"]

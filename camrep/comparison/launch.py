@@ -239,12 +239,13 @@ def synthesis_jobs(
     if cap is not None:  # a capture column: the car setting on the capture, one instance a step
       kind = name[len(cap) + 1 :]  # "" (the learned system), "mlp" or "frozen_gen"
     wd = os.path.join(out, "synthesis", full)
-    config = (
-      "configs/gqn_convdraw.py"  # GQN's own generator, fed GQN's 7-D pose vector
-      if kind == "convdraw"
-      else plan_lib.settings()[setting]["synthesis_config"]
-    )
-    argv = [py, "-m", "camrep.main", f"--config={config}{plan.suffix}", f"--workdir={wd}"]
+    if kind == "convdraw":  # GQN's own generator, fed GQN's low-dimensional pose vector
+      config = plan.convdraw_config(setting)
+      if config is None:
+        raise ValueError(f"{full}: GQN's generator has no config at --size {plan.name}")
+    else:
+      config = plan_lib.settings()[setting]["synthesis_config"] + plan.suffix
+    argv = [py, "-m", "camrep.main", f"--config={config}", f"--workdir={wd}"]
     if kind == plan_lib.FROZEN_GENERATORS:
       argv.append("--config.rep.freeze_generators=True")
     elif kind and kind != "convdraw":
@@ -587,11 +588,11 @@ def make_launch(
       suffix = plan_lib.synthesis_suffix(rep)
       if suffix is not None and c + suffix not in names:
         names.append(c + suffix)
-  kinds = [k for k in noise_kinds or () if k != "convdraw" or plan.has_convdraw()]
   for s in columns if noise_kinds else []:
     inputs = plan_lib.settings().get(s, {}).get("noise_inputs", ())
+    kinds = [k for k in noise_kinds if k in inputs and (k != "convdraw" or plan.convdraw_config(s))]
     if inputs:  # the noise figure's other pose inputs of the setting
-      names += [n for n in [s, *(f"{s}_{k}" for k in kinds if k in inputs)] if n not in names]
+      names += [n for n in [s, *(f"{s}_{k}" for k in kinds)] if n not in names]
   if plan.paired_synthesis:  # one synthesis run per seed, paired with the regression seed
     names = [f"{n}_seed{k}" for n in names for k in plan.seeds]
   data = {c: d for c, d in data.items() if c in columns}

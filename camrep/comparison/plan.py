@@ -28,7 +28,8 @@ PLANS_FILE = pathlib.Path(__file__).with_name("plans.toml")
 SETTINGS = settings_lib.names()
 NOISE_INPUTS = ("lowdim", "mlp", "convdraw")
 """The noise figure's other pose inputs (`noise_inputs` of a setting, `--noise_kinds`): GQN's
-low-dimensional vector, the MLP embedding, GQN's own generator (ConvDRAW, GQN's layout only)."""
+low-dimensional vector, the MLP embedding, GQN's own generator (ConvDRAW: GQN's layout, the rooms'
+own or a setting's `convdraw_variant`)."""
 FROZEN_GENERATORS = "frozen_gen"
 """The view-synthesis run kind "<column>_frozen_gen": the learned grid with
 `--config.rep.freeze_generators=True` (the "frozen_gen" control's pose system)."""
@@ -44,7 +45,7 @@ class Plan:
     seeds: regression seeds (and synthesis seeds where `paired_synthesis`).
     lrs: learning-rate grid per setting.
     synthesis_s: estimated seconds per view-synthesis run, per setting ("capture": a capture
-      column's; "gqn_convdraw": GQN's generator), where given.
+      column's; "<setting>_convdraw": GQN's generator), where given.
     regression_s: estimated seconds per regression run (data cached), per setting.
     data_s: one-time rendering of a setting's regression data, seconds.
     evaluate_s: `camrep.synthesis.evaluate` of one synthesis run, seconds.
@@ -96,9 +97,14 @@ class Plan:
     """The `:variant` of its config arguments ("" at paper size)."""
     return f":{self.variant}" if self.variant else ""
 
-  def has_convdraw(self) -> bool:
-    """Whether GQN's generator has a config at this plan's variant."""
-    return self.variant in common.NO_MEDIUM
+  def convdraw_config(self, setting: str) -> str | None:
+    """The `--config` of GQN's generator on `setting` at this plan's variant: the rooms' own
+    variant, or the setting's `convdraw_variant` (plans.toml) where the plan's is "quick"; None
+    where it has none (`:medium`)."""
+    variant = settings()[setting].get("convdraw_variant")
+    if variant:
+      return f"configs/gqn_convdraw.py:{variant}" if self.variant == "quick" else None
+    return f"configs/gqn_convdraw.py{self.suffix}" if self.variant in common.NO_MEDIUM else None
 
 
 def real_source(setting: str) -> str:
@@ -137,11 +143,14 @@ def settings() -> dict[str, dict[str, Any]]:
       raise ValueError(
         f"{PLANS_FILE}: {name}: unknown noise_inputs {sorted(bad)}; choose from {NOISE_INPUTS}"
       )
-    if "convdraw" in kinds and not settings_lib.get(name).context_views:
+    variant = s.get("convdraw_variant")
+    if "convdraw" in kinds and not (settings_lib.get(name).context_views or variant):
       raise ValueError(
         f"{PLANS_FILE}: {name}: GQN's generator (convdraw) reads context views (task gqn); "
-        f"the {name} setting has none"
+        f"the {name} setting has none and no convdraw_variant puts its family in that layout"
       )
+    if variant:
+      gqn_convdraw_config.get_config(variant)  # a ValueError names the config's variants
   # In plans.toml's order: the order of the tables' columns.
   return {
     n: {
@@ -214,7 +223,9 @@ def _plan(name: str, d: Mapping[str, Any]) -> Plan:
     est["synthesis_overhead_s"]
     + est["synthesis_share"] * syn_caps["car"] * est["capture_synthesis_step_s"]
   )
-  syn_s["gqn_convdraw"] = est["convdraw_overhead_s"] + convdraw * est["convdraw_step_s"]
+  for s in SETTINGS:  # GQN's generator, where a setting's noise figure has it
+    if "convdraw" in settings()[s]["noise_inputs"]:
+      syn_s[f"{s}_convdraw"] = est["convdraw_overhead_s"] + convdraw * est["convdraw_step_s"]
   reg_s = {
     s: est["regression_overhead_s"] + est["regression_share"] * reg_caps[s] * t
     for s, t in est["regression_step_s"].items()

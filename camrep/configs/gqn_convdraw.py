@@ -24,6 +24,12 @@ b2 0.999, eps 1e-8); batch 36 scenes in GQN, here the camrep GQN layout (30 scen
     rooms (wall_style=tinted) 19.72 against 19.12 dB; there, with GQN's plain ELBO
     (--config.loss.kl_weight_initial=1) 18.92 dB, below the baseline: the prior ignored the pose
     (BUILD_NOTES "GQN generator (ConvDRAW)").
+  python -m camrep.main --config=configs/gqn_convdraw.py:object --workdir=/tmp/gqn_convdraw_car
+    `:quick` on the car setting's procedural family (configs/shapenet_car.py:quick's `object`
+    instances, the same held-out targets: the first test view of each of its first 32
+    instances), 3 context views of the instance (the paper's GQN on cars: 15) and GQN's
+    low-dimensional pose (sin / cos of the azimuth and polar angle): the paper's GQN baseline on
+    the car (its section 5.2), which the comparison's `--noise_runs` trains on the car column.
   python -m camrep.main --config=configs/gqn_convdraw.py:smoke --workdir=/tmp/gqn_convdraw_smoke
     seconds; for tests.
   python -m camrep.synthesis.evaluate --workdir W --what=noise
@@ -32,7 +38,7 @@ b2 0.999, eps 1e-8); batch 36 scenes in GQN, here the camrep GQN layout (30 scen
 
 from __future__ import annotations
 
-from camrep.configs import common, gqn
+from camrep.configs import common, gqn, shapenet_car
 
 
 def quick_schedules(total_steps: int) -> dict[str, int]:
@@ -48,7 +54,10 @@ def quick_schedules(total_steps: int) -> dict[str, int]:
 
 
 def get_config(arg: str | None = None):
-  common.parse_arg(arg, common.NO_MEDIUM)  # no `:medium` size for the generator yet
+  # No `:medium` size for the generator yet; `:object` is `:quick` on the car's family.
+  arg = common.parse_arg(arg, (*common.NO_MEDIUM, "object"))
+  on_objects = arg == "object"
+  arg = "quick" if on_objects else arg
   c = gqn.get_config(arg)  # data, layout and durations of the GQN-rooms setting and variant
   c.model.kind = "convdraw"
   # The generator's own fields (no other config has them; the decoders never read them).
@@ -95,6 +104,11 @@ def get_config(arg: str | None = None):
     # pose-conditioned path (19.72 dB). camrep option; GQN's paper size keeps beta = 1.
     c.loss.kl_weight_initial = 10.0
     c.loss.kl_anneal_steps = schedules["loss.kl_anneal_steps"]
+  if on_objects:  # the car setting's family and evaluation set, as configs/shapenet_car.py:quick
+    car = shapenet_car.get_config("quick")
+    c.data.source = car.data.source
+    c.data.family = car.data.family
+    c.evals.num_scenes = car.evals.num_scenes
   elif arg == "smoke":
     c.model.draw_steps = 2
     c.loss.sigma_anneal_steps = c.total_steps

@@ -35,9 +35,7 @@ capture", step 1): `--config.data.source=llff --config.data.dir=DIR
 
 from __future__ import annotations
 
-import ml_collections
-
-from camrep.configs import common, gqn
+from camrep.configs import common, gqn, shapenet_car
 
 
 def get_config(arg: str | None = None):
@@ -79,10 +77,9 @@ def get_config(arg: str | None = None):
     c.rep.n_blocks = 2  # 3 x 2 x 2 = 12 of MVTTiny's 16 head dims
     c.data.n_context = 2
     c.evals.context_counts = (1, 3)
-  if on_objects:  # the car setting's procedural family, as configs/shapenet_car.py:quick
-    c.data.source = "object"
-    c.data.family = ml_collections.ConfigDict(
-      dict(image_size=64, num_train_scenes=64, num_test_scenes=8, train_views=24, test_views=4)
-    )
-    c.evals.num_scenes = 32
+  if on_objects:  # the car setting's family and evaluation set, as configs/shapenet_car.py:quick
+    car = shapenet_car.get_config("quick")
+    c.data.source = car.data.source
+    c.data.family = car.data.family
+    c.evals.num_scenes = car.evals.num_scenes
   return c
