@@ -270,6 +270,18 @@ def test_settings_and_representations_narrow_a_launch_and_a_dry_run_counts_the_a
   assert "no capture column" not in text
 
 
+def test_a_transformer_launch_past_its_max_hours_starts_nothing_and_says_how_to_resume(
+  tmp_path, monkeypatch, capsys
+):
+  ran = []
+  monkeypatch.setattr(launch_lib, "run_job", _fake_run_job(ran))
+  argv = ["--size", "lvsm_quick", "--out", str(tmp_path / "cmp"), "--max_hours", "1e-9"]
+  assert command.main(argv) == 0
+  out = capsys.readouterr().out
+  assert ran == [] and "not started (--max_hours)" in out
+  assert "--max_hours 1e-09 reached after" in out and "run the same command again" in out
+
+
 @pytest.mark.parametrize(
   "extra, says",
   [

@@ -310,12 +310,7 @@ def run(argv: Sequence[str] | None = None) -> int:
   if isinstance(ran, int):
     return ran
   failed, took = ran
-  if deadline is not None and time.monotonic() > deadline:
-    print(
-      f"--max_hours {args.max_hours:g} reached after {took}: runs not started; run the same "
-      "command again to resume",
-      flush=True,
-    )
+  if _stopped_at_deadline(args, deadline, took):
     return 1 if failed else 0
   if failed:
     print(f"finished in {took} with {len(failed)} failures: {', '.join(failed)}", flush=True)
@@ -324,6 +319,18 @@ def run(argv: Sequence[str] | None = None) -> int:
     f"finished in {took}; tables in {launch.out}/table1.md and {launch.out}/table2.md", flush=True
   )
   return 0
+
+
+def _stopped_at_deadline(args: argparse.Namespace, deadline: float | None, took: str) -> bool:
+  """Whether the launch passed its --max_hours deadline (runs left unstarted); says so."""
+  if deadline is None or time.monotonic() <= deadline:
+    return False
+  print(
+    f"--max_hours {args.max_hours:g} reached after {took}: runs not started; run the same "
+    "command again to resume",
+    flush=True,
+  )
+  return True
 
 
 def run_transformer(args: argparse.Namespace) -> int:
@@ -341,7 +348,10 @@ def run_transformer(args: argparse.Namespace) -> int:
     transformer.print_plan(launch, commands=True, at_once=args.jobs)
     return 0
 
+  deadline = None
+
   def body() -> list[str]:
+    nonlocal deadline
     if launch.archive:
       n = archive_lib.restore(launch.archive, launch.out)
       print(f"restored {n} finished runs from the archive {launch.archive}", flush=True)
@@ -353,6 +363,8 @@ def run_transformer(args: argparse.Namespace) -> int:
   if isinstance(ran, int):
     return ran
   failed, took = ran
+  if _stopped_at_deadline(args, deadline, took):
+    return 1 if failed else 0
   if failed:
     print(f"finished in {took} with {len(failed)} failures: {', '.join(failed)}", flush=True)
     return 1
