@@ -223,6 +223,12 @@ def test_a_new_machine_restores_the_archive_and_trains_only_what_is_missing(
   plan = capsys.readouterr().out
   assert "plus up to 0 phase-1 runs" in plan and "phase 2] " in plan
   assert plan.count("[done, phase 2]") == 4 and "<LR>" not in plan.split("(phase 2:")[0]
+  # A dry run on a DIR the archive has not been restored into says that its runs show as to do.
+  assert rc.main(_args(tmp_path / "fourth", archive, "--dry_run")) == 0
+  first = capsys.readouterr().out.splitlines()[0]
+  n = len(list(archive.glob("synthesis/*")) + list(archive.glob("regression/*/*/*")))
+  assert first.startswith(f"--archive {archive}: its {n} runs are restored when the launch")
+  assert not (tmp_path / "fourth").exists()
 
 
 def test_a_raised_cap_resumes_a_synthesis_run_that_reached_the_old_one(rc, tmp_path):

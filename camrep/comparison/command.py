@@ -289,6 +289,13 @@ def run(argv: Sequence[str] | None = None) -> int:
   launch = make_launch(args)
   if args.dry_run:
     try:
+      if launch.archive and os.path.isdir(launch.archive):
+        n = len(archive_lib.run_dirs(launch.archive))
+        print(
+          f"--archive {launch.archive}: its {n} runs are restored when the launch starts; this "
+          f"dry run reads {launch.out} only: those it lacks show as not done",
+          flush=True,
+        )
       launch_lib.print_plan(launch, commands=True, at_once=args.jobs)
       sys.stdout.flush()
     except BrokenPipeError:  # `--dry_run | head -1`: the reader has what it wanted
