@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import os
 import pathlib
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -280,6 +282,25 @@ def test_a_transformer_launch_past_its_max_hours_starts_nothing_and_says_how_to_
   out = capsys.readouterr().out
   assert ran == [] and "not started (--max_hours)" in out
   assert "--max_hours 1e-09 reached after" in out and "run the same command again" in out
+
+
+@pytest.mark.parametrize("size", ["lvsm_quick", "quick"])
+def test_a_dry_run_whose_reader_has_gone_ends_without_a_traceback(tmp_path, size):
+  """`--dry_run | head -1`: a reader that has closed the pipe; the launcher exits 0 without a
+  BrokenPipeError traceback, for a transformer plan as for a regression plan (the pipe's read
+  end is closed before the launcher starts, so its first line already meets a closed pipe)."""
+  root = pathlib.Path(__file__).resolve().parents[1]
+  argv = [sys.executable, "-m", "camrep.comparison", "--size", size, "--out", str(tmp_path)]
+  read, write = os.pipe()
+  os.close(read)
+  try:
+    p = subprocess.run(
+      [*argv, "--dry_run"], cwd=root, stdout=write, stderr=subprocess.PIPE, timeout=300
+    )
+  finally:
+    os.close(write)
+  err = p.stderr.decode()
+  assert p.returncode == 0 and "Traceback" not in err, err
 
 
 @pytest.mark.parametrize(

@@ -9,7 +9,7 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from camrep.comparison import archive as archive_lib
 from camrep.comparison import launch as launch_lib
@@ -288,7 +288,8 @@ def run(argv: Sequence[str] | None = None) -> int:
     return run_transformer(args)
   launch = make_launch(args)
   if args.dry_run:
-    try:
+
+    def plan() -> None:
       if launch.archive and os.path.isdir(launch.archive):
         n = len(archive_lib.run_dirs(launch.archive))
         print(
@@ -297,10 +298,8 @@ def run(argv: Sequence[str] | None = None) -> int:
           flush=True,
         )
       launch_lib.print_plan(launch, commands=True, at_once=args.jobs)
-      sys.stdout.flush()
-    except BrokenPipeError:  # `--dry_run | head -1`: the reader has what it wanted
-      os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-    return 0
+
+    return _dry_run(plan)
   deadline = None
 
   def body() -> list[str]:
@@ -328,6 +327,17 @@ def run(argv: Sequence[str] | None = None) -> int:
   return 0
 
 
+def _dry_run(print_plan: Callable[[], None]) -> int:
+  """Prints a dry run's plan; a reader that closes the pipe early (`--dry_run | head -1`) has
+  what it wanted: no traceback."""
+  try:
+    print_plan()
+    sys.stdout.flush()
+  except BrokenPipeError:
+    os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+  return 0
+
+
 def _stopped_at_deadline(args: argparse.Namespace, deadline: float | None, took: str) -> bool:
   """Whether the launch passed its --max_hours deadline (runs left unstarted); says so."""
   if deadline is None or time.monotonic() <= deadline:
@@ -352,8 +362,7 @@ def run_transformer(args: argparse.Namespace) -> int:
     cameras=args.representations,
   )
   if args.dry_run:
-    transformer.print_plan(launch, commands=True, at_once=args.jobs)
-    return 0
+    return _dry_run(lambda: transformer.print_plan(launch, commands=True, at_once=args.jobs))
 
   deadline = None
 
