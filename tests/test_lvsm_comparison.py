@@ -176,18 +176,26 @@ def _fake_run_job(ran):
   return run_job
 
 
-def test_a_launch_archives_each_run_with_its_noise_test_and_resumes_from_the_archive(
-  tmp_path, monkeypatch, capsys
-):
-  """`--archive`: each run's noise test follows it at once, every record is in the archive with
-  its noise curve, and so is the table of those records, made again after each; a launch on an
-  empty DIR restores them and trains nothing, and a restored run whose noise test is missing
-  (archived before it ran) is trained again with it."""
+@pytest.fixture
+def fake_launcher(monkeypatch):
+  """The launcher with `_fake_run_job` and parameter counts not built from models: (the names of
+  the jobs it runs, in order; the lvsm_quick plan)."""
   ran = []
   monkeypatch.setattr(launch_lib, "run_job", _fake_run_job(ran))
   plan = transformer.plans()["lvsm_quick"]
   counts = {c: {"model": 1000, "rep": 0} for c in plan.cameras}
   monkeypatch.setattr(transformer, "parameter_counts", lambda plan, column="rooms": counts)
+  return ran, plan
+
+
+def test_a_launch_archives_each_run_with_its_noise_test_and_resumes_from_the_archive(
+  tmp_path, fake_launcher, capsys
+):
+  """`--archive`: each run's noise test follows it at once, every record is in the archive with
+  its noise curve, and so is the table of those records, made again after each; a launch on an
+  empty DIR restores them and trains nothing, and a restored run whose noise test is missing
+  (archived before it ran) is trained again with it."""
+  ran, plan = fake_launcher
   archive = tmp_path / "archive"
 
   def launch(out):
@@ -235,16 +243,12 @@ def test_a_launch_archives_each_run_with_its_noise_test_and_resumes_from_the_arc
 
 
 def test_settings_and_representations_narrow_a_launch_and_a_dry_run_counts_the_archive(
-  tmp_path, monkeypatch, capsys
+  tmp_path, fake_launcher, capsys
 ):
   """`--settings gqn` keeps the rooms column only (no car, no capture column), `--representations`
   the named cameras in the plan's order; a dry run on an empty DIR with that archive counts its
   runs done (they are restored at launch) and writes nothing."""
-  ran = []
-  monkeypatch.setattr(launch_lib, "run_job", _fake_run_job(ran))
-  plan = transformer.plans()["lvsm_quick"]
-  counts = {c: {"model": 1000, "rep": 0} for c in plan.cameras}
-  monkeypatch.setattr(transformer, "parameter_counts", lambda plan, column="rooms": counts)
+  ran, plan = fake_launcher
   capture = tmp_path / "chair_prepared"
   capture.mkdir()
   archive = tmp_path / "archive"
@@ -273,10 +277,9 @@ def test_settings_and_representations_narrow_a_launch_and_a_dry_run_counts_the_a
 
 
 def test_a_transformer_launch_past_its_max_hours_starts_nothing_and_says_how_to_resume(
-  tmp_path, monkeypatch, capsys
+  tmp_path, fake_launcher, capsys
 ):
-  ran = []
-  monkeypatch.setattr(launch_lib, "run_job", _fake_run_job(ran))
+  ran, _ = fake_launcher
   argv = ["--size", "lvsm_quick", "--out", str(tmp_path / "cmp"), "--max_hours", "1e-9"]
   assert command.main(argv) == 0
   out = capsys.readouterr().out
