@@ -41,6 +41,7 @@ import threading
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from camrep import settings as settings_lib
 from camrep.comparison import archive as archive_lib
 from camrep.comparison import launch as launch_lib
 from camrep.comparison import plan as plan_lib
@@ -49,12 +50,12 @@ from camrep.runtime import progress as progress_lib
 # Columns of a plan that are procedural (the others are the captures of --data), and the
 # setting of each (`--settings` chooses columns by it; a capture column is the car setting's).
 COLUMNS = ("rooms", "car")
-SETTING_OF = {"rooms": "gqn", "car": "car"}
+SETTING_OF = {"rooms": settings_lib.GQN, "car": settings_lib.CAR}
 
 
 def setting_of(column: str) -> str:
-  """The setting of a column: "gqn" for rooms, "car" for car and every capture column."""
-  return SETTING_OF.get(column, "car")
+  """The setting name of a column: the rooms' GQN, the car's and every capture column's car."""
+  return SETTING_OF.get(column, settings_lib.CAR).name
 
 
 @dataclasses.dataclass(frozen=True)
@@ -315,7 +316,7 @@ def print_plan(L: TransformerLaunch, *, commands: bool, at_once: int = 1) -> Non
     f"is not done yet ({plan.where}){at}.",
     flush=True,
   )
-  if not L.data and "car" in plan.columns:
+  if not L.data and settings_lib.CAR.name in map(setting_of, plan.columns):
     print(
       f"  no capture column: add --data {plan.capture} (the car setting on a shared capture)",
       flush=True,
