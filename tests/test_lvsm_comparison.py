@@ -274,6 +274,15 @@ def test_settings_and_representations_narrow_a_launch_and_a_dry_run_counts_the_a
   noise = [line for line in text.splitlines() if "--what=noise" in line]
   assert sum(line.startswith("[done]") for line in noise) == len(done)
   assert "no capture column" not in text
+  # An archived run without its noise test is trained again at launch: not done in a dry run.
+  cut = archive / "lvsm" / "rooms" / "raymap_seed1" / "run.json"
+  record = json.loads(cut.read_text())
+  del record["noise"]
+  cut.write_text(json.dumps(record))
+  assert command.main([*argv, "--out", str(fresh), "--dry_run"]) == 0
+  lines = capsys.readouterr().out.splitlines()
+  raymap1 = [line for line in lines if f"{fresh}/lvsm/rooms/raymap_seed1" in line]
+  assert len(raymap1) == 2 and not any(line.startswith("[done]") for line in raymap1)
 
 
 def test_a_transformer_launch_past_its_max_hours_starts_nothing_and_says_how_to_resume(

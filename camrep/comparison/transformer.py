@@ -290,14 +290,16 @@ def make_launch(
 
 
 def done(L: TransformerLaunch, job: launch_lib.Job) -> bool:
-  """Whether `job` is done in the launch's DIR, or will be once the archive is restored (its
-  run finished there, and DIR holds no workdir of its own that would be resumed instead)."""
+  """Whether `job` is done in the launch's DIR, or will be once the archive is restored: its run
+  finished there with its noise test (`execute` trains a restored run without one again), and
+  DIR holds no workdir of its own that would be resumed instead."""
   if job.done():
     return True
   if not L.archive or os.path.exists(job.workdir):
     return False
   rel = os.path.relpath(job.workdir, L.out)
-  return dataclasses.replace(job, workdir=os.path.join(L.archive, rel)).done()
+  archived = dataclasses.replace(job, workdir=os.path.join(L.archive, rel))
+  return archived.done() and dataclasses.replace(archived, kind="evaluate").done()
 
 
 def print_plan(L: TransformerLaunch, *, commands: bool, at_once: int = 1) -> None:
