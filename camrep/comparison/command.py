@@ -143,19 +143,19 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 # Flags of the regression plans, refused with a transformer plan rather than ignored.
 REGRESSION_ONLY = (
-  ("--full_grid", "full_grid", False),
-  ("--no_vectorise", "no_vectorise", False),
-  ("--skip_figures", "skip_figures", False),
-  ("--noise_runs", "noise_runs", False),
-  ("--extend_grid", "extend_grid", None),
-  ("--crossed", "crossed", ""),
+  "full_grid",
+  "no_vectorise",
+  "skip_figures",
+  "noise_runs",
+  "extend_grid",
+  "crossed",
 )
 
 
 def _check_transformer_args(p: argparse.ArgumentParser, args: argparse.Namespace) -> None:
   """A transformer plan takes --settings (its columns by setting) and --representations (its
   cameras); the regression plans' own flags and real data for a setting are refused."""
-  given = [flag for flag, attr, default in REGRESSION_ONLY if getattr(args, attr) != default]
+  given = [f"--{a}" for a in REGRESSION_ONLY if getattr(args, a) != p.get_default(a)]
   if given:
     p.error(f"{', '.join(given)}: flags of the regression plans, not of --size {args.size}")
   settings = [c for c, v in args.data.items() if not isinstance(v, tuple)]

@@ -104,13 +104,10 @@ def get_config(arg: str | None = None):
     # pose-conditioned path (19.72 dB). camrep option; GQN's paper size keeps beta = 1.
     c.loss.kl_weight_initial = 10.0
     c.loss.kl_anneal_steps = schedules["loss.kl_anneal_steps"]
-  if on_objects:  # the car setting's family and evaluation set, as configs/shapenet_car.py:quick
-    car = shapenet_car.get_config("quick")
-    c.data.source = car.data.source
-    c.data.family = car.data.family
-    c.evals.num_scenes = car.evals.num_scenes
   elif arg == "smoke":
     c.model.draw_steps = 2
     c.loss.sigma_anneal_steps = c.total_steps
     c.optax.anneal_steps = c.total_steps
+  if on_objects:
+    shapenet_car.on_quick_objects(c)
   return c

@@ -77,9 +77,6 @@ def get_config(arg: str | None = None):
     c.rep.n_blocks = 2  # 3 x 2 x 2 = 12 of MVTTiny's 16 head dims
     c.data.n_context = 2
     c.evals.context_counts = (1, 3)
-  if on_objects:  # the car setting's family and evaluation set, as configs/shapenet_car.py:quick
-    car = shapenet_car.get_config("quick")
-    c.data.source = car.data.source
-    c.data.family = car.data.family
-    c.evals.num_scenes = car.evals.num_scenes
+  if on_objects:
+    shapenet_car.on_quick_objects(c)
   return c
