@@ -418,10 +418,12 @@ def test_protocol_plan(tmp_path, capsys):
   noise = ["--size", "protocol", "--out", out, "--dry_run", "--noise_runs"]
   assert command.main([*noise, "--settings", "gibson,car"]) == 0
   text = capsys.readouterr().out
-  for name in ("gibson_lowdim_seed0", "gibson_mlp_seed0", "car_lowdim_seed0", "car_convdraw_seed0"):
-    assert f"--workdir={out}/synthesis/{name} " in text
-  assert "gibson_convdraw" not in text and "noise_gibson" in text
-  assert "--config=configs/gqn_convdraw.py:object " in text
+  names = ("gibson_lowdim", "gibson_mlp", "gibson_convdraw", "car_lowdim", "car_convdraw")
+  for name in names:
+    assert f"--workdir={out}/synthesis/{name}_seed0 " in text
+  assert "noise_gibson" in text
+  for variant in ("object", "area"):
+    assert f"--config=configs/gqn_convdraw.py:{variant} " in text
 
 
 def test_plan_refuses_convdraw_where_there_is_no_context(monkeypatch):
@@ -432,13 +434,14 @@ def test_plan_refuses_convdraw_where_there_is_no_context(monkeypatch):
     }
   }
   data["settings"]["gibson"]["noise_inputs"] = ["lowdim", "convdraw"]
+  del data["settings"]["gibson"]["convdraw_variant"]
   monkeypatch.setattr(plan, "_read", lambda: data)
   plan.settings.cache_clear()
   try:
     with pytest.raises(ValueError, match="convdraw.*reads context views.*no convdraw_variant"):
       plan.settings()
-    data["settings"]["gibson"]["convdraw_variant"] = "area"  # not a variant of the config
-    with pytest.raises(ValueError, match="unknown config variant 'area'"):
+    data["settings"]["gibson"]["convdraw_variant"] = "bogus"  # not a variant of the config
+    with pytest.raises(ValueError, match="unknown config variant 'bogus'"):
       plan.settings()
   finally:
     plan.settings.cache_clear()

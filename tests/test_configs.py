@@ -112,11 +112,18 @@ def test_configs_resolve_as_before():
     _resolved("gqn_convdraw", "medium")
 
 
-@pytest.mark.parametrize("name", ["gqn_convdraw", "lvsm"])
-def test_an_object_variant_is_quick_on_the_car_settings_family(name):
-  """`:object` differs from `:quick` only in the data source, the family and the number of
-  evaluation scenes, which are configs/shapenet_car.py:quick's (the same held-out targets)."""
-  from camrep.configs import shapenet_car
+@pytest.mark.parametrize(
+  "name, variant, setting_config, source",
+  [
+    ("gqn_convdraw", "object", "shapenet_car", "object"),
+    ("lvsm", "object", "shapenet_car", "object"),
+    ("gqn_convdraw", "area", "gibson", "area"),
+  ],
+)
+def test_a_family_variant_is_quick_on_its_settings_family(name, variant, setting_config, source):
+  """`:object` (`:area`) differs from `:quick` only in the data source, the family, the number of
+  evaluation scenes and, where the family has fewer scenes than a batch, the scenes a step: those
+  of configs/shapenet_car.py:quick (configs/gibson.py:quick), the same held-out targets."""
 
   def flat(tree, prefix=""):
     out = {}
@@ -127,15 +134,20 @@ def test_an_object_variant_is_quick_on_the_car_settings_family(name):
   module = importlib.import_module(f"camrep.configs.{name}")
   quick, obj = (
     flat(module.get_config("quick").to_dict()),
-    flat(module.get_config("object").to_dict()),
+    flat(module.get_config(variant).to_dict()),
   )
-  car = flat(shapenet_car.get_config("quick").to_dict())
+  own = flat(
+    importlib.import_module(f"camrep.configs.{setting_config}").get_config("quick").to_dict()
+  )
   differ = {k for k in quick.keys() | obj.keys() if quick.get(k) != obj.get(k)}
-  assert {k for k in differ if not k.startswith("data.family.")} == {
-    "data.source",
-    "evals.num_scenes",
-  }
+  allowed = {"data.source", "evals.num_scenes", "evals.batch_scenes", "data.scenes_per_device"}
+  differ -= {k for k in differ if k.startswith("data.family.")}
+  assert {"data.source", "evals.num_scenes"} <= differ <= allowed
   family = {k: v for k, v in obj.items() if k.startswith("data.family.")}
-  assert family == {k: v for k, v in car.items() if k.startswith("data.family.")}
-  assert obj["data.source"] == car["data.source"] == "object"
-  assert obj["evals.num_scenes"] == car["evals.num_scenes"]
+  assert family == {k: v for k, v in own.items() if k.startswith("data.family.")}
+  assert obj["data.source"] == own["data.source"] == source
+  assert obj["evals.num_scenes"] == own["evals.num_scenes"]
+  # A step draws its scenes without replacement from the family.
+  scenes = obj.get("data.family.num_scenes") or obj.get("data.family.num_train_scenes")
+  if scenes is not None:
+    assert obj["data.scenes_per_device"] <= scenes

@@ -25,8 +25,9 @@ dry run names them, a launch moves them, in DIR and the archive alike, to
      each column's learned system with frozen generators (<column>_frozen_gen,
      `--config.rep.freeze_generators=True`); with --noise_runs each setting's other pose inputs
      (plans.toml `noise_inputs`: GQN's lowdim, mlp and its own generator, configs/gqn_convdraw.py,
-     not at medium size; the car's lowdim and ConvDRAW, configs/gqn_convdraw.py:object, at quick
-     width only; the area's lowdim and mlp);
+     not at medium size; the car's lowdim and ConvDRAW, configs/gqn_convdraw.py:object; the
+     area's lowdim, mlp and ConvDRAW, configs/gqn_convdraw.py:area; :object and :area at quick
+     width only);
   2. regression runs (`python -m camrep.regression
      --config=configs/regression.py:SETTING[,variant]`)
      into DIR/regression/<column>/<representation>/<lr>_seed<k>: phase 1 trains seed 0 at every

@@ -22,6 +22,18 @@ from __future__ import annotations
 from camrep.configs import common
 
 
+def on_quick_areas(c) -> None:
+  """Sets `c` (a context-view config's `:quick`) to `:quick`'s procedural areas and evaluation
+  set here: the same 4 areas and held-out targets (configs/gqn_convdraw.py's `:area`). A batch
+  holds at most the family's 4 areas: a step draws its scenes without replacement."""
+  area = get_config("quick")
+  c.data.source = area.data.source
+  c.data.family = area.data.family
+  c.data.scenes_per_device = min(c.data.scenes_per_device, area.data.family.num_scenes)
+  c.evals.num_scenes = area.evals.num_scenes
+  c.evals.batch_scenes = area.evals.batch_scenes
+
+
 def get_config(arg: str | None = None):
   variant = common.parse_arg(arg)
   c = common.base()

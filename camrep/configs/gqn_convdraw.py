@@ -30,6 +30,11 @@ b2 0.999, eps 1e-8); batch 36 scenes in GQN, here the camrep GQN layout (30 scen
     instances), 3 context views of the instance (the paper's GQN on cars: 15) and GQN's
     low-dimensional pose (sin / cos of the azimuth and polar angle): the paper's GQN baseline on
     the car (its section 5.2), which the comparison's `--noise_runs` trains on the car column.
+  python -m camrep.main --config=configs/gqn_convdraw.py:area --workdir=/tmp/gqn_convdraw_area
+    `:quick` on the Gibson setting's procedural areas (configs/gibson.py:quick's 4 areas of 400
+    training views, the same 4 held-out targets), 4 areas a step, 3 context views of the area
+    (the paper's GQN on Gibson rooms: 15) and GQN's low-dimensional pose: the paper's GQN
+    baseline on Gibson rooms (its section 5.2), trained on the comparison's gibson column.
   python -m camrep.main --config=configs/gqn_convdraw.py:smoke --workdir=/tmp/gqn_convdraw_smoke
     seconds; for tests.
   python -m camrep.synthesis.evaluate --workdir W --what=noise
@@ -38,7 +43,7 @@ b2 0.999, eps 1e-8); batch 36 scenes in GQN, here the camrep GQN layout (30 scen
 
 from __future__ import annotations
 
-from camrep.configs import common, gqn, shapenet_car
+from camrep.configs import common, gibson, gqn, shapenet_car
 
 
 def quick_schedules(total_steps: int) -> dict[str, int]:
@@ -54,10 +59,11 @@ def quick_schedules(total_steps: int) -> dict[str, int]:
 
 
 def get_config(arg: str | None = None):
-  # No `:medium` size for the generator yet; `:object` is `:quick` on the car's family.
-  arg = common.parse_arg(arg, (*common.NO_MEDIUM, "object"))
-  on_objects = arg == "object"
-  arg = "quick" if on_objects else arg
+  # No `:medium` size for the generator yet; `:object` and `:area` are `:quick` on the car's and
+  # the Gibson setting's families.
+  arg = common.parse_arg(arg, (*common.NO_MEDIUM, "object", "area"))
+  family = arg if arg in ("object", "area") else None
+  arg = "quick" if family else arg
   c = gqn.get_config(arg)  # data, layout and durations of the GQN-rooms setting and variant
   c.model.kind = "convdraw"
   # The generator's own fields (no other config has them; the decoders never read them).
@@ -108,6 +114,8 @@ def get_config(arg: str | None = None):
     c.model.draw_steps = 2
     c.loss.sigma_anneal_steps = c.total_steps
     c.optax.anneal_steps = c.total_steps
-  if on_objects:
+  if family == "object":
     shapenet_car.on_quick_objects(c)
+  elif family == "area":
+    gibson.on_quick_areas(c)
   return c
