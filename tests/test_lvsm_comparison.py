@@ -296,6 +296,30 @@ def test_a_transformer_launch_past_its_max_hours_starts_nothing_and_says_how_to_
   assert "--max_hours 1e-09 reached after" in out and "run the same command again" in out
 
 
+def test_a_stopped_transformer_launch_says_its_runs_resume_and_names_no_regression(
+  tmp_path, fake_launcher, monkeypatch, capsys
+):
+  """Ctrl-C (or SIGTERM) during a transformer launch: exit 130 and the line on what is kept and
+  how its view-synthesis runs resume; the plan has no regression runs, so the line names none."""
+  ran, _ = fake_launcher
+  finished = launch_lib.run_job
+
+  def run_job(job, logs, *, index, env=None):
+    if len(ran) == 2:  # the first run and its table done, the stop during its noise test
+      raise KeyboardInterrupt
+    return finished(job, logs, index=index, env=env)
+
+  monkeypatch.setattr(launch_lib, "run_job", run_job)
+  archive = tmp_path / "archive"
+  argv = ["--size", "lvsm_quick", "--out", str(tmp_path / "cmp"), "--archive", str(archive)]
+  assert command.main(argv) == 130
+  err = capsys.readouterr().err
+  assert "interrupted after" in err and f"archived in {archive}" in err, err
+  assert "view-synthesis runs resume from their last checkpoint" in err
+  assert "regression" not in err and "Traceback" not in err
+  assert not (tmp_path / "cmp" / ".camrep.lock").exists()  # the lock is given back
+
+
 @pytest.mark.parametrize("size", ["lvsm_quick", "quick"])
 def test_a_dry_run_whose_reader_has_gone_ends_without_a_traceback(tmp_path, size):
   """`--dry_run | head -1`: a reader that has closed the pipe; the launcher exits 0 without a

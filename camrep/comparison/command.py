@@ -222,19 +222,20 @@ def regression_resumes() -> bool:
   return "ckpt_every_steps" in regression.get_config("quick")
 
 
-def interrupted_message(took: str, archive: str) -> str:
-  """What a stopped launch kept, and what becomes of its runs in flight."""
+def interrupted_message(took: str, archive: str, regressions: bool = True) -> str:
+  """What a stopped launch kept, and what becomes of its runs in flight (`regressions`: whether
+  the plan has regression runs; a transformer plan has view-synthesis runs only)."""
   kept = f" and archived in {archive}" if archive else ""
-  regression = (
-    "regression runs resume from their last checkpoint too"
-    if regression_resumes()
-    else "regression runs start over (they keep no checkpoint)"
-  )
-  return (
+  message = (
     f"interrupted after {took}: the runs that finished are kept{kept}. The runs in flight were "
     "stopped; when the same command is run again, view-synthesis runs resume from their last "
-    f"checkpoint and {regression}"
+    "checkpoint"
   )
+  if not regressions:
+    return message
+  if regression_resumes():
+    return f"{message} and regression runs resume from their last checkpoint too"
+  return f"{message} and regression runs start over (they keep no checkpoint)"
 
 
 def _interrupt(signum, frame):
@@ -257,10 +258,10 @@ def _lock(out: str) -> workdir_lib.WorkdirLock:
   return lock
 
 
-def _locked(out: str, archive: str, body) -> tuple[list[str], str] | int:
+def _locked(out: str, archive: str, body, regressions: bool = True) -> tuple[list[str], str] | int:
   """Runs a launch's `body()` (-> the failed jobs' names) holding DIR's lock, with SIGTERM taken
   as Ctrl-C: (failed, the time it took as text), or 130 after a stop (one line on what is kept
-  and how to resume, `interrupted_message`)."""
+  and how to resume, `interrupted_message`; `regressions`: whether the plan has any)."""
   lock = _lock(out)
   old_handler = signal.signal(signal.SIGTERM, _interrupt)
   t0 = time.perf_counter()
@@ -268,7 +269,7 @@ def _locked(out: str, archive: str, body) -> tuple[list[str], str] | int:
     failed = body()
   except KeyboardInterrupt:  # Ctrl-C, `kill`, or `timeout` around a chunk: a stop, not a crash
     took = progress_lib.format_duration(time.perf_counter() - t0)
-    print(f"\n{interrupted_message(took, archive)}", file=sys.stderr, flush=True)
+    print(f"\n{interrupted_message(took, archive, regressions)}", file=sys.stderr, flush=True)
     return 130
   finally:
     signal.signal(signal.SIGTERM, old_handler)
@@ -375,7 +376,7 @@ def run_transformer(args: argparse.Namespace) -> int:
     deadline = time.monotonic() + 3600 * args.max_hours if args.max_hours > 0 else None
     return transformer.execute(launch, at_once=args.jobs, deadline=deadline)
 
-  ran = _locked(launch.out, launch.archive, body)
+  ran = _locked(launch.out, launch.archive, body, regressions=False)
   if isinstance(ran, int):
     return ran
   failed, took = ran
