@@ -194,6 +194,15 @@ def medium(c: ml_collections.ConfigDict, *, total_steps: int = 20_000, every: in
   return c
 
 
+def on_family_of(c: ml_collections.ConfigDict, own: ml_collections.ConfigDict) -> None:
+  """Puts `c` (a context-view config, e.g. configs/gqn_convdraw.py) on the procedural family and
+  evaluation set of `own` (another setting's config): the same scenes and held-out targets."""
+  c.data.source = own.data.source
+  c.data.family = own.data.family
+  c.evals.num_scenes = own.evals.num_scenes
+  c.evals.batch_scenes = own.evals.batch_scenes
+
+
 def smoke(c: ml_collections.ConfigDict, *, n_pairs: int = 16, eval_scenes: int = 2):
   """Shared part of every `:smoke` variant: a few seconds of training on tiny shapes, for tests."""
   c.data.in_memory = True

@@ -27,11 +27,8 @@ def on_quick_areas(c) -> None:
   set here: the same 4 areas and held-out targets (configs/gqn_convdraw.py's `:area`). A batch
   holds at most the family's 4 areas: a step draws its scenes without replacement."""
   area = get_config("quick")
-  c.data.source = area.data.source
-  c.data.family = area.data.family
+  common.on_family_of(c, area)
   c.data.scenes_per_device = min(c.data.scenes_per_device, area.data.family.num_scenes)
-  c.evals.num_scenes = area.evals.num_scenes
-  c.evals.batch_scenes = area.evals.batch_scenes
 
 
 def get_config(arg: str | None = None):

@@ -39,10 +39,7 @@ def on_quick_objects(c) -> None:
   """Sets `c` (a context-view config's `:quick`) to `:quick`'s procedural car family and
   evaluation set here: the same instances and held-out targets (the `:object` variants of
   configs/gqn_convdraw.py and configs/lvsm.py)."""
-  car = get_config("quick")
-  c.data.source = car.data.source
-  c.data.family = car.data.family
-  c.evals.num_scenes = car.evals.num_scenes
+  common.on_family_of(c, get_config("quick"))
 
 
 def get_config(arg: str | None = None):
