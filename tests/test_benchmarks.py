@@ -128,6 +128,28 @@ def test_the_host_loop_stubs_the_renderer_and_the_step():
   assert r["layout"] == "1 x 2 scenes x 4 views" and r["host_ms_per_step"] > 0
 
 
+def test_the_stubbed_family_survives_pickling_into_a_table_building_worker():
+  """On a machine with many cores the scene table is built in spawned processes, which receive
+  the stubbed family pickled: it must unpickle (no recursion through its delegation) and build the
+  same rows as the family it wraps."""
+  import pickle
+
+  from camrep.bench import host
+  from camrep.configs import gqn
+  from camrep.data import sources
+  from camrep.data.procedural import scene_table
+
+  family = sources.family_of_config(gqn.get_config("smoke").data)
+  stub = pickle.loads(pickle.dumps(host._StubFamily(family)))
+  assert stub.image_size == family.image_size
+  assert stub.render_batch([0], np.zeros((1, 2))).max() == 0
+  ids = [0, 3, 1]
+  a = scene_table.SceneTable.build(stub, "train", ids)
+  b = scene_table.SceneTable.build(family, "train", ids)
+  np.testing.assert_array_equal(a.poses, b.poses)
+  np.testing.assert_array_equal(a.num_views, b.num_views)
+
+
 @pytest.mark.slow
 def test_the_grid_benchmark_times_both_programs_against_the_runs_alone(tmp_path):
   """`camrep.bench.regression_grid`: the members of a small grid (car :smoke, 2 seeds x 2 lrs)

@@ -113,10 +113,22 @@ def test_report_from_phase_results(tmp_path):
   }
   (tmp_path / "a").mkdir()
   (tmp_path / "b").mkdir()
-  (tmp_path / "a" / "gpu_report_step.json").write_text(json.dumps(step))
+  (tmp_path / "a" / "gpu_report_step.json").write_text(json.dumps({**step, "commit": "aaa1111"}))
+  env = {"versions": {}, "platform": "gpu", "device_kind": "H200", "devices": 1, "cpu_cores": 16}
+  (tmp_path / "b" / "gpu_report_env.json").write_text(json.dumps({**env, "commit": "bbb2222"}))
   (tmp_path / "a" / "gpu_report_e2e.json").write_text(json.dumps({"error": "old failure"}))
   (tmp_path / "b" / "gpu_report_e2e.json").write_text(json.dumps(e2e))
   (tmp_path / "b" / "gpu_report_car.json").write_text(json.dumps({"error": "OOM in the step"}))
+  run = {"command": "python -m camrep.main ...", "plan_s": 360.0, "steps_per_s": 132.6}
+  medium = {
+    "plan_total_s_jobs4": 5000.0,
+    "runs": [
+      {**run, "run": "synthesis", "exit": 0, "seconds": 113.0, "projected_s": 248.0},
+      {**run, "run": "regression", "exit": -9, "seconds": 32.0, "steps_per_s": None},
+    ],
+    "error": "runs failed: regression",
+  }
+  (tmp_path / "b" / "gpu_report_medium.json").write_text(json.dumps(medium))
   phases = gr.load_phases([str(tmp_path / "a"), str(tmp_path / "b")])
   assert phases["e2e"] == e2e  # the later folder wins
   md_text = gr.render_markdown(phases)
@@ -125,7 +137,12 @@ def test_report_from_phase_results(tmp_path):
   gqn = next(v for k, v in rows.items() if "configs/gqn.py" in k)
   assert "30.00 (0.50) 9h15m33s" in gqn and "57.00 (0.95)" in gqn and "29.3 GiB" in gqn
   assert "failed: OOM in the step" in md_text
+  assert "- commit: bbb2222" in md_text and "- measured at other commits: step aaa1111" in md_text
   assert "| configs/gibson.py | not measured" in md_text
+  # A medium call cut short keeps the runs that ended; the one cut short has no ratio.
+  assert "| synthesis | 1m53s, 132.6 steps/s | 4m08s | 6m00s | 0.69 | 0 |" in md_text
+  assert "| regression | 32s | - | 6m00s | - | -9 |" in md_text
+  assert "Incomplete: runs failed: regression" in md_text
 
 
 def test_wheelhouse_lists_the_missing_dependencies_pinned_here():
@@ -184,8 +201,9 @@ def test_trace_summary_groups_events_by_process(tmp_path):
   with gzip.open(tmp_path / "plugins" / "profile" / "run" / "h.trace.json.gz", "wt") as f:
     json.dump({"traceEvents": events}, f)
   top = gr.summarise_trace(str(tmp_path), steps=2)
-  assert top["/device:GPU:0"] == [["conv_kernel", 6.0, 2.0], ["gemm", 1.0, 1.0]]
-  assert top["/host:CPU"] == [["PjitFunction", 0.25, 0.5]]
+  all_ = gr.ALL
+  assert top["/device:GPU:0"] == [[all_, 7.0, 3.0], ["conv_kernel", 6.0, 2.0], ["gemm", 1.0, 1.0]]
+  assert top["/host:CPU"] == [[all_, 0.25, 0.5], ["PjitFunction", 0.25, 0.5]]
   assert gr.summarise_trace(str(tmp_path / "plugins" / "none"), steps=1) == {}
 
 

@@ -211,11 +211,17 @@ def phase_env(args) -> dict:
       text=True,
       timeout=30,
     ).stdout.strip()
+  out["commit"] = _commit()
+  return out
+
+
+def _commit() -> str:
+  """The working tree's commit (short hash), or '' outside git."""
   with contextlib.suppress(OSError, subprocess.SubprocessError):
-    out["commit"] = subprocess.run(
+    return subprocess.run(
       ["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True, text=True
     ).stdout.strip()
-  return out
+  return ""
 
 
 def phase_step(args) -> dict:
@@ -245,7 +251,9 @@ def phase_step(args) -> dict:
 
 def summarise_trace(folder: str, steps: int, top: int = 25) -> dict:
   """The largest complete events ("X") of a jax.profiler trace in `folder`, per process (host
-  threads, each device's streams): {process: [[name, ms per step, calls per step], ...]}."""
+  threads, each device's streams): {process: [[name, ms per step, calls per step], ...]}, led by
+  the row ALL (every event of the process summed: a device's busy time and kernel launches a step;
+  host events nest, so theirs overcounts)."""
   import collections
   import glob
   import gzip
@@ -268,9 +276,15 @@ def summarise_trace(folder: str, steps: int, top: int = 25) -> dict:
       total[proc][e["name"]] += e["dur"]
       count[proc][e["name"]] += 1
   return {
-    proc: [[n, us / steps / 1e3, count[proc][n] / steps] for n, us in c.most_common(top)]
+    proc: [
+      [ALL, sum(c.values()) / steps / 1e3, sum(count[proc].values()) / steps],
+      *([n, us / steps / 1e3, count[proc][n] / steps] for n, us in c.most_common(top)),
+    ]
     for proc, c in total.items()
   }
+
+
+ALL = "(all events)"
 
 
 def _step_config(smoke: bool):
@@ -501,6 +515,16 @@ def render_markdown(phases: dict[str, dict]) -> str:
       "- versions: " + ", ".join(f"{k} {x}" for k, x in v.items()),
       f"- commit: {env.get('commit') or '-'}",
     ]
+    # Merged calls: a phase measured at another commit says so (each phase records its own).
+    other = {
+      p: r["commit"]
+      for p, r in phases.items()
+      if p != "env" and r.get("commit") and r["commit"] != env.get("commit")
+    }
+    if other:
+      lines.append(
+        "- measured at other commits: " + ", ".join(f"{p} {c}" for p, c in other.items())
+      )
   else:
     lines.append(f"- not measured{': ' + env['error'] if env else ''}")
   lines.append("")
@@ -542,7 +566,7 @@ def render_markdown(phases: dict[str, dict]) -> str:
     ]
     for proc, rows in prof["top"].items():
       lines += [f"**{proc}**", "", "| event | ms/step | calls/step |", "|---|---|---|"]
-      lines += [f"| `{n[:90]}` | {ms:.3f} | {c:g} |" for n, ms, c in rows[:15]]
+      lines += [f"| `{n[:90]}` | {ms:.3f} | {c:g} |" for n, ms, c in rows[:16]]
       lines.append("")
   else:
     lines += [f"Not measured{': ' + prof['error'] if prof else ''}.", ""]
@@ -599,7 +623,7 @@ def render_markdown(phases: dict[str, dict]) -> str:
 
   med = phases.get("medium")
   lines += ["## The :medium comparison: measured against the plan", ""]
-  if med and "error" not in med:
+  if med and med.get("runs"):  # runs that ended stand even when a later one failed
     lines += [
       "Plan: camrep/comparison/plans.toml, size medium (derived, not measured). "
       f"Its estimate of the whole comparison with --jobs 4: {_fmt_s(med['plan_total_s_jobs4'])}.",
@@ -607,16 +631,16 @@ def render_markdown(phases: dict[str, dict]) -> str:
       "| run | measured | projected full run | plan | measured / plan | exit |",
       "|---|---|---|---|---|---|",
     ]
-    ratios = []
     for r in med["runs"]:
       full = r.get("projected_s") or r["seconds"]
-      ratio = full / r["plan_s"] if r["plan_s"] else float("nan")
-      ratios.append(ratio)
+      ratio = f"{full / r['plan_s']:.2f}" if r["plan_s"] and r["exit"] == 0 else "-"
       rate = f", {r['steps_per_s']:.1f} steps/s" if r.get("steps_per_s") else ""
       lines.append(
         f"| {r['run']} | {_fmt_s(r['seconds'])}{rate} | {_fmt_s(r.get('projected_s'))} | "
-        f"{_fmt_s(r['plan_s'])} | {ratio:.2f} | {r['exit']} |"
+        f"{_fmt_s(r['plan_s'])} | {ratio} | {r['exit']} |"
       )
+    if "error" in med:
+      lines += ["", f"Incomplete: {med['error']} (a run cut short has no ratio)."]
     lines += ["", "Commands:", ""] + [f"    {r['command']}" for r in med["runs"]] + [""]
   else:
     lines += [f"Not measured{': ' + med['error'] if med else ''}.", ""]
@@ -693,6 +717,7 @@ def _child(args) -> int:
 
       traceback.print_exc()
       result = {"error": f"{type(e).__name__}: {e}"}
+    result.setdefault("commit", _commit())
     with open(os.path.join(args.out, f"gpu_report_{phase}.json"), "w") as f:
       json.dump(result, f, indent=1, default=float)
     print(f"=== phase {phase}: {time.perf_counter() - t0:.0f} s", flush=True)

@@ -85,6 +85,9 @@ class _StubFamily:
     self._family = family
 
   def __getattr__(self, name: str) -> Any:
+    # Unpickling (a spawned table-building worker) looks attributes up before `_family` is set.
+    if name == "_family" or name.startswith("__"):
+      raise AttributeError(name)
     return getattr(self._family, name)
 
   def _blank(self, n: int, views: int) -> np.ndarray:
