@@ -35,9 +35,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from camrep.regression import stats
+from camrep.regression import lead, stats
 from camrep.regression import tables as C
-from experiments import lead_table, noise_figure
+from experiments import noise_figure
 
 # Pose inputs ours is compared with under noise, and what the paper says of each (Figure 5:
 # GQN's low-dimensional pose; the supplement: the MLP embedding, car only).
@@ -64,7 +64,7 @@ def _name(column: str) -> str:
 
 def regression_rows(regression: str) -> list[list[str]]:
   """One row per lead-table row (ours only; controls are the lead table's)."""
-  found, adjusted = lead_table.compared(regression)
+  found, adjusted = lead.compared(regression)
   out = []
   for r, adj in zip(found, adjusted, strict=True):
     if r.representation != "ours":
@@ -222,7 +222,7 @@ def build(records: str) -> str:
   for d in sorted(glob.glob(os.path.join(regression, "*"))):
     runs = C.load_results([os.path.join(d, "ours", "*")])
     if runs:
-      kinds[os.path.basename(d)] = lead_table.data_kind(runs[0])
+      kinds[os.path.basename(d)] = lead.data_kind(runs[0])
   rows = regression_rows(regression)
   groups = synthesis_runs(os.path.join(records, "synthesis"))
   rows += noise_rows(groups, kinds) + quality_rows(groups, kinds)

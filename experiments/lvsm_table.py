@@ -10,7 +10,7 @@ group are its seeds. Per column, one table row per conditioning:
   params        parameters of the transformer and the conditioning's learned pose system
                 (final_metrics.json "num_params"), and the difference to the baseline's;
   PSNR, SSIM    held-out-view means (eval/psnr, eval/ssim at the run's end), mean over seeds with
-                the seed-level 95% interval (`seed_interval`);
+                the seed-level 95% interval (`stats.values_interval`);
   vs baseline   the paired difference PSNR(camera) - PSNR(baseline) over the seeds both have
                 (paired by seed number), its seed-level interval and verdict: the one-sample t
                 test of the paired differences, Holm-adjusted over the column's conditionings
@@ -24,8 +24,8 @@ group are its seeds. Per column, one table row per conditioning:
   s / step      the cost of a training step: 1 / train/steps_per_sec of the run's last logged row,
                 mean over seeds (machine and load as the runs had them).
 
-Intervals (one place, `seed_interval`): the t interval of the per-seed values (S - 1 degrees of
-freedom, `camrep.regression.stats.seed_t_interval`), as the lead table's seed-level intervals;
+Intervals (one place, `stats.values_interval`): the t interval of the per-seed values (S - 1
+degrees of freedom, `stats.seed_t_interval`), as the lead table's seed-level intervals;
 the noise-drop verdicts are a second Holm family per column.
 
 The figure (`--png`, with a PDF twin): per column, held-out PSNR against the noise level alpha
@@ -56,37 +56,6 @@ from camrep.regression import stats, tables
 CONTEXT = re.compile(r"^eval/psnr_context(\d+)$")
 # Column names of the procedural sources; a prepared source is "<source>:<directory name>".
 PROCEDURAL = {"rooms": "rooms", "object": "car"}
-
-
-def seed_interval(values: Sequence[float]) -> tuple[stats.Interval, float]:
-  """The mean of (S,) per-seed values with its 95% t interval over seeds, and the two-sided p of
-  mean 0 (the one interval call; NaN bounds and p for one seed)."""
-  x = np.asarray(values, np.float64)
-  m, lo, hi, p = stats.seed_t_interval(x)
-  return stats.Interval(m, lo, hi, len(x), 1), p
-
-
-def paired(ours: Mapping[int, float], base: Mapping[int, float]):
-  """(interval of the mean paired difference ours - base, its p) over the seeds both have;
-  (None, NaN) with fewer than 2."""
-  seeds = sorted(set(ours) & set(base))
-  if len(seeds) < 2:
-    return None, math.nan
-  return seed_interval([ours[s] - base[s] for s in seeds])
-
-
-def verdicts(results, *, higher_is_better: bool) -> list[str]:
-  """Holm-adjusted verdicts of one family of `paired` results (module docstring)."""
-  adjusted = stats.holm([p for _, p in results])
-  out = []
-  for (iv, _), p in zip(results, adjusted, strict=True):
-    if iv is None:
-      out.append("-")
-    elif not p < 0.05 or iv.value == 0:
-      out.append("tie")
-    else:
-      out.append("better" if (iv.value > 0) == higher_is_better else "worse")
-  return out
 
 
 def column_of(config: Mapping[str, Any]) -> str:
@@ -180,13 +149,18 @@ def column_table(cells: Mapping[str, Mapping[int, dict]], baseline: str) -> str:
     c: {s: d for s, r in cells[c].items() if (d := _drop(r["noise"])) is not None} for c in order
   }
   others = [c for c in order if c != baseline]
-  diffs = {c: paired({s: r["psnr"] for s, r in cells[c].items()}, base_psnr) for c in others}
-  ddiffs = {c: paired(drops_of[c], base_drops) for c in others}
+  diffs = {
+    c: stats.paired_seed_difference({s: r["psnr"] for s, r in cells[c].items()}, base_psnr)
+    for c in others
+  }
+  ddiffs = {c: stats.paired_seed_difference(drops_of[c], base_drops) for c in others}
   verdict_of = dict(
-    zip(others, verdicts([diffs[c] for c in others], higher_is_better=True), strict=True)
+    zip(others, stats.holm_verdicts([diffs[c] for c in others], higher_is_better=True), strict=True)
   )
   dverdict_of = dict(
-    zip(others, verdicts([ddiffs[c] for c in others], higher_is_better=False), strict=True)
+    zip(
+      others, stats.holm_verdicts([ddiffs[c] for c in others], higher_is_better=False), strict=True
+    )
   )
   rows = []
   for camera in order:
@@ -199,8 +173,8 @@ def column_table(cells: Mapping[str, Mapping[int, dict]], baseline: str) -> str:
       ptxt = f"{params:,}"
     else:
       ptxt = f"{params:,} ({params - base_params:+,})"
-    row = [camera, ptxt, str(len(recs)), _fmt(seed_interval([r["psnr"] for r in recs])[0])]
-    row += [_fmt(seed_interval([r["ssim"] for r in recs])[0], 3)]
+    row = [camera, ptxt, str(len(recs)), _fmt(stats.values_interval([r["psnr"] for r in recs])[0])]
+    row += [_fmt(stats.values_interval([r["ssim"] for r in recs])[0], 3)]
     row += [
       "-" if camera == baseline else _fmt(diffs[camera][0], sign=True),
       "" if camera == baseline else verdict_of[camera],
@@ -210,7 +184,7 @@ def column_table(cells: Mapping[str, Mapping[int, dict]], baseline: str) -> str:
       vals = [v for v in vals if v is not None]
       row.append(f"{np.mean(vals):.2f}" if vals else "-")
     drops = drops_of[camera]
-    row.append(_fmt(seed_interval(list(drops.values()))[0]) if drops else "-")
+    row.append(_fmt(stats.values_interval(list(drops.values()))[0]) if drops else "-")
     row += ["-" if camera == baseline else _fmt(ddiffs[camera][0], sign=True)]
     row += ["" if camera == baseline else (dverdict_of[camera] if drops else "-")]
     secs = [r["s_per_step"] for r in recs if math.isfinite(r["s_per_step"])]

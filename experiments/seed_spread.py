@@ -169,43 +169,6 @@ def grid(runs: Sequence[Mapping[str, Any]]) -> tuple[list[int], list[int], np.nd
   return syn, reg, y
 
 
-def variance_split(y: np.ndarray) -> dict[str, dict[str, float]]:
-  """Two-way ANOVA without replication of a (J, K) table (rows: synthesis seeds, columns:
-  regression seeds): per source ("synthesis", "regression", "residual", "total") its df, sum of
-  squares, share of the total sum of squares, and (not "total") the method-of-moments variance
-  component and its square root (see the module docstring).
-
-  Raises:
-    ValueError: fewer than 2 rows or 2 columns.
-  """
-  y = np.asarray(y, np.float64)
-  J, K = y.shape
-  if J < 2 or K < 2:
-    raise ValueError(f"need >= 2 synthesis seeds and >= 2 regression seeds, got {J} x {K}")
-  m = y.mean()
-  rows, cols = y.mean(axis=1), y.mean(axis=0)
-  ss = {
-    "synthesis": K * float(np.sum((rows - m) ** 2)),
-    "regression": J * float(np.sum((cols - m) ** 2)),
-    "residual": float(np.sum((y - rows[:, None] - cols[None, :] + m) ** 2)),
-    "total": float(np.sum((y - m) ** 2)),
-  }
-  df = {"synthesis": J - 1, "regression": K - 1, "residual": (J - 1) * (K - 1), "total": J * K - 1}
-  ms = {k: ss[k] / df[k] for k in ("synthesis", "regression", "residual")}
-  comp = {
-    "synthesis": max(0.0, (ms["synthesis"] - ms["residual"]) / K),
-    "regression": max(0.0, (ms["regression"] - ms["residual"]) / J),
-    "residual": ms["residual"],
-  }
-  out = {}
-  for k in ("synthesis", "regression", "residual", "total"):
-    share = ss[k] / ss["total"] if ss["total"] > 0 else float("nan")
-    out[k] = {"df": df[k], "ss": ss[k], "share": share}
-    if k in comp:
-      out[k].update(component=comp[k], std=math.sqrt(comp[k]))
-  return out
-
-
 def decoding_error(
   syn_workdir: str,
   setting: str,
@@ -269,7 +232,7 @@ def markdown(runs: Sequence[Mapping[str, Any]], decoding: Mapping[int, float] | 
   """The report (see the module docstring)."""
   syn, reg, y = grid(runs)
   r0 = runs[0]
-  split = variance_split(y)
+  split = stats.two_way_anova(y)
   stat = (
     "median per scene, averaged over scenes" if reduce_of(r0["setting"]) == "median" else "mean"
   )

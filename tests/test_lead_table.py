@@ -114,8 +114,9 @@ def test_lead_table_7scenes_medians_by_scene_and_an_empty_dir(tmp_path, capsys):
 
 
 def test_lead_table_paper_cells_come_from_the_paper_tables():
-  lt = lead_table
-  cols = {c.label: c for c in lt.COLUMNS}
+  from camrep.regression import lead
+
+  cols = {c.label: c for c in lead.COLUMNS}
   assert cols["rooms yaw (deg)"].paper_best == ("quat", 5.34)
   assert cols["area x (m)"].paper_best == ("logq", 0.028)
   assert cols["car rotation (deg)"].paper_ours == 2.85
@@ -350,7 +351,7 @@ def test_seed_level_t_interval_covers_in_a_seed_dominated_regime():
   seed-level t interval covers the test set's true ratio near 95% at 3 seeds (within the
   90-97% target up to Monte Carlo error over 300 tables), where the percentile bootstrap does
   not."""
-  from experiments import coverage
+  from camrep.regression import coverage
 
   rng = np.random.default_rng(0)
   s, n = 3, 40

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from camrep.configs import shapenet_car
+from camrep.regression import stats
 from camrep.synthesis import train
 from experiments import seed_spread
 
@@ -53,7 +54,7 @@ def test_variance_split_of_a_crossed_table(tmp_path, capsys):
   syn, reg, y = ss.grid(runs)
   assert syn == [0, 1, 2] and reg == [0, 1, 2]
   np.testing.assert_allclose(y, 3.0 + np.array(list(A.values()))[:, None] + list(B.values()))
-  split = ss.variance_split(y)
+  split = stats.two_way_anova(y)
   # Additive effects: the rows carry 6 of the 7.5 of the total sum of squares, the columns 1.5,
   # no residual; the components are the effects' sample variances (1 and 0.25).
   assert split["synthesis"]["ss"] == pytest.approx(6.0) and split["total"]["ss"] == pytest.approx(
@@ -66,12 +67,12 @@ def test_variance_split_of_a_crossed_table(tmp_path, capsys):
   # The sums of squares add up for any table, and an interaction lands in the residual.
   rng = np.random.default_rng(0)
   y2 = rng.normal(size=(3, 4))
-  s2 = ss.variance_split(y2)
+  s2 = stats.two_way_anova(y2)
   parts = sum(s2[k]["ss"] for k in ("synthesis", "regression", "residual"))
   assert parts == pytest.approx(s2["total"]["ss"]) and s2["residual"]["df"] == 6
   y3 = y.copy()
   y3[0, 0] += 1.0
-  assert ss.variance_split(y3)["residual"]["ss"] > 0.1
+  assert stats.two_way_anova(y3)["residual"]["ss"] > 0.1
 
   md = tmp_path / "out" / "spread.md"
   decoded = {0: 1.0, 1: 2.0, 2: 3.0}

@@ -38,7 +38,7 @@ equal). Two intervals of the ratio stat(E_ours) / stat(E_base):
     (too wide to decide anything) and is kept for the coverage check only.
 
 `paired_ratio` keeps the plain percentile bootstrap (2.5 and 97.5 percentiles of the replicated
-ratio), which undercovers where the seeds dominate a cell's variance (experiments/coverage.py).
+ratio), which undercovers where the seeds dominate a cell's variance (`regression.coverage`).
 
 Verdicts over a table: each comparison's p value, Holm-adjusted over the table's comparisons
 (`holm`); "better" / "worse" when the adjusted p is below 0.05 (the direction from l̄), else
@@ -415,6 +415,38 @@ def holm(pvalues: Sequence[float]) -> np.ndarray:
   return out
 
 
+def values_interval(values: Sequence[float]) -> tuple[Interval, float]:
+  """The mean of (S,) per-seed values with its 95% t interval over seeds, and the two-sided p of
+  mean 0 (the one interval call; NaN bounds and p for one seed)."""
+  x = np.asarray(values, np.float64)
+  m, lo, hi, p = seed_t_interval(x)
+  return Interval(m, lo, hi, len(x), 1), p
+
+
+def paired_seed_difference(ours: Mapping[int, float], base: Mapping[int, float]):
+  """(interval of the mean paired difference ours - base, its p) over the seeds both have;
+  (None, NaN) with fewer than 2."""
+  seeds = sorted(set(ours) & set(base))
+  if len(seeds) < 2:
+    return None, math.nan
+  return values_interval([ours[s] - base[s] for s in seeds])
+
+
+def holm_verdicts(results, *, higher_is_better: bool) -> list[str]:
+  """Verdicts of one family of `paired_seed_difference` results, Holm-adjusted (family-wise 5%):
+  "better"/"worse" by the sign of the mean difference, "tie" otherwise, "-" without a result."""
+  adjusted = holm([p for _, p in results])
+  out = []
+  for (iv, _), p in zip(results, adjusted, strict=True):
+    if iv is None:
+      out.append("-")
+    elif not p < 0.05 or iv.value == 0:
+      out.append("tie")
+    else:
+      out.append("better" if (iv.value > 0) == higher_is_better else "worse")
+  return out
+
+
 # ------------------------------------------------------------------------------ from the runs
 
 
@@ -633,3 +665,42 @@ def variance_components(errors: np.ndarray) -> Components:
     float(max(0.0, (ms_view - ms_res) / s)),
     float(ms_res),
   )
+
+
+def two_way_anova(y: np.ndarray) -> dict[str, dict[str, float]]:
+  """Two-way ANOVA without replication of a (J, K) table (rows: synthesis seeds, columns:
+  regression seeds; experiments/seed_spread.py): per source ("synthesis", "regression",
+  "residual", "total") its df, sum of squares, share of the total sum of squares, and (not
+  "total") the random-effects variance component by the method of moments, sigma^2_syn =
+  max(0, (MS_rows - MS_res) / K), sigma^2_reg = max(0, (MS_cols - MS_res) / J), sigma^2_res =
+  MS_res, and its square root.
+
+  Raises:
+    ValueError: fewer than 2 rows or 2 columns.
+  """
+  y = np.asarray(y, np.float64)
+  J, K = y.shape
+  if J < 2 or K < 2:
+    raise ValueError(f"need >= 2 synthesis seeds and >= 2 regression seeds, got {J} x {K}")
+  m = y.mean()
+  rows, cols = y.mean(axis=1), y.mean(axis=0)
+  ss = {
+    "synthesis": K * float(np.sum((rows - m) ** 2)),
+    "regression": J * float(np.sum((cols - m) ** 2)),
+    "residual": float(np.sum((y - rows[:, None] - cols[None, :] + m) ** 2)),
+    "total": float(np.sum((y - m) ** 2)),
+  }
+  df = {"synthesis": J - 1, "regression": K - 1, "residual": (J - 1) * (K - 1), "total": J * K - 1}
+  ms = {k: ss[k] / df[k] for k in ("synthesis", "regression", "residual")}
+  comp = {
+    "synthesis": max(0.0, (ms["synthesis"] - ms["residual"]) / K),
+    "regression": max(0.0, (ms["regression"] - ms["residual"]) / J),
+    "residual": ms["residual"],
+  }
+  out = {}
+  for k in ("synthesis", "regression", "residual", "total"):
+    share = ss[k] / ss["total"] if ss["total"] > 0 else float("nan")
+    out[k] = {"df": df[k], "ss": ss[k], "share": share}
+    if k in comp:
+      out[k].update(component=comp[k], std=math.sqrt(comp[k]))
+  return out
