@@ -11,8 +11,9 @@ compact records, `camrep.regression.runs`) and writes Markdown, PNG and PDF:
   noise_figure.py    PSNR as the query pose is noised (the paper's section 4.3)
   seed_spread.py     where ours' spread over seeds comes from (crossed seeds)
   view_failures.py   test views every run gets badly wrong, per capture
+  lvsm_table.py      the multi-view transformer's camera conditionings, with verdicts
 
 Run as `python experiments/NAME.py ...` from a checkout (`python -m experiments.NAME` for
-claims_table and coverage, which import lead_table); the comparison launcher
+claims_table, which imports noise_figure); the comparison launcher
 (`python -m camrep.comparison`) runs them over its runs.
 """
