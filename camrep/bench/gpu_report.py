@@ -70,13 +70,15 @@ E2E_CONFIGS = {
   "gibson": "configs/gibson.py",
   "seven_scenes": "configs/seven_scenes.py",
 }
-# The calls a GPU machine runs, each well inside the device tool's 10 minutes, with a guess of its
-# minutes on one H100 (compiles dominate: ~1 min per paper-size step and renderer).
+# The calls a GPU machine runs, each inside the device tool's 10 minutes, with its minutes on one
+# H200: measured for e2e (144 s), medium (~7.5 min: 318 s for three of its four runs, the fourth
+# 104 s alone), profile (61 s) and host; the step phase's and the other configs' are guesses
+# (compiles dominate: ~0.5-1 min per paper-size step and renderer).
 CALLS = (
-  ("env,step,profile,host", 7),
-  ("e2e", 7),
+  ("env,step,profile,host", 5),
+  ("e2e", 3),
   ("car,gibson,seven_scenes", 7),
-  ("medium", 7),
+  ("medium", 8),
 )
 WHEELHOUSE = ".whl"
 GOALS = {"float32": 10.5e-3, "bfloat16": 7e-3}
@@ -119,7 +121,7 @@ def how_to_run() -> list[str]:
     "",
     f"       {gpu_command('PHASES')}",
     "",
-    "| call | PHASES | minutes on one H100 (guess) |",
+    "| call | PHASES | minutes on one H200 |",
     "|---|---|---|",
   ]
   lines += [f"| {i} | `{p}` | ~{m} |" for i, (p, m) in enumerate(CALLS, 1)]
@@ -127,7 +129,8 @@ def how_to_run() -> list[str]:
     "",
     "The calls are in order of priority (calls 1 and 2 answer the step and end-to-end goals). "
     "Device time is short and a machine goes back soon after it is idle: issue the next call as "
-    "soon as one returns, and stop when less than ~8 minutes of device time are left.",
+    "soon as one returns, and stop when less than ~8 minutes of device time are left. Give "
+    "`medium` `--budget_s 540` (its four runs need ~7.5 min; the default 470 s cuts the last).",
     "",
     "Each call brings back DIR/gpu_report_<phase>.json, gpu_report.md and gpu_report.json "
     "under the tool's files_at. Then, on the CPU machine, merge them into one report:",
