@@ -46,7 +46,7 @@ def _runs(tmp_path, cells, lr=1e-3, representation="ours"):
   return out
 
 
-def test_variance_split_of_a_crossed_table(tmp_path, capsys):
+def test_two_way_anova_of_a_crossed_table(tmp_path, capsys):
   ss = seed_spread
   full = [(j, k) for j in range(3) for k in range(3)]
   _runs(tmp_path, full)

@@ -71,8 +71,8 @@ E2E_CONFIGS = {
   "seven_scenes": "configs/seven_scenes.py",
 }
 # The calls a GPU machine runs, each inside the device tool's 10 minutes, with its minutes on one
-# H200: measured for e2e (144 s), medium (~7.5 min: 318 s for three of its four runs, the fourth
-# 104 s alone), profile (61 s) and host; the step phase's and the other configs' are guesses
+# H200: measured for e2e (144 s), medium (~7.5 min: its 318 s phase ended three of its four runs,
+# the fourth took 104 s alone), profile (61 s) and host; the step phase's and the other configs' are guesses
 # (compiles dominate: ~0.5-1 min per paper-size step and renderer).
 CALLS = (
   ("env,step,profile,host", 5),
@@ -117,7 +117,7 @@ def how_to_run() -> list[str]:
     f"       {wheelhouse_command()}",
     "",
     '2. On the GPU machine, through the device tool\'s `run` with `carry=[".whl"]` and '
-    "`timeout_s=540`, once per call below (PHASES as listed; each call stays under 8 min):",
+    "`timeout_s=600`, once per call below (PHASES as listed):",
     "",
     f"       {gpu_command('PHASES')}",
     "",
@@ -130,7 +130,7 @@ def how_to_run() -> list[str]:
     "The calls are in order of priority (calls 1 and 2 answer the step and end-to-end goals). "
     "Device time is short and a machine goes back soon after it is idle: issue the next call as "
     "soon as one returns, and stop when less than ~8 minutes of device time are left. Give "
-    "`medium` `--budget_s 540` (its four runs need ~7.5 min; the default 470 s cuts the last).",
+    "`medium` `--budget_s 520` (its four runs need ~7.5 min; the default 470 s cuts the last).",
     "",
     "Each call brings back DIR/gpu_report_<phase>.json, gpu_report.md and gpu_report.json "
     "under the tool's files_at. Then, on the CPU machine, merge them into one report:",
@@ -219,10 +219,12 @@ def phase_env(args) -> dict:
 
 
 def _commit() -> str:
-  """The working tree's commit (short hash), or '' outside git."""
+  """The working tree's commit (short hash, "-dirty" with uncommitted changes), or '' outside git."""
   with contextlib.suppress(OSError, subprocess.SubprocessError):
     return subprocess.run(
-      ["git", "-C", ROOT, "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+      ["git", "-C", ROOT, "describe", "--always", "--dirty", "--abbrev=7", "--exclude=*"],
+      capture_output=True,
+      text=True,
     ).stdout.strip()
   return ""
 
