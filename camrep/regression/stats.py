@@ -649,56 +649,53 @@ def variance_components(errors: np.ndarray) -> Components:
   """`Components` of (S, N) errors, S, N >= 2: with the mean squares
   MS_seed = N sum_s (m_s - m)^2 / (S - 1), MS_view = S sum_v (m_v - m)^2 / (N - 1) and
   MS_res = sum (e_sv - m_s - m_v + m)^2 / ((S - 1)(N - 1)),
-  seed = (MS_seed - MS_res) / N, view = (MS_view - MS_res) / S, noise = MS_res."""
+  seed = (MS_seed - MS_res) / N, view = (MS_view - MS_res) / S, noise = MS_res
+  (`two_way_anova` with seeds as rows and views as columns)."""
   e = np.asarray(errors, np.float64)
   s, n = e.shape
   if s < 2 or n < 2:
     raise ValueError(f"variance components need >= 2 seeds and views, got {e.shape}")
-  m, ms, mv = e.mean(), e.mean(axis=1), e.mean(axis=0)
-  res = e - ms[:, None] - mv[None, :] + m
-  ms_seed = n * np.sum((ms - m) ** 2) / (s - 1)
-  ms_view = s * np.sum((mv - m) ** 2) / (n - 1)
-  ms_res = np.sum(res**2) / ((s - 1) * (n - 1))
+  a = two_way_anova(e, names=("seed", "view"))
   return Components(
-    float(m),
-    float(max(0.0, (ms_seed - ms_res) / n)),
-    float(max(0.0, (ms_view - ms_res) / s)),
-    float(ms_res),
+    float(e.mean()), a["seed"]["component"], a["view"]["component"], a["residual"]["component"]
   )
 
 
-def two_way_anova(y: np.ndarray) -> dict[str, dict[str, float]]:
-  """Two-way ANOVA without replication of a (J, K) table (rows: synthesis seeds, columns:
-  regression seeds; experiments/seed_spread.py): per source ("synthesis", "regression",
-  "residual", "total") its df, sum of squares, share of the total sum of squares, and (not
-  "total") the random-effects variance component by the method of moments, sigma^2_syn =
-  max(0, (MS_rows - MS_res) / K), sigma^2_reg = max(0, (MS_cols - MS_res) / J), sigma^2_res =
+def two_way_anova(
+  y: np.ndarray, names: tuple[str, str] = ("synthesis", "regression")
+) -> dict[str, dict[str, float]]:
+  """Two-way ANOVA without replication of a (J, K) table, random effects (rows: by default
+  synthesis seeds, columns regression seeds, as experiments/seed_spread.py crosses them): per
+  source (the two `names`, "residual", "total") its df, sum of squares, share of the total sum of
+  squares, and (not "total") the variance component by the method of moments, sigma^2_rows =
+  max(0, (MS_rows - MS_res) / K), sigma^2_cols = max(0, (MS_cols - MS_res) / J), sigma^2_res =
   MS_res, and its square root.
 
   Raises:
     ValueError: fewer than 2 rows or 2 columns.
   """
+  r, c = names
   y = np.asarray(y, np.float64)
   J, K = y.shape
   if J < 2 or K < 2:
-    raise ValueError(f"need >= 2 synthesis seeds and >= 2 regression seeds, got {J} x {K}")
+    raise ValueError(f"need >= 2 {r} seeds and >= 2 {c} seeds, got {J} x {K}")
   m = y.mean()
   rows, cols = y.mean(axis=1), y.mean(axis=0)
   ss = {
-    "synthesis": K * float(np.sum((rows - m) ** 2)),
-    "regression": J * float(np.sum((cols - m) ** 2)),
+    r: K * float(np.sum((rows - m) ** 2)),
+    c: J * float(np.sum((cols - m) ** 2)),
     "residual": float(np.sum((y - rows[:, None] - cols[None, :] + m) ** 2)),
     "total": float(np.sum((y - m) ** 2)),
   }
-  df = {"synthesis": J - 1, "regression": K - 1, "residual": (J - 1) * (K - 1), "total": J * K - 1}
-  ms = {k: ss[k] / df[k] for k in ("synthesis", "regression", "residual")}
+  df = {r: J - 1, c: K - 1, "residual": (J - 1) * (K - 1), "total": J * K - 1}
+  ms = {k: ss[k] / df[k] for k in (r, c, "residual")}
   comp = {
-    "synthesis": max(0.0, (ms["synthesis"] - ms["residual"]) / K),
-    "regression": max(0.0, (ms["regression"] - ms["residual"]) / J),
+    r: max(0.0, (ms[r] - ms["residual"]) / K),
+    c: max(0.0, (ms[c] - ms["residual"]) / J),
     "residual": ms["residual"],
   }
   out = {}
-  for k in ("synthesis", "regression", "residual", "total"):
+  for k in (r, c, "residual", "total"):
     share = ss[k] / ss["total"] if ss["total"] > 0 else float("nan")
     out[k] = {"df": df[k], "ss": ss[k], "share": share}
     if k in comp:
