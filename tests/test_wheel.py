@@ -131,7 +131,7 @@ def test_the_notebook_runs_on_the_installed_package(installed):
   r = subprocess.run(
     [python, str(ROOT / "tools" / "run_notebook.py"), str(notebook), "--write"],
     cwd=away,
-    env=_env(),
+    env={**_env(), "JAX_DISABLE_MOST_OPTIMIZATIONS": "0"},  # as test_notebook runs it
     capture_output=True,
     text=True,
     timeout=600,
