@@ -72,6 +72,16 @@ def make_predict(model: synthesizers.Synthesizer):
   return jax.jit(predict)
 
 
+@jax.jit
+def _scores(pred, base, others, target_image):
+  """{"pred", "base": (PSNR, SSIM), "others": {name: (PSNR, SSIM)}}, each (E, 1), of images
+  (E, 1, H, W, 3) in [-1, 1] against uint8 targets: one program (eager, the dozen metric ops
+  would each compile in every process)."""
+  tgt = synthesizers.to_float_images(target_image)
+  both = lambda x: (metrics_lib.psnr(x, tgt), metrics_lib.ssim(x, tgt))
+  return {"pred": both(pred), "base": both(base), "others": {k: both(o) for k, o in others.items()}}
+
+
 def evaluate(predict, params, batches) -> tuple[dict[str, float], dict[str, np.ndarray]]:
   """PSNR as the paper (mean of per-image PSNR on [0, 1]), SSIM, and the baseline's PSNR.
 
@@ -84,14 +94,16 @@ def evaluate(predict, params, batches) -> tuple[dict[str, float], dict[str, np.n
   first = None
   for b in batches:
     pred, base, others = predict(params, {k: jnp.asarray(v) for k, v in b.items()})
-    tgt = synthesizers.to_float_images(jnp.asarray(b["target_image"]))
-    for name, o in others.items():
-      extra.setdefault(f"eval/psnr_{name}", []).append(np.asarray(metrics_lib.psnr(o, tgt)).ravel())
-      extra.setdefault(f"eval/ssim_{name}", []).append(np.asarray(metrics_lib.ssim(o, tgt)).ravel())
-    psnr.append(np.asarray(metrics_lib.psnr(pred, tgt)).ravel())
-    ssim.append(np.asarray(metrics_lib.ssim(pred, tgt)).ravel())
-    psnr_b.append(np.asarray(metrics_lib.psnr(base, tgt)).ravel())
-    ssim_b.append(np.asarray(metrics_lib.ssim(base, tgt)).ravel())
+    scores = jax.tree.map(
+      lambda x: np.asarray(x).ravel(), _scores(pred, base, others, b["target_image"])
+    )
+    for name, (p, s) in scores["others"].items():
+      extra.setdefault(f"eval/psnr_{name}", []).append(p)
+      extra.setdefault(f"eval/ssim_{name}", []).append(s)
+    psnr.append(scores["pred"][0])
+    ssim.append(scores["pred"][1])
+    psnr_b.append(scores["base"][0])
+    ssim_b.append(scores["base"][1])
     if first is None:
       first = {
         "context": b["context_image"],

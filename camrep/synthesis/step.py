@@ -276,16 +276,17 @@ def replicate(tree, n: int):
     jax.sharding.Mesh(np.asarray(devices), (AXIS,)), jax.sharding.PartitionSpec(AXIS)
   )
 
-  def put(x):
-    x = jnp.asarray(x)
-    return jax.device_put(jnp.broadcast_to(x[None], (n, *x.shape)), sharding)
+  def put(x):  # broadcast on the host: an eager jnp op would compile a program per leaf shape
+    x = np.asarray(x)
+    return jax.device_put(np.broadcast_to(x[None], (n, *x.shape)), sharding)
 
   return jax.tree.map(put, tree)
 
 
 def unreplicate(tree):
-  """Device 0's copy, as NumPy arrays."""
-  return jax.tree.map(lambda x: np.asarray(x[0]), tree)
+  """The first local device's copy (the copies are equal), as NumPy arrays; read from its shard,
+  not by indexing (an eager op, compiled once per leaf shape in every process)."""
+  return jax.tree.map(lambda x: np.asarray(x.addressable_shards[0].data)[0, ...], tree)
 
 
 def to_host(metrics: Mapping[str, Array]) -> dict[str, float]:
