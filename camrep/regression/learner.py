@@ -364,7 +364,7 @@ def init(
     step=jnp.zeros((), jnp.int32),
     params=params,
     batch_stats=dict(variables.get("batch_stats", {})),
-    opt_state=tx.init(params),
+    opt_state=jax.jit(tx.init)(params),  # compiled once, not a program per leaf shape
     rep_params=rep_params,
     regressor=reg,
     tx=tx,

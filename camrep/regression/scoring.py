@@ -36,6 +36,11 @@ def pose_errors(setting: settings_lib.Setting | str, pred: Array, true: Array) -
   return settings_lib.get(setting).pose_errors(pred, true)
 
 
+# `pose_errors` of a batch as one program per setting and shape (op by op, its dozen eager ops
+# would each compile in every process that scores).
+_batch_errors = jax.jit(pose_errors, static_argnums=0)
+
+
 def evaluate_regression(
   state: RegressionState,
   batches: Iterable[Mapping[str, Array]],
@@ -63,7 +68,7 @@ def evaluate_regression(
     pred = predict_fn(state, batch)
     true = batch["pose"]
     lead = true.shape[:-1]
-    errs = pose_errors(setting, pred, true)
+    errs = _batch_errors(settings_lib.get(setting), pred, true)
     scene = batch.get("scene")
     scene = np.zeros(lead, np.int32) if scene is None else np.asarray(scene)
     scene = np.broadcast_to(scene.reshape(scene.shape + (1,) * (len(lead) - scene.ndim)), lead)
