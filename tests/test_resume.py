@@ -32,7 +32,7 @@ pytestmark = [pytest.mark.xdist_group("resume"), pytest.mark.slow]
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 # Run as a module from ROOT, where camrep and tests import (`python -m tests.resume_script`).
 SCRIPT = "tests.resume_script"
-TOTAL, EVERY = 60, 10
+TOTAL, EVERY, EVAL = 36, 6, 12
 # Wall-clock figures differ between any two runs; everything else must be equal.
 TIMING_KEYS = ("train/steps_per_sec",)
 
@@ -42,7 +42,7 @@ def _flags(workdir) -> list[str]:
     "--config=configs/gqn.py:smoke",
     f"--config.total_steps={TOTAL}",
     f"--config.ckpt_every_steps={EVERY}",
-    "--config.eval_every_steps=20",
+    f"--config.eval_every_steps={EVAL}",
     f"--workdir={workdir}",
   ]
 
@@ -70,7 +70,7 @@ def _start(workdir) -> subprocess.Popen:
 
 
 def _wait_for_step(proc: subprocess.Popen, workdir, step: int) -> None:
-  """Waits until metrics.jsonl has logged `step` (the run is then past checkpoint step // 10)."""
+  """Waits until metrics.jsonl has logged `step` (the run is then past checkpoint step // EVERY)."""
   path = os.path.join(workdir, "metrics.jsonl")
   deadline = time.monotonic() + 600
   while time.monotonic() < deadline:
@@ -123,7 +123,7 @@ def _assert_identical(workdir, reference):
 def test_killed_and_restarted_run_is_bit_identical(sig, reference, tmp_path):
   workdir = tmp_path / "w"
   proc = _start(workdir)
-  _wait_for_step(proc, workdir, 26)  # between checkpoints 20 and 30
+  _wait_for_step(proc, workdir, 16)  # between checkpoints 12 and 18
   proc.send_signal(sig)
   out, _ = proc.communicate(timeout=300)
   if sig == signal.SIGTERM:
@@ -151,7 +151,7 @@ def test_second_start_on_a_live_workdir_is_refused(reference, tmp_path):
   # (a second process would need seconds to import JAX; tests/test_workdir.py checks the
   # command line's exit status 2 on a held workdir).
   config = gqn.get_config("smoke")
-  config.total_steps, config.ckpt_every_steps, config.eval_every_steps = TOTAL, EVERY, 20
+  config.total_steps, config.ckpt_every_steps, config.eval_every_steps = TOTAL, EVERY, EVAL
   before = {p.name: p.stat().st_size for p in workdir.iterdir()}
   with pytest.raises(workdir_lib.WorkdirError, match=f"in use by another run \\(PID {proc.pid} on"):
     train.train_and_evaluate(config, str(workdir))
@@ -164,13 +164,13 @@ def test_second_start_on_a_live_workdir_is_refused(reference, tmp_path):
 
 def test_killed_during_checkpoint_save_is_bit_identical(reference, tmp_path):
   workdir = tmp_path / "w"
-  r = _run(workdir, kill_in_save=30)
+  r = _run(workdir, kill_in_save=18)
   assert r.returncode == -signal.SIGKILL, r.stderr[-3000:]
   ckpt_dir = workdir / "checkpoints"
   names = os.listdir(ckpt_dir)
-  assert any(n.startswith("30.orbax-checkpoint-tmp") for n in names), names  # the partial save
-  assert "30" not in names and "20" in names
+  assert any(n.startswith("18.orbax-checkpoint-tmp") for n in names), names  # the partial save
+  assert "18" not in names and "12" in names
   r = _run(workdir)
   assert r.returncode == 0, r.stderr[-3000:]
-  assert "resumed from step 20" in r.stdout
+  assert "resumed from step 12" in r.stdout
   _assert_identical(workdir, reference)
