@@ -42,6 +42,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import errno
+import functools
 import json
 import os
 import pathlib
@@ -52,15 +53,17 @@ import tempfile
 import time
 import types
 from collections.abc import Iterator, Mapping, Sequence
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
-import tensorflow_datasets as tfds
 import tqdm
 
 from camrep.data.errors import DataError
 from camrep.runtime import writers
+
+if TYPE_CHECKING:
+  import tensorflow_datasets as tfds
 
 DEFAULT_VERSION = "1.0.0"
 KNOWN_SPLITS = ("train", "test", "test_scenes")
@@ -175,79 +178,86 @@ def check_record(
     raise DataError(None, f"{where}: pose must be {pose_dim} finite numbers, got {pose!r}")
 
 
-class _LocalDatasetInfo(tfds.core.DatasetInfo):
-  """DatasetInfo that never looks for pre-computed info in the tfds GCS bucket.
+@functools.cache
+def _builder_base() -> type:
+  """`_SourceBuilderBase`, defined on first use: tfds (0.15 s to import) is needed only to write
+  or read a prepared dataset, not by runs on in-memory data."""
+  import tensorflow_datasets as tfds
 
-  Our datasets are never there, and tfds' lookup leaks an empty temp directory per build.
-  """
+  class _LocalDatasetInfo(tfds.core.DatasetInfo):
+    """DatasetInfo that never looks for pre-computed info in the tfds GCS bucket.
 
-  def initialize_from_bucket(self) -> None:
-    return None
+    Our datasets are never there, and tfds' lookup leaks an empty temp directory per build.
+    """
 
+    def initialize_from_bucket(self) -> None:
+      return None
 
-class _SourceBuilderBase(tfds.core.GeneratorBasedBuilder, skip_registration=True):
-  """Writes the splits of the `ViewSource` passed to the constructor (see `builder_class`)."""
+  class _SourceBuilderBase(tfds.core.GeneratorBasedBuilder, skip_registration=True):
+    """Writes the splits of the `ViewSource` passed to the constructor (see `builder_class`)."""
 
-  VERSION = tfds.core.Version(DEFAULT_VERSION)
+    VERSION = tfds.core.Version(DEFAULT_VERSION)
 
-  def __init__(self, *, source: ViewSource, progress: bool = True, **kwargs):
-    self._source = source
-    self._progress = progress
-    self._image_shape = image_shape(source)
-    self._pose_dim = len(source.pose_names)
-    self._splits = source_splits(source)
-    super().__init__(**kwargs)
+    def __init__(self, *, source: ViewSource, progress: bool = True, **kwargs):
+      self._source = source
+      self._progress = progress
+      self._image_shape = image_shape(source)
+      self._pose_dim = len(source.pose_names)
+      self._splits = source_splits(source)
+      super().__init__(**kwargs)
 
-  def _info(self) -> tfds.core.DatasetInfo:
-    return _LocalDatasetInfo(
-      builder=self,
-      description=(
-        f"camrep view records of source {self._source.name!r}, "
-        f"pose = {tuple(self._source.pose_names)}."
-      ),
-      features=tfds.features.FeaturesDict(
-        {
-          "image": tfds.features.Image(shape=(*self._image_shape, 3)),
-          "pose": tfds.features.Tensor(shape=(self._pose_dim,), dtype=np.float32),
-          "scene": tfds.features.Scalar(dtype=np.int64),
-          "view": tfds.features.Scalar(dtype=np.int64),
-          "index": tfds.features.Scalar(dtype=np.int64),
-        }
-      ),
-    )
-
-  def _log_download_bytes(self) -> None:
-    """Silent: tfds' "Downloading and preparing dataset 0 bytes ..." misleads for a local
-    conversion (`camrep.data.prepare` prints what it wrote)."""
-
-  def _log_download_done(self) -> None:
-    """Silent, as `_log_download_bytes`."""
-
-  def _split_generators(self, dl_manager):
-    del dl_manager  # Nothing to download: the source reads its own input.
-    return {split: self._generate_examples(split) for split in self._splits}
-
-  def _generate_examples(self, split: str):
-    views = self._source.iter_views(split)
-    if self._progress:
-      try:  # `num_views(split)` is optional; it only gives the bar its total.
-        total = int(self._source.num_views(split))
-      except (AttributeError, TypeError, ValueError):
-        total = None
-      desc = f"{self._source.name}/{split}"
-      views = tqdm.tqdm(views, desc=desc, total=total, unit=" views", mininterval=1.0)
-    for i, record in enumerate(views):
-      check_record(record, self._image_shape, self._pose_dim, f"{self._source.name}/{split} #{i}")
-      yield (
-        i,
-        {
-          "image": encode_png(record["image"]),
-          "pose": np.asarray(record["pose"], dtype=np.float32),
-          "scene": int(record["scene"]),
-          "view": int(record["view"]),
-          "index": i,
-        },
+    def _info(self) -> tfds.core.DatasetInfo:
+      return _LocalDatasetInfo(
+        builder=self,
+        description=(
+          f"camrep view records of source {self._source.name!r}, "
+          f"pose = {tuple(self._source.pose_names)}."
+        ),
+        features=tfds.features.FeaturesDict(
+          {
+            "image": tfds.features.Image(shape=(*self._image_shape, 3)),
+            "pose": tfds.features.Tensor(shape=(self._pose_dim,), dtype=np.float32),
+            "scene": tfds.features.Scalar(dtype=np.int64),
+            "view": tfds.features.Scalar(dtype=np.int64),
+            "index": tfds.features.Scalar(dtype=np.int64),
+          }
+        ),
       )
+
+    def _log_download_bytes(self) -> None:
+      """Silent: tfds' "Downloading and preparing dataset 0 bytes ..." misleads for a local
+      conversion (`camrep.data.prepare` prints what it wrote)."""
+
+    def _log_download_done(self) -> None:
+      """Silent, as `_log_download_bytes`."""
+
+    def _split_generators(self, dl_manager):
+      del dl_manager  # Nothing to download: the source reads its own input.
+      return {split: self._generate_examples(split) for split in self._splits}
+
+    def _generate_examples(self, split: str):
+      views = self._source.iter_views(split)
+      if self._progress:
+        try:  # `num_views(split)` is optional; it only gives the bar its total.
+          total = int(self._source.num_views(split))
+        except (AttributeError, TypeError, ValueError):
+          total = None
+        desc = f"{self._source.name}/{split}"
+        views = tqdm.tqdm(views, desc=desc, total=total, unit=" views", mininterval=1.0)
+      for i, record in enumerate(views):
+        check_record(record, self._image_shape, self._pose_dim, f"{self._source.name}/{split} #{i}")
+        yield (
+          i,
+          {
+            "image": encode_png(record["image"]),
+            "pose": np.asarray(record["pose"], dtype=np.float32),
+            "scene": int(record["scene"]),
+            "view": int(record["view"]),
+            "index": i,
+          },
+        )
+
+  return _SourceBuilderBase
 
 
 def builder_class(
@@ -264,6 +274,8 @@ def builder_class(
     A class whose constructor takes `source=` (a `ViewSource`) besides the usual tfds
     arguments (`data_dir`, `file_format`, `config`). It is not registered with tfds.
   """
+  import tensorflow_datasets as tfds
+
   if not name.isidentifier() or name.lower() != name:
     raise DataError(None, f"dataset name {name!r} must be a lower-case identifier")
 
@@ -275,7 +287,7 @@ def builder_class(
       ns["BUILDER_CONFIGS"] = [tfds.core.BuilderConfig(name=config)]
 
   cls_name = "".join(part.capitalize() for part in name.split("_")) + "Views"
-  return types.new_class(cls_name, (_SourceBuilderBase,), {"skip_registration": True}, body)
+  return types.new_class(cls_name, (_builder_base(),), {"skip_registration": True}, body)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -421,6 +433,8 @@ def prepare(
 
 def _prepare_locked(source, data_dir, name, version, config, metadata, *, overwrite, progress):
   """`prepare` under the writer's lock."""
+  import tensorflow_datasets as tfds
+
   cls = builder_class(name, version=version, config=config)
   tfds.disable_progress_bar()  # Our per-view tqdm bar replaces tfds' (a process-wide switch).
   t0 = time.perf_counter()
@@ -452,6 +466,8 @@ def _prepare_locked(source, data_dir, name, version, config, metadata, *, overwr
 
 def _write(builder, source, path, name, version, config, metadata, t0) -> None:
   """The records (tfds), the sidecars, then the metadata that marks the dataset finished."""
+  import tensorflow_datasets as tfds
+
   with tempfile.TemporaryDirectory() as download_dir:  # Nothing is downloaded; keep it tidy.
     try:
       builder.download_and_prepare(
@@ -570,6 +586,8 @@ def check_path(path: str | os.PathLike, what: str) -> None:
 
 def _version_dirs(base: pathlib.Path) -> list[pathlib.Path]:
   """Sub-directories of `base` that hold a finished tfds dataset version."""
+  import tensorflow_datasets as tfds
+
   out = []
   for d in base.iterdir():
     if d.is_dir() and (d / "dataset_info.json").exists():
@@ -712,6 +730,8 @@ class StoredSplit(Sequence):
   """
 
   def __init__(self, path: pathlib.Path, split: str):
+    import tensorflow_datasets as tfds
+
     self.path = path
     self.split = split
     self.metadata = load_metadata(path)
