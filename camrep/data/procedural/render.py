@@ -425,6 +425,7 @@ def look_at(eye: jax.Array, target: jax.Array, up: Sequence[float] = (0.0, 0.0, 
   return _pack_pose(jnp.stack([x, y, z], axis=-1), eye)
 
 
+@jax.jit  # one program, not ~20 eager ops each compiled per pose count in every process
 def camera_from_yaw_pitch_roll(
   position: jax.Array, yaw: jax.Array, pitch: jax.Array, roll: jax.Array | float = 0.0
 ) -> jax.Array:
