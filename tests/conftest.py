@@ -16,9 +16,15 @@ _CACHE_ENV = "CAMREP_TEST_JAX_CACHE"
 _FAST_ENV = "JAX_DISABLE_MOST_OPTIMIZATIONS"
 
 # XLA:CPU's loop emitters instead of its fusion emitters: the same programs, compiled in about
-# half the time (the `gqn.py:smoke` train step: 29 s -> 14 s). Added to XLA_FLAGS unless the
-# variable names the option already or `JAX_DISABLE_MOST_OPTIMIZATIONS=0`.
+# half the time (the `gqn.py:smoke` train step: 29 s -> 14 s).
 EMITTERS_FLAG = "--xla_cpu_use_fusion_emitters=false"
+# Each program's LLVM code generated as one module, not split into parts for a thread pool: the
+# same code and numbers; on 2 cores, both busy with tests, the parts' overhead is CPU lost
+# (tests/pose_reference.py's compiles 12.7 -> 11.3 s CPU; a cold `gqn.py:smoke` run 17.1 -> 14.6 s).
+CODEGEN_FLAG = "--xla_cpu_parallel_codegen_split_count=1"
+# Added to XLA_FLAGS, each unless the variable names its option already, or
+# `JAX_DISABLE_MOST_OPTIMIZATIONS=0`.
+COMPILE_FLAGS = (EMITTERS_FLAG, CODEGEN_FLAG)
 
 
 @pytest.hookimpl(trylast=True)
@@ -33,9 +39,9 @@ def pytest_configure(config):
   pyproject.toml); `_compile_as_marked` turns the optimisations back on for them and their
   subprocesses.
 
-  XLA_FLAGS gets `EMITTERS_FLAG` (XLA:CPU's compile is most of a test's time; the option roughly
-  halves it). XLA reads the variable once, when the process's backend starts, so the
-  `optimized` mark cannot undo it in the test's own process (its subprocesses go without it).
+  XLA_FLAGS gets `COMPILE_FLAGS` (XLA:CPU's compile is most of a test's time; the loop emitters
+  roughly halve it). XLA reads the variable once, when the process's backend starts, so the
+  `optimized` mark cannot undo them in the test's own process (its subprocesses go without them).
 
   Dozens of tests compile the same smoke-size steps, many in fresh processes; a cache hit skips
   XLA's compile (a `gqn.py:smoke` run: 16.7 s cold, 7.2 s warm) and returns the same executable,
@@ -45,9 +51,10 @@ def pytest_configure(config):
   os.environ.setdefault(_FAST_ENV, "1")
   fast = os.environ[_FAST_ENV] != "0"
   jax.config.update("jax_disable_most_optimizations", fast)
-  flags = os.environ.get("XLA_FLAGS", "")
-  if fast and EMITTERS_FLAG.split("=")[0] not in flags:  # read when the backend starts
-    os.environ["XLA_FLAGS"] = f"{flags} {EMITTERS_FLAG}".strip()
+  for flag in COMPILE_FLAGS if fast else ():
+    flags = os.environ.get("XLA_FLAGS", "")
+    if flag.split("=")[0] not in flags:  # read when the backend starts
+      os.environ["XLA_FLAGS"] = f"{flags} {flag}".strip()
   where = os.environ.get(_CACHE_ENV)
   if where == "0":
     return
@@ -96,7 +103,7 @@ def _compile_as_marked(request, monkeypatch):
   jax.config.update("jax_disable_most_optimizations", False)
   monkeypatch.setenv(_FAST_ENV, "0")
   flags = os.environ.get("XLA_FLAGS", "").split()
-  monkeypatch.setenv("XLA_FLAGS", " ".join(f for f in flags if f != EMITTERS_FLAG))
+  monkeypatch.setenv("XLA_FLAGS", " ".join(f for f in flags if f not in COMPILE_FLAGS))
   try:
     yield
   finally:

@@ -1,7 +1,7 @@
-"""The suite's compile setting (tests/conftest.py): most XLA optimisations off and XLA:CPU's loop
-emitters, in the workers and, through JAX_DISABLE_MOST_OPTIMIZATIONS and XLA_FLAGS, in the
-subprocesses they start; a test marked `optimized` compiles as in production, its subprocesses
-too."""
+"""The suite's compile setting (tests/conftest.py): most XLA optimisations off, XLA:CPU's loop
+emitters and unsplit code generation, in the workers and, through JAX_DISABLE_MOST_OPTIMIZATIONS
+and XLA_FLAGS, in the subprocesses they start; a test marked `optimized` compiles as in
+production, its subprocesses too."""
 
 from __future__ import annotations
 
@@ -18,14 +18,14 @@ def test_the_suite_compiles_with_most_optimisations_off():
   if os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] == "0":
     pytest.skip("JAX_DISABLE_MOST_OPTIMIZATIONS=0: this run compiles as in production")
   assert jax.config.read("jax_disable_most_optimizations") is True
-  assert conftest.EMITTERS_FLAG in os.environ["XLA_FLAGS"].split()
+  assert set(conftest.COMPILE_FLAGS) <= set(os.environ["XLA_FLAGS"].split())
 
 
 def test_a_one_device_subprocess_keeps_the_compile_options(monkeypatch):
-  flags = f"--xla_force_host_platform_device_count=2 {conftest.EMITTERS_FLAG}"
+  flags = " ".join(("--xla_force_host_platform_device_count=2", *conftest.COMPILE_FLAGS))
   monkeypatch.setenv("XLA_FLAGS", flags)
   env = one_device_env()
-  assert env["XLA_FLAGS"] == conftest.EMITTERS_FLAG
+  assert env["XLA_FLAGS"] == " ".join(conftest.COMPILE_FLAGS)
   assert env["JAX_DISABLE_MOST_OPTIMIZATIONS"] == "1"
 
 
@@ -33,4 +33,4 @@ def test_a_one_device_subprocess_keeps_the_compile_options(monkeypatch):
 def test_a_test_marked_optimized_compiles_as_in_production():
   assert jax.config.read("jax_disable_most_optimizations") is False
   assert os.environ["JAX_DISABLE_MOST_OPTIMIZATIONS"] == "0"
-  assert conftest.EMITTERS_FLAG not in os.environ.get("XLA_FLAGS", "").split()
+  assert not set(conftest.COMPILE_FLAGS) & set(os.environ.get("XLA_FLAGS", "").split())
