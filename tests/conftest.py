@@ -20,7 +20,7 @@ _FAST_ENV = "JAX_DISABLE_MOST_OPTIMIZATIONS"
 EMITTERS_FLAG = "--xla_cpu_use_fusion_emitters=false"
 # Each program's LLVM code generated as one module, not split into parts for a thread pool: the
 # same code and numbers; on 2 cores, both busy with tests, the parts' overhead is CPU lost
-# (tests/pose_reference.py's compiles 12.7 -> 11.3 s CPU; a cold `gqn.py:smoke` run 17.1 -> 14.6 s).
+# (a cold `gqn.py:smoke` run 17.1 -> 14.6 s user; BUILD_NOTES, "Tests and CI").
 CODEGEN_FLAG = "--xla_cpu_parallel_codegen_split_count=1"
 # Added to XLA_FLAGS, each unless the variable names its option already, or
 # `JAX_DISABLE_MOST_OPTIMIZATIONS=0`.
