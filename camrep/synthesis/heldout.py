@@ -56,10 +56,13 @@ def eval_batches(
 
 
 def make_predict(model: synthesizers.Synthesizer):
-  """jit(params, batch) -> (prediction, baseline, others), images (E, 1, H, W, 3) in [-1, 1].
+  """jit(params, batch) -> (prediction, scores): the prediction (E, 1, H, W, 3) in [-1, 1] and, in
+  the same program (as `noise.make_noisy_predict`), per-image PSNR and SSIM (E, 1) against the
+  target of the prediction, the baseline (the mean context view) and each of the model's
+  `variants`: {"pred": (psnr, ssim), "base": (psnr, ssim), "others": {name: (psnr, ssim)}}.
 
-  others: the model's `variants` ({} for decoders; GQN's generator: {"sample": temperature 1,
-  "prior_mean": temperature 0}; the prediction is at the config's temperature).
+  variants: {} for decoders; GQN's generator: {"sample": temperature 1, "prior_mean": temperature
+  0} (the prediction is at the config's temperature).
   """
 
   def predict(params, b):
@@ -67,19 +70,12 @@ def make_predict(model: synthesizers.Synthesizer):
     others = {name: model.predict(params, b, temperature=t) for name, t in model.variants.items()}
     ctx = synthesizers.to_float_images(b["context_image"])
     baseline = jnp.broadcast_to(jnp.mean(ctx, axis=1, keepdims=True), pred.shape)
-    return pred, baseline, others
+    tgt = synthesizers.to_float_images(b["target_image"])
+    both = lambda x: (metrics_lib.psnr(x, tgt), metrics_lib.ssim(x, tgt))
+    scores = {"pred": both(pred), "base": both(baseline)}
+    return pred, {**scores, "others": {k: both(o) for k, o in others.items()}}
 
   return jax.jit(predict)
-
-
-@jax.jit
-def _scores(pred, base, others, target_image):
-  """{"pred", "base": (PSNR, SSIM), "others": {name: (PSNR, SSIM)}}, each (E, 1), of images
-  (E, 1, H, W, 3) in [-1, 1] against uint8 targets: one program (eager, the dozen metric ops
-  would each compile in every process)."""
-  tgt = synthesizers.to_float_images(target_image)
-  both = lambda x: (metrics_lib.psnr(x, tgt), metrics_lib.ssim(x, tgt))
-  return {"pred": both(pred), "base": both(base), "others": {k: both(o) for k, o in others.items()}}
 
 
 def evaluate(predict, params, batches) -> tuple[dict[str, float], dict[str, np.ndarray]]:
@@ -93,10 +89,8 @@ def evaluate(predict, params, batches) -> tuple[dict[str, float], dict[str, np.n
   extra: dict[str, list] = {}
   first = None
   for b in batches:
-    pred, base, others = predict(params, {k: jnp.asarray(v) for k, v in b.items()})
-    scores = jax.tree.map(
-      lambda x: np.asarray(x).ravel(), _scores(pred, base, others, b["target_image"])
-    )
+    pred, scores = predict(params, {k: jnp.asarray(v) for k, v in b.items()})
+    scores = jax.tree.map(lambda x: np.asarray(x).ravel(), scores)
     for name, (p, s) in scores["others"].items():
       extra.setdefault(f"eval/psnr_{name}", []).append(p)
       extra.setdefault(f"eval/ssim_{name}", []).append(s)
