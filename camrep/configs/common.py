@@ -160,7 +160,7 @@ def base() -> ml_collections.ConfigDict:
   # from its training views, data.validation_fraction), so that the first stage never stops on
   # the images a regression is tested on.
   c.evals.split = "test"
-  c.evals.num_scenes = 64  # held-out-view evaluation: scenes (one target view each)
+  c.evals.num_scenes = 64  # held-out targets: scenes, one view each (fewer scenes: more views)
   c.evals.batch_scenes = 16
   c.evals.grid_scenes = 4
   # Settings without context views: the baseline is the mean of this many training views.

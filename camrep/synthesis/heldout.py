@@ -26,30 +26,35 @@ Array = jax.Array
 def eval_batches(
   model: synthesizers.Synthesizer, train_pipe, test_pipe, *, n_context: int | None = None
 ) -> list[dict[str, np.ndarray]]:
-  """Held-out-view evaluation set of `model.config.evals`: per scene, the first test view as
-  target and the first training views as context (`n_context` views, default the model's
-  `n_context`; per-scene tables: up to evals.baseline_views views whose mean image is the
-  baseline)."""
+  """Held-out-view evaluation set of `model.config.evals`: the first test view of each of the
+  first `evals.num_scenes` scenes; where the split has fewer scenes, the first k test views of
+  each (k = ceil(num_scenes / scenes), at most the fewest test views of a scene), so that a
+  one-scene capture is evaluated on num_scenes of its views, not one. Context: the scene's first
+  training views (`n_context` views, default the model's `n_context`; per-scene tables: up to
+  evals.baseline_views views whose mean image is the baseline). Batches of evals.batch_scenes
+  targets; "scene" (E,) repeats a scene's id for each of its targets."""
   ev = model.config.evals
   test_ids = np.intersect1d(test_pipe.all_scene_ids, train_pipe.all_scene_ids)
   if len(test_ids) == 0:
     raise DataError(None, "no scene has both training and held-out views to evaluate on")
   ids = test_ids[: ev.num_scenes]
+  per = min(-(-ev.num_scenes // len(ids)), min(test_pipe.num_scene_views(s) for s in ids))
   c = model.n_context if n_context is None else n_context
   if c is None:  # baseline only: the mean of (up to baseline_views of) the scene's training views
     c = min(ev.baseline_views, min(train_pipe.num_scene_views(s) for s in ids))
+  ctx = {s: train_pipe.scene_views(s, c) for s in ids}
+  tgt = {s: test_pipe.scene_views(s, per) for s in ids}
+  targets = [(s, v) for s in ids for v in range(per)]
   out = []
-  for start in range(0, len(ids), ev.batch_scenes):
-    chunk = ids[start : start + ev.batch_scenes]
-    ctx = [train_pipe.scene_views(s, c) for s in chunk]
-    tgt = [test_pipe.scene_views(s, 1) for s in chunk]
+  for start in range(0, len(targets), ev.batch_scenes):
+    chunk = targets[start : start + ev.batch_scenes]
     out.append(
       {
-        "context_image": np.stack([x[0] for x in ctx]),
-        "context_pose": np.stack([x[1] for x in ctx]),
-        "target_image": np.stack([x[0] for x in tgt]),
-        "target_pose": np.stack([x[1] for x in tgt]),
-        "scene": chunk.astype(np.int32),
+        "context_image": np.stack([ctx[s][0] for s, _ in chunk]),
+        "context_pose": np.stack([ctx[s][1] for s, _ in chunk]),
+        "target_image": np.stack([tgt[s][0][v : v + 1] for s, v in chunk]),
+        "target_pose": np.stack([tgt[s][1][v : v + 1] for s, v in chunk]),
+        "scene": np.array([s for s, _ in chunk], np.int32),
       }
     )
   return out
