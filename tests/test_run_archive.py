@@ -372,6 +372,52 @@ def test_a_launch_of_one_setting_keeps_the_other_columns_of_table1(rc, tmp_path)
   assert not [j for j in rc.table_jobs(str(tmp_path), "py", ["seven_scenes"]) if j.name == "table1"]
 
 
+def test_a_launch_of_one_noise_kind_draws_the_pose_inputs_trained_before(rc, tmp_path, monkeypatch):
+  """A launch of `--noise_kinds convdraw` on a column whose low-dimensional runs an earlier launch
+  trained (or the archive restored) draws its noise figure and synthesis curves from all of them,
+  in the order a full launch names them, not from its own runs alone: the archive's figures would
+  lose the other pose inputs. Another column's runs stay out of it."""
+  out, archive = tmp_path / "out", tmp_path / "archive"
+  for name in ("gibson_lowdim_seed0", "gibson_lowdim_seed1", "gibson_lowdim_seed2", "gqn_seed0"):
+    wd = out / "synthesis" / name
+    os.makedirs(wd / "eval")
+    (wd / "config.json").write_text(json.dumps({"argv": []}))
+    (wd / "metrics.jsonl").write_text('{"step": 1, "eval/psnr": 15.0}\n')
+    (wd / "final_metrics.json").write_text(json.dumps({"complete": True, "step": 2400}))
+    (wd / "eval" / "noise.json").write_text(json.dumps({"alphas": [0.0], "psnr": [15.0]}))
+  unevaluated = out / "synthesis" / "gibson_mlp_seed0"  # complete, no noise test: curves only
+  os.makedirs(unevaluated)
+  (unevaluated / "config.json").write_text(json.dumps({"argv": []}))
+  (unevaluated / "final_metrics.json").write_text(json.dumps({"complete": True, "step": 2400}))
+  ran, argv = [], {}
+  fake = fake_run_job(rc, ran)
+
+  def run_job(job, logs, **kw):
+    argv[job.name] = job.argv
+    return fake(job, logs, **kw)
+
+  monkeypatch.setattr(launch, "run_job", run_job)
+  monkeypatch.setattr(launch, "chosen_lr", lambda *a: 1e-3)  # phase 1's choice (car's scores)
+  args = _args(out, archive, "--noise_runs", "--noise_kinds", "convdraw")
+  args[args.index("car")] = "gibson"
+  args[args.index("ours,quat")] = "ours"
+  args.remove("--skip_figures")
+  assert rc.main(args) == 0
+  noise = argv["noise_figure_gibson"]
+  drawn = [os.path.basename(a) for a in noise[noise.index("--runs") + 1 : noise.index("--png")]]
+  seeds = ("seed0", "seed1", "seed2")
+  assert drawn == [f"gibson{k}_{s}" for k in ("", "_lowdim", "_convdraw") for s in seeds]
+  curve = argv["curve_synthesis_gibson"]
+  drawn = [os.path.basename(a) for a in curve[curve.index("--runs") + 1 : curve.index("--title")]]
+  kinds = ("", "_lowdim", "_mlp", "_convdraw")  # gibson regresses no MLP: NOISE_INPUTS order
+  assert drawn == [f"gibson{k}_{s}" for k in kinds for s in seeds if k != "_mlp" or s == "seed0"]
+  assert not [n for n in argv if n.endswith("_gqn")]
+  # The same launch without the earlier runs draws its own: ours and ConvDRAW.
+  assert [n for n in launch.finished_synthesis(str(out), evaluated=True) if "gqn" in n] == [
+    "gqn_seed0"
+  ]
+
+
 # ------------------------------------------------------------------------ a shared folder
 
 

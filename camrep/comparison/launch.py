@@ -454,12 +454,57 @@ def table_jobs(out: str, py: str, settings: Sequence[str]) -> list[Job]:
   return jobs
 
 
+def finished_synthesis(out: str, *, evaluated: bool = False) -> list[str]:
+  """The names of the complete view-synthesis runs in DIR/synthesis (this launch's, an earlier
+  launch's, or restored from an archive), sorted; `evaluated`: only those with a noise test."""
+  root = os.path.join(out, "synthesis")
+  if not os.path.isdir(root):
+    return []
+  return [
+    n
+    for n in sorted(os.listdir(root))
+    if read_final(os.path.join(root, n)).get("complete") is True
+    and (not evaluated or _noise(os.path.join(root, n)) is not None)
+  ]
+
+
+def _input_rank(column: str, *, frozen: bool = False) -> dict[str, int]:
+  """The place of each pose input of a column's view-synthesis runs ("<column>[_kind]" -> rank),
+  in the order a full launch names them: ours, the MLP embedding where it is one of the column's
+  representations, the grid with frozen generators (`frozen`: the curves; no noise figure draws
+  it), then `plan_lib.NOISE_INPUTS`."""
+  reps = plan_lib.settings()[setting_of(column)]["representations"]
+  kinds = ["", *(["_mlp"] if "mlp" in reps else [])]
+  kinds += [f"_{plan_lib.FROZEN_GENERATORS}"] if frozen else []
+  kinds += [f"_{k}" for k in plan_lib.NOISE_INPUTS]
+  return {column + k: i for i, k in enumerate(dict.fromkeys(kinds))}
+
+
+def _in_order(names: Sequence[str], rank: dict[str, int]) -> list[str]:
+  """The runs among `names` whose "<base>" (before "_seed") `rank` places, in its order, seed by
+  seed, each once."""
+  picked = [n for n in dict.fromkeys(names) if n.partition("_seed")[0] in rank]
+  return sorted(picked, key=lambda n: (rank[n.partition("_seed")[0]], _seed_of(n)))
+
+
+def _seed_of(name: str) -> int:
+  """The seed of a run name "<base>_seed<k>" (0 without one)."""
+  return int(name.partition("_seed")[2] or 0)
+
+
 def figure_jobs(
-  out: str, plan: plan_lib.Plan, synth: Sequence[Job], py: str, data: dict | None = None
+  out: str,
+  plan: plan_lib.Plan,
+  synth: Sequence[Job],
+  py: str,
+  data: dict | None = None,
+  others: Sequence[str] = (),
 ) -> list[Job]:
   """Noise robustness and Gram maps of every synthesis run (`camrep.synthesis.evaluate`), then one
   noise figure per setting or capture column with several pose inputs
-  (experiments/noise_figure.py)."""
+  (experiments/noise_figure.py). `others`: evaluated runs DIR holds beyond the launch's
+  (`finished_synthesis`); a column's figure draws them too, so that a launch of one
+  `--noise_kinds` does not redraw it without the pose inputs trained before."""
   jobs = []
   names = [j.name.removeprefix("synthesis_") for j in synth]
   for name in names:
@@ -469,8 +514,10 @@ def figure_jobs(
   captures = [c for c, d in (data or {}).items() if isinstance(d, tuple)]
   for column in [*SETTINGS, *captures]:
     # The column's pose inputs (with seeds at converge size: every seed's run, for bands).
-    inputs = {column + k for k in ("", "_mlp", "_lowdim", "_convdraw")}
-    group = [n for n in names if n.partition("_seed")[0] in inputs]
+    rank = _input_rank(column)
+    if not _in_order(names, rank):
+      continue  # the launch trains none of the column's pose inputs
+    group = _in_order([*names, *others], rank)
     kinds = {n.partition("_seed")[0] for n in group}
     if column not in kinds or len(kinds) < 2:
       continue
@@ -517,12 +564,18 @@ def curve_jobs(launch: Launch) -> list[Job]:
   L = launch
   jobs = []
   if L.plan.synthesis_caps:
+    # Per column, the launch's runs with a workdir and every complete run DIR holds of the same
+    # pose inputs (a launch of one --noise_kinds draws the column's other inputs too).
+    names = [j.name.removeprefix("synthesis_") for j in L.synth if os.path.isdir(j.workdir)]
     by_column: dict[str, list[str]] = {}
-    for j in L.synth:
-      if os.path.isdir(j.workdir):
-        col = synthesis_column(j.name.removeprefix("synthesis_"), L.data)
-        by_column.setdefault(col, []).append(j.workdir)
-    for col, wds in sorted(by_column.items()):
+    for name in names:
+      by_column.setdefault(synthesis_column(name, L.data), []).append(name)
+    others = finished_synthesis(L.out)
+    for col in sorted(by_column):
+      rank, mine = _input_rank(col, frozen=True), by_column[col]
+      unranked = [n for n in mine if n.partition("_seed")[0] not in rank]
+      ordered = [*_in_order([*mine, *others], rank), *unranked]
+      wds = [os.path.join(L.out, "synthesis", n) for n in ordered]
       title = f"{col}: held-out PSNR (dB) of the view-synthesis runs; mean of seeds, band min-max"
       argv = [L.python, "experiments/learning_curve.py", "--bands", "--metrics", "eval/psnr"]
       argv += ["--runs", *wds, "--title", title]
@@ -1033,7 +1086,12 @@ def execute(launch: Launch, *, at_once: int = 1, deadline: float | None = None) 
     else:
       failed += run_jobs(crossed_jobs(L, lr), logs, label="crossed: ", **kw)
       failed += run_jobs([seed_spread_job(L, lr)], logs, label="", **{**kw, "at_once": 1})
-  rest = [j for j in L.figures if j.kind != "evaluate"]
+  if L.figures:  # the noise figures drawn from every evaluated run DIR holds by now
+    others = finished_synthesis(L.out, evaluated=True)
+    figures = figure_jobs(L.out, L.plan, L.synth, L.python, L.data, others)
+  else:
+    figures = []
+  rest = [j for j in figures if j.kind != "evaluate"]
   failed += run_jobs(L.tables + curve_jobs(L) + rest, logs, label="", **{**kw, "at_once": 1})
   if L.archive:
     archive_lib.sync(L.out, L.archive)
