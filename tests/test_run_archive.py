@@ -231,6 +231,23 @@ def test_a_new_machine_restores_the_archive_and_trains_only_what_is_missing(
   assert not (tmp_path / "fourth").exists()
 
 
+def test_the_archives_figures_are_restored_over_older_ones_in_dir(tmp_path):
+  """A figure remade in the archive (or brought by a checkout) replaces DIR's older copy when a
+  launch restores, so that the sync after each run does not copy DIR's old one back over it; a
+  figure only DIR has is kept, and synced into the archive."""
+  archive, out = tmp_path / "archive", tmp_path / "out"
+  os.makedirs(archive)
+  os.makedirs(out)
+  (archive / "noise_gibson.md").write_text("every pose input\n")
+  (out / "noise_gibson.md").write_text("a launch's own runs only\n")
+  (out / "curve_gibson.md").write_text("only in DIR\n")
+  assert archive_lib.restore(str(archive), str(out)) == 0  # no runs: the figures only
+  assert (out / "noise_gibson.md").read_text() == "every pose input\n"
+  archive_lib.sync(str(out), str(archive))
+  assert (archive / "noise_gibson.md").read_text() == "every pose input\n"
+  assert (archive / "curve_gibson.md").read_text() == "only in DIR\n"
+
+
 def test_a_raised_cap_resumes_a_synthesis_run_that_reached_the_old_one(rc, tmp_path):
   wd = tmp_path / "syn"
   wd.mkdir()

@@ -89,7 +89,12 @@ def restore(archive: str, out: str, *, warn=print) -> int:
   """Writes into `out` the record of every archived run that `out` does not hold finished (a
   view-synthesis run only where `out` has no workdir of that name: a partial run there resumes
   from its own checkpoints); returns how many runs it restored. An archived run that cannot be
-  read is named (`warn`) and not restored: the launch trains it again."""
+  read is named (`warn`) and not restored: the launch trains it again. The archive's tables and
+  figures replace `out`'s where they differ: they are the record, and `sync` would otherwise copy
+  older ones of `out` over them."""
+  for pattern in TOP_PATTERNS:
+    for path in sorted(glob.glob(os.path.join(archive, pattern))):
+      _copy_if_changed(path, os.path.join(out, os.path.basename(path)))
   n = 0
   for rel in run_dirs(archive):
     src, dst = os.path.join(archive, rel), os.path.join(out, rel)
