@@ -429,7 +429,7 @@ def test_a_launch_of_one_noise_kind_draws_the_pose_inputs_trained_before(rc, tmp
   kinds = ("", "_lowdim", "_mlp", "_convdraw")  # gibson regresses no MLP: NOISE_INPUTS order
   assert drawn == [f"gibson{k}_{s}" for k in kinds for s in seeds if k != "_mlp" or s == "seed0"]
   assert not [n for n in argv if n.endswith("_gqn")]
-  # The same launch without the earlier runs draws its own: ours and ConvDRAW.
+  # The rooms' run is in DIR, evaluated, and still no rooms figure was drawn above.
   assert [n for n in launch.finished_synthesis(str(out), evaluated=True) if "gqn" in n] == [
     "gqn_seed0"
   ]
