@@ -493,20 +493,17 @@ def _seed_of(name: str) -> int:
 
 
 def figure_jobs(
-  out: str,
-  plan: plan_lib.Plan,
-  synth: Sequence[Job],
-  py: str,
-  data: dict | None = None,
-  others: Sequence[str] = (),
+  out: str, plan: plan_lib.Plan, synth: Sequence[Job], py: str, data: dict | None = None
 ) -> list[Job]:
   """Noise robustness and Gram maps of every synthesis run (`camrep.synthesis.evaluate`), then one
   noise figure per setting or capture column with several pose inputs
-  (experiments/noise_figure.py). `others`: evaluated runs DIR holds beyond the launch's
-  (`finished_synthesis`); a column's figure draws them too, so that a launch of one
-  `--noise_kinds` does not redraw it without the pose inputs trained before."""
+  (experiments/noise_figure.py). A column's figure also draws the evaluated runs DIR holds
+  beyond the launch's (`finished_synthesis`), so that a launch of one `--noise_kinds` does not
+  redraw it without the pose inputs trained before (`execute` builds these jobs again after its
+  runs, to draw what they added)."""
   jobs = []
   names = [j.name.removeprefix("synthesis_") for j in synth]
+  others = finished_synthesis(out, evaluated=True)
   for name in names:
     wd = os.path.join(out, "synthesis", name)
     argv = [py, "-m", "camrep.synthesis.evaluate", "--workdir", wd]
@@ -1086,11 +1083,8 @@ def execute(launch: Launch, *, at_once: int = 1, deadline: float | None = None) 
     else:
       failed += run_jobs(crossed_jobs(L, lr), logs, label="crossed: ", **kw)
       failed += run_jobs([seed_spread_job(L, lr)], logs, label="", **{**kw, "at_once": 1})
-  if L.figures:  # the noise figures drawn from every evaluated run DIR holds by now
-    others = finished_synthesis(L.out, evaluated=True)
-    figures = figure_jobs(L.out, L.plan, L.synth, L.python, L.data, others)
-  else:
-    figures = []
+  # The noise figures drawn from every evaluated run DIR holds by now (figure_jobs reads DIR).
+  figures = figure_jobs(L.out, L.plan, L.synth, L.python, L.data) if L.figures else []
   rest = [j for j in figures if j.kind != "evaluate"]
   failed += run_jobs(L.tables + curve_jobs(L) + rest, logs, label="", **{**kw, "at_once": 1})
   if L.archive:
