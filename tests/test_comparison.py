@@ -366,10 +366,11 @@ def test_protocol_plan_capture_columns_hold_out_the_regressions_validation_views
   assert all("--config.evals.split" not in " ".join(j.argv) for j in converge)
 
 
-def test_protocol_plan(tmp_path, capsys):
+def test_protocol_plan(tmp_path, capsys, monkeypatch):
   """--size protocol: 10 seeds a cell, every seed at every lr, the same lrs for every
   representation of a column and no extension, the control targets in every column (capture
-  columns too) reading the right view-synthesis runs, 7-Scenes synthesis over all seven scenes."""
+  columns too) reading the right view-synthesis runs, 7-Scenes synthesis over all seven scenes,
+  every view-synthesis run evaluated on at least 32 held-out targets."""
   cap = tmp_path / "chair"
   cap.mkdir()
   out = str(tmp_path / "cmp")
@@ -405,6 +406,10 @@ def test_protocol_plan(tmp_path, capsys):
   seven = syn["seven_scenes_seed0"].argv
   assert any(a.startswith("--config.data.family.scenes=") and "stairs" in a for a in seven)
   assert "--config.data.scenes_per_device=7" in seven and "--config.evals.split=validation" in seven
+  # Where a family has fewer scenes than evals.num_scenes, each gives more views (heldout.py): the
+  # area's and 7-Scenes' :quick (4 and 2 targets) are raised here.
+  for col in ("gqn", "car", "gibson", "seven_scenes", "car_chair"):
+    assert _parsed_config(syn[f"{col}_seed0"].argv, monkeypatch).evals.num_scenes >= 32, col
   # The command line parses (every field exists) up to the config's checks: a bad value added
   # last is the first error.
   bad = subprocess.run(
