@@ -181,6 +181,34 @@ def test_a_vectorised_launch_trains_each_group_as_one_program(rc, tmp_path, monk
   assert ran == []
 
 
+@pytest.mark.parametrize("vectorise", [True, False])
+def test_a_full_grid_launch_trains_every_seeds_synthesis_before_phase_1(
+  rc, tmp_path, monkeypatch, vectorise
+):
+  """--full_grid (as the protocol size) has no phase 2: phase 1 reads every seed's view
+  synthesis, so every seed's synthesis is trained first and no regression starts without the
+  pose system it reads."""
+  ran, missing = [], []
+  fake = fake_run_job(rc, ran)
+
+  def run_job(job, logs, **kw):
+    if job.name.startswith("regression_"):
+      done = lambda w: os.path.exists(os.path.join(w, "final_metrics.json"))
+      missing.extend(w for w in launch.synthesis_reads(job) if not done(w))
+    return fake(job, logs, **kw)
+
+  monkeypatch.setattr(launch, "run_job", run_job)
+  args = _args(tmp_path / "out", tmp_path / "archive", "--full_grid")
+  the_launch = rc.make(args if not vectorise else args[1:])
+  assert not the_launch.later
+  assert rc.execute(the_launch) == []
+  assert missing == []
+  syn = [i for i, n in enumerate(ran) if n.startswith("synthesis_")]
+  reg = [i for i, n in enumerate(ran) if n.startswith("regression_")]
+  assert len(syn) == 3 and max(syn) < min(reg)
+  assert len(reg) == (2 if vectorise else 2 * 3 * 3)  # ours and quat, 3 lrs x 3 seeds each
+
+
 def test_a_new_machine_restores_the_archive_and_trains_only_what_is_missing(
   rc, tmp_path, monkeypatch, capsys
 ):

@@ -6,7 +6,9 @@ DIR/logs/<name>.log; a job is done when its run's record says so (`camrep.regres
 so a launch that stops resumes where it stopped. Order (`execute`): seed by seed, so that a cut
 loses little: seed 0's view-synthesis runs and their evaluations, phase 1 (seed 0 at every lr,
 extended while a choice sits at its grid's edge), then for each later seed its view-synthesis
-runs and its phase-2 runs at the chosen lr; then crossed runs, tables, curves and figures.
+runs and its phase-2 runs at the chosen lr; then crossed runs, tables, curves and figures. The
+full grid (`--full_grid`, the protocol size) has no phase 2: every seed's view synthesis comes
+before phase 1, which reads them all.
 """
 
 from __future__ import annotations
@@ -1043,8 +1045,12 @@ def execute(launch: Launch, *, at_once: int = 1, deadline: float | None = None) 
   logs = os.path.join(L.out, "logs")
   after = (lambda job: archive_lib.sync(L.out, L.archive)) if L.archive else None
   kw = dict(at_once=at_once, deadline=deadline, after=after)
-  seeds = L.plan.seeds
-  failed = run_synthesis(L, synthesis_of_seed(L, seeds[0]), logs, kw)
+  # Phase 1 reads the view synthesis of seed 0, or of every seed where it is the full grid.
+  n_first = 1 if L.later else len(L.plan.seeds)
+  later_seeds = L.plan.seeds[n_first:]
+  failed = []
+  for seed in L.plan.seeds[:n_first]:
+    failed += run_synthesis(L, synthesis_of_seed(L, seed), logs, kw)
   failed += run_jobs(L.first, logs, label="phase 1: ", **kw)
   for _ in range(L.plan.extend_grid):
     ext = extension_jobs(L)
@@ -1052,7 +1058,7 @@ def execute(launch: Launch, *, at_once: int = 1, deadline: float | None = None) 
       break
     failed += run_jobs(ext, logs, label="phase 1, lr grid extended: ", **kw)
   if L.plan.vectorise:  # every later seed's synthesis first: phase 2 is one program per group
-    for seed in seeds[1:]:
+    for seed in later_seeds:
       failed += run_synthesis(L, synthesis_of_seed(L, seed), logs, kw)
     later = []
     for job in phase2_grid_jobs(L):
@@ -1062,7 +1068,7 @@ def execute(launch: Launch, *, at_once: int = 1, deadline: float | None = None) 
       else:
         later.append(job)
     failed += run_jobs(later, logs, label="phase 2: ", **kw)
-  for seed in seeds[1:] if not L.plan.vectorise else ():
+  for seed in later_seeds if not L.plan.vectorise else ():
     failed += run_synthesis(L, synthesis_of_seed(L, seed), logs, kw)
     later = []
     for c, rep, k in L.later:
