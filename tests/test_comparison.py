@@ -378,6 +378,7 @@ def test_protocol_plan(tmp_path, capsys, monkeypatch):
   assert command.main(args) == 0
   text = capsys.readouterr().out
   assert text.startswith("protocol comparison") and "estimated" in text.splitlines()[0]
+  assert "after every seed's view synthesis, no phase 2" in text and "<LR>" not in text
   the_launch = command.make_launch(command.parse_args(args))
   p = the_launch.plan
   assert len(p.seeds) >= 10 and p.full_grid and p.extend_grid == 0 and not the_launch.later

@@ -1155,10 +1155,16 @@ def print_plan(launch: Launch, *, commands: bool, at_once: int = 1) -> None:
   if plan.vectorise:
     programs, n, saved = vectorised_saving_s(L)
     v = plan.vectorise
+    order = (
+      "phase 1 one per column and representation over its lrs, phase 2 one over its later "
+      "seeds (after every seed's view synthesis)"
+      if L.later
+      else "one per column and representation over its lrs and seeds (the full grid: after "
+      "every seed's view synthesis, no phase 2)"
+    )
     print(
       f"  vectorised regressions (python -m camrep.regression --lrs --seeds): {n} runs as "
-      f"{programs} programs, phase 1 one per column and representation over its lrs, phase 2 "
-      f"one over its later seeds (after every seed's view synthesis); saves ~{fmt(saved)} "
+      f"{programs} programs, {order}; saves ~{fmt(saved)} "
       f"of the estimate ({v['startup_s']:g} s of start-up a run paid once a program, steps "
       f"{v['step_speedup']:g}x as fast)",
       flush=True,
@@ -1197,7 +1203,8 @@ def print_plan(launch: Launch, *, commands: bool, at_once: int = 1) -> None:
     for (c, _, _), job in later:
       state = "done" if job.done() else f"~{fmt(plan.regression_s[setting_of(c)])}"
       print(f"[{state}, phase 2] {job.command()}")
-  print("  (phase 2: <LR> = the lr chosen on seed 0's validation errors, where not chosen yet)")
+  if L.later:
+    print("  (phase 2: <LR> = the lr chosen on seed 0's validation errors, where not chosen yet)")
   for job in crossed:
     print(f"[~{fmt(plan.regression_s[setting_of(L.crossed)])}, crossed] {job.command()}")
   if L.crossed:
