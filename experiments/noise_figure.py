@@ -45,6 +45,7 @@ LABELS = {
   "lowdim": "GQN low-dim pose",
   "mlp": "MLP embedding",
   "convdraw": "GQN (ConvDRAW)",
+  "frozen_gen": "ours, generators frozen",
 }
 
 
@@ -73,6 +74,8 @@ def load(workdir: str) -> dict:
   kind = config.get("rep", {}).get("kind", "grid")
   if config.get("model", {}).get("kind", "decoder") == "convdraw":  # GQN itself
     kind = "convdraw"
+  elif config.get("rep", {}).get("freeze_generators"):  # the control: B at its initial values
+    kind = "frozen_gen"
   return {
     "label": LABELS.get(kind, kind),
     "kind": kind,

@@ -404,6 +404,12 @@ def test_protocol_plan(tmp_path, capsys, monkeypatch):
     frozen = syn[f"{col}_frozen_gen_seed3"].argv
     assert "--config.rep.freeze_generators=True" in frozen and "--config.seed=3" in frozen
     assert "--config.rep.freeze_generators=True" not in syn[f"{col}_seed3"].argv
+  # Each column's noise figure sets the control beside ours, seed by seed.
+  noise = {j.name: j.argv for j in the_launch.figures if j.name.startswith("noise_figure_")}
+  for col in cells:
+    drawn = [os.path.basename(a) for a in noise[f"noise_figure_{col}"] if "_seed" in a]
+    assert drawn[: len(p.seeds)] == [f"{col}_seed{k}" for k in p.seeds], col
+    assert drawn[-len(p.seeds) :] == [f"{col}_frozen_gen_seed{k}" for k in p.seeds], col
   seven = syn["seven_scenes_seed0"].argv
   assert any(a.startswith("--config.data.family.scenes=") and "stairs" in a for a in seven)
   assert "--config.data.scenes_per_device=7" in seven and "--config.evals.split=validation" in seven

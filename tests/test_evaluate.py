@@ -313,3 +313,37 @@ def test_noise_figure_groups_seeds_by_pose_input_with_a_band(tmp_path):
   np.testing.assert_allclose(
     again.collections[0].get_paths()[0].vertices, ax.collections[0].get_paths()[0].vertices
   )
+
+
+def test_the_frozen_generator_control_is_its_own_curve_from_workdir_and_record(tmp_path):
+  """A view-synthesis run with `rep.freeze_generators` is labelled as the control, not as ours,
+  read from its workdir or from its compact record (which keeps the flag); a learned run's
+  record leaves the unset flag out, as records did before it was kept."""
+  from camrep.regression import runs as runs_lib
+
+  alphas = [0.0, 0.3]
+  dirs = []
+  for name, frozen, psnr in (("learned", False, [20.0, 19.0]), ("frozen", True, [19.0, 17.0])):
+    wd = tmp_path / name
+    (wd / "eval").mkdir(parents=True)
+    config = {"seed": 0, "rep": {"kind": "grid", "freeze_generators": frozen}}
+    (wd / "config.json").write_text(json.dumps(config))
+    (wd / "final_metrics.json").write_text(json.dumps({"complete": True, "step": 10}))
+    (wd / "metrics.jsonl").write_text(json.dumps({"step": 10, "eval/psnr": psnr[0]}) + "\n")
+    noise = {"setting": "gibson", "step": 10, "alphas": alphas, "psnr": psnr, "num_images": 4}
+    noise["ssim"] = [0.5, 0.4]
+    (wd / "eval" / "noise.json").write_text(json.dumps(noise))
+    dirs.append(str(wd))
+  records = []
+  for wd in dirs:
+    rec = os.path.join(wd + "_record", runs_lib.RECORD_FILE)
+    runs_lib.write_record(runs_lib.compact(runs_lib.load(wd)), rec)
+    records.append(os.path.dirname(rec))
+  assert runs_lib.load(records[0]).config == {"seed": 0, "rep": {"kind": "grid"}}
+  assert runs_lib.load(records[1]).config["rep"] == {"kind": "grid", "freeze_generators": True}
+  for group in (dirs, records):
+    loaded = [noise_figure.load(w) for w in group]
+    assert [r["label"] for r in loaded] == ["ours (learned)", "ours, generators frozen"]
+    png, md = tmp_path / "noise.png", tmp_path / "noise.md"
+    assert noise_figure.main(["--runs", *group, "--png", str(png), "--md", str(md)]) == 0
+    assert "ours (learned) 1.00 dB, ours, generators frozen 2.00 dB" in md.read_text()

@@ -470,14 +470,13 @@ def finished_synthesis(out: str, *, evaluated: bool = False) -> list[str]:
   ]
 
 
-def _input_rank(column: str, *, frozen: bool = False) -> dict[str, int]:
+def _input_rank(column: str) -> dict[str, int]:
   """The place of each pose input of a column's view-synthesis runs ("<column>[_kind]" -> rank),
   in the order a full launch names them: ours, the MLP embedding where it is one of the column's
-  representations, the grid with frozen generators (`frozen`: the curves; no noise figure draws
-  it), then `plan_lib.NOISE_INPUTS`."""
+  representations, the grid with frozen generators (the control), then
+  `plan_lib.NOISE_INPUTS`."""
   reps = plan_lib.settings()[setting_of(column)]["representations"]
-  kinds = ["", *(["_mlp"] if "mlp" in reps else [])]
-  kinds += [f"_{plan_lib.FROZEN_GENERATORS}"] if frozen else []
+  kinds = ["", *(["_mlp"] if "mlp" in reps else []), f"_{plan_lib.FROZEN_GENERATORS}"]
   kinds += [f"_{k}" for k in plan_lib.NOISE_INPUTS]
   return {column + k: i for i, k in enumerate(dict.fromkeys(kinds))}
 
@@ -498,11 +497,11 @@ def figure_jobs(
   out: str, plan: plan_lib.Plan, synth: Sequence[Job], py: str, data: dict | None = None
 ) -> list[Job]:
   """Noise robustness and Gram maps of every synthesis run (`camrep.synthesis.evaluate`), then one
-  noise figure per setting or capture column with several pose inputs
-  (experiments/noise_figure.py). A column's figure also draws the evaluated runs DIR holds
-  beyond the launch's (`finished_synthesis`), so that a launch of one `--noise_kinds` does not
-  redraw it without the pose inputs trained before (`execute` builds these jobs again after its
-  runs, to draw what they added)."""
+  noise figure per setting or capture column with several pose inputs, the frozen-generator
+  control among them (experiments/noise_figure.py). A column's figure also draws the evaluated
+  runs DIR holds beyond the launch's (`finished_synthesis`), so that a launch of one
+  `--noise_kinds` does not redraw it without the pose inputs trained before (`execute` builds
+  these jobs again after its runs, to draw what they added)."""
   jobs = []
   names = [j.name.removeprefix("synthesis_") for j in synth]
   others = finished_synthesis(out, evaluated=True)
@@ -571,7 +570,7 @@ def curve_jobs(launch: Launch) -> list[Job]:
       by_column.setdefault(synthesis_column(name, L.data), []).append(name)
     others = finished_synthesis(L.out)
     for col in sorted(by_column):
-      rank, mine = _input_rank(col, frozen=True), by_column[col]
+      rank, mine = _input_rank(col), by_column[col]
       unranked = [n for n in mine if n.partition("_seed")[0] not in rank]
       ordered = [*_in_order([*mine, *others], rank), *unranked]
       wds = [os.path.join(L.out, "synthesis", n) for n in ordered]

@@ -60,8 +60,13 @@ CONFIG_FIELDS = (
   "data.source",
   "data.dir",
   "data.preset",
+  "rep.freeze_generators",
 )
 """The config fields a record keeps (dotted paths): what the readers label and group runs by."""
+
+UNSET_FIELDS = {"rep.freeze_generators": False}
+"""Fields of `CONFIG_FIELDS` a record leaves out at this value: the control they mark is named,
+and the records of every other run stay as they were before the field was kept."""
 
 # Per-view arrays no reader uses (the regressor's predicted poses).
 _DROPPED_ARRAYS = ("pred",)
@@ -153,7 +158,8 @@ def read_errors(path: str) -> dict[str, np.ndarray]:
 
 
 def _pick(tree: Mapping[str, Any], fields=CONFIG_FIELDS) -> dict[str, Any]:
-  """The dotted `fields` of a nested dict that it has, nested again."""
+  """The dotted `fields` of a nested dict that it has (but `UNSET_FIELDS` at their value),
+  nested again."""
   out: dict[str, Any] = {}
   for name in fields:
     node, parts = tree, name.split(".")
@@ -162,6 +168,8 @@ def _pick(tree: Mapping[str, Any], fields=CONFIG_FIELDS) -> dict[str, Any]:
         break
       node = node[p]
     else:
+      if name in UNSET_FIELDS and node == UNSET_FIELDS[name]:
+        continue
       dst = out
       for p in parts[:-1]:
         dst = dst.setdefault(p, {})
