@@ -13,7 +13,8 @@ quaternion,
       --png /tmp/curve/rooms.png --md /tmp/curve/rooms.md
 
 With --bands (a figure per setting, one line per representation, bands over seeds), runs are
-grouped by representation (their config; view-synthesis runs by their pose input, rep.kind, e.g.
+grouped by representation (their config; view-synthesis runs by their pose input, rep.kind, or
+as the frozen-generator control, e.g.
 the eval/psnr curves of a converge launch's synthesis seeds): each table cell is "mean [min, max]"
 over the group's runs logged at that step, and the figure draws each group's mean with its min
 and max as a band, e.g. the validation curves (`eval/validation/score`, logged by every
@@ -143,12 +144,15 @@ def from_markdown(text: str) -> tuple[list[str], list[str], list[list[dict[int, 
 
 def group_of(workdir: str) -> str:
   """A run's group under --bands: its representation (regression); a view-synthesis run's pose
-  input (rep.kind: grid, lowdim, mlp; "convdraw" for GQN's generator); else its label."""
+  input (rep.kind: grid, lowdim, mlp; "convdraw" for GQN's generator, "frozen_gen" for the grid
+  with its generators frozen); else its label."""
   config = _config(workdir) or {}
   if config.get("representation"):
     return config["representation"]
   if config.get("model", {}).get("kind") == "convdraw":
     return "convdraw"
+  if isinstance(config.get("rep"), dict) and config["rep"].get("freeze_generators"):
+    return "frozen_gen"
   if isinstance(config.get("rep"), dict) and config["rep"].get("kind"):
     return config["rep"]["kind"]
   return label_of(workdir)

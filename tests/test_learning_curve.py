@@ -93,7 +93,8 @@ def test_bands_over_seeds_per_representation(tmp_path, capsys):
 
 def test_bands_group_view_synthesis_runs_by_pose_input(tmp_path, capsys):
   """Synthesis workdirs (no representation) are grouped by rep.kind; GQN's ConvDRAW (whose
-  rep.kind is lowdim) by its model.kind, not with the low-dim decoder."""
+  rep.kind is lowdim) by its model.kind, not with the low-dim decoder; the grid with frozen
+  generators as the control, not with ours."""
   lc = learning_curve
   runs = []
   for name, rep, model, psnr in (
@@ -101,10 +102,12 @@ def test_bands_group_view_synthesis_runs_by_pose_input(tmp_path, capsys):
     ("car_seed1", "grid", "decoder", 22.0),
     ("car_lowdim_seed0", "lowdim", "decoder", 18.0),
     ("car_convdraw_seed0", "lowdim", "convdraw", 19.0),
+    ("car_frozen_gen_seed0", "grid", "decoder", 17.0),
   ):
     wd = tmp_path / name
     wd.mkdir()
-    config = {"rep": {"kind": rep}, "model": {"kind": model}}
+    frozen = name.startswith("car_frozen_gen")
+    config = {"rep": {"kind": rep, "freeze_generators": frozen}, "model": {"kind": model}}
     (wd / "config.json").write_text(json.dumps(config))
     (wd / "metrics.jsonl").write_text(json.dumps({"step": 120, "eval/psnr": psnr}) + "\n")
     runs.append(str(wd))
@@ -112,8 +115,9 @@ def test_bands_group_view_synthesis_runs_by_pose_input(tmp_path, capsys):
   args = ["--bands", "--runs", *runs, "--metrics", "eval/psnr", "--png", str(tmp_path / "s.png")]
   assert lc.main([*args, "--md", str(md)]) == 0
   text = md.read_text()
-  assert "| step | grid (2 runs) | lowdim (1 runs) | convdraw (1 runs) |" in text
-  assert "| 120 | 21 [20, 22] | 18 [18, 18] | 19 [19, 19] |" in text
+  heads = "| step | grid (2 runs) | lowdim (1 runs) | convdraw (1 runs) | frozen_gen (1 runs) |"
+  assert heads in text
+  assert "| 120 | 21 [20, 22] | 18 [18, 18] | 19 [19, 19] | 17 [17, 17] |" in text
   capsys.readouterr()
 
 
