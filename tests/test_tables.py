@@ -169,3 +169,38 @@ def test_the_committed_tables_regenerate_byte_identical_from_the_committed_recor
 
   with open(os.path.join(conv, "claims.md"), encoding="utf-8") as f:
     assert claims_table.build(conv) + "\n" == f.read()
+
+
+def test_the_protocol_figures_regenerate_from_its_records(tmp_path, monkeypatch, capsys):
+  """results/protocol keeps one compact record per finished run of the protocol size; the tables
+  of its figures are the launcher's own figure jobs over that directory (paths relative to the
+  repository), byte for byte."""
+  from camrep.comparison import command, launch
+  from experiments import learning_curve, noise_figure
+
+  proto = os.path.join(ROOT, "results", "protocol")
+  assert not [
+    f for _, _, fs in os.walk(os.path.join(proto, "synthesis")) for f in fs if f != "run.json"
+  ]
+  monkeypatch.chdir(ROOT)
+  args = ["--size", "protocol", "--out", "results/protocol", "--dry_run"]
+  the_launch = command.make_launch(command.parse_args(args))
+  jobs = [j for j in the_launch.figures if j.kind != "evaluate"] + launch.curve_jobs(the_launch)
+  scripts = {
+    "experiments/noise_figure.py": noise_figure,
+    "experiments/learning_curve.py": learning_curve,
+  }
+  drawn = set()
+  for job in jobs:
+    argv = [os.path.relpath(a, ROOT) if a.startswith(proto) else a for a in job.argv[2:]]
+    md = argv[argv.index("--md") + 1]
+    if not os.path.isfile(md):
+      continue  # a figure the launch will draw once its runs exist
+    argv[argv.index("--md") + 1] = str(tmp_path / "figure.md")
+    argv[argv.index("--png") + 1] = str(tmp_path / "figure.png")
+    assert scripts[job.argv[1]].main(argv) == 0, job.name
+    with open(md, encoding="utf-8") as f:
+      assert (tmp_path / "figure.md").read_text() == f.read(), md
+    drawn.add(os.path.basename(md))
+  assert {"noise_gibson.md", "curve_synthesis_gibson.md"} <= drawn
+  capsys.readouterr()
