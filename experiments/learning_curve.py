@@ -159,26 +159,45 @@ def group_of(workdir: str) -> str:
 
 
 def bands(groups: Sequence[str], curves: Sequence[dict[int, float]]):
-  """{group: {step: (mean, min, max)}} over the curves of each group (per step, over the runs
-  that logged it)."""
+  """{group: {step: (mean, min, max, runs)}} over the curves of each group (per step, over the
+  runs that logged it, and how many they are)."""
   by: dict[str, dict[int, list[float]]] = {}
   for g, c in zip(groups, curves, strict=True):
     for step, v in c.items():
       by.setdefault(g, {}).setdefault(step, []).append(v)
   return {
-    g: {s: (float(np.mean(v)), float(np.min(v)), float(np.max(v))) for s, v in sorted(d.items())}
+    g: {
+      s: (float(np.mean(v)), float(np.min(v)), float(np.max(v)), len(v))
+      for s, v in sorted(d.items())
+    }
     for g, d in by.items()
   }
 
 
+def _runs(n: int) -> str:
+  return f"{n} run" + ("s" if n != 1 else "")
+
+
 def band_markdown(metric: str, table, counts: dict[str, int]) -> str:
+  """A --bands table: "mean [min, max]" a cell, and "(k runs)" after it where only k of the
+  group's runs logged the step (the others had stopped)."""
   names = list(table)
   steps = sorted(set().union(*(table[g] for g in names)))
-  head = [f"{g} ({counts[g]} runs)" for g in names]
-  lines = [f"`{metric}`: mean [min, max] over runs", "", "| step | " + " | ".join(head) + " |"]
+  head = [f"{g} ({_runs(counts[g])})" for g in names]
+  lines = [
+    f"`{metric}`: mean [min, max] over the runs that logged the step",
+    "",
+    "| step | " + " | ".join(head) + " |",
+  ]
   lines.append("|---" * (len(names) + 1) + "|")
   for s in steps:
-    cells = ["{:.4g} [{:.4g}, {:.4g}]".format(*table[g][s]) if s in table[g] else "" for g in names]
+    cells = []
+    for g in names:
+      if s not in table[g]:
+        cells.append("")
+        continue
+      mean, lo, hi, n = table[g][s]
+      cells.append(f"{mean:.4g} [{lo:.4g}, {hi:.4g}]" + (f" ({_runs(n)})" if n < counts[g] else ""))
     lines.append(f"| {s} | " + " | ".join(cells) + " |")
   return "\n".join(lines) + "\n"
 

@@ -85,9 +85,17 @@ def test_bands_over_seeds_per_representation(tmp_path, capsys):
   assert lc.main([*args, "--title", "car: the score"]) == 0
   text = md.read_text()
   assert text.startswith("# car: the score\n")
-  assert "| step | ours (3 runs) | quat (1 runs) |" in text
+  assert "| step | ours (3 runs) | quat (1 run) |" in text
   assert "| 100 | 2 [1, 3] | 4 [4, 4] |" in text and "| 200 | 1 [0.5, 1.5] | 2 [2, 2] |" in text
   assert cv2.imread(str(png)) is not None
+  # A run that stopped early: the later steps say how many runs their cells are over.
+  runs.append(_workdir(tmp_path, "ours3", "ours", [{"step": 100, key: 6.0}]))
+  args = ["--bands", "--runs", *runs, "--metrics", key, "--png", str(png), "--md", str(md)]
+  assert lc.main(args) == 0
+  text = md.read_text()
+  assert "| step | ours (4 runs) | quat (1 run) |" in text
+  assert "| 100 | 3 [1, 6] | 4 [4, 4] |" in text
+  assert "| 200 | 1 [0.5, 1.5] (3 runs) | 2 [2, 2] |" in text
   capsys.readouterr()
 
 
@@ -115,7 +123,7 @@ def test_bands_group_view_synthesis_runs_by_pose_input(tmp_path, capsys):
   args = ["--bands", "--runs", *runs, "--metrics", "eval/psnr", "--png", str(tmp_path / "s.png")]
   assert lc.main([*args, "--md", str(md)]) == 0
   text = md.read_text()
-  heads = "| step | grid (2 runs) | lowdim (1 runs) | convdraw (1 runs) | frozen_gen (1 runs) |"
+  heads = "| step | grid (2 runs) | lowdim (1 run) | convdraw (1 run) | frozen_gen (1 run) |"
   assert heads in text
   assert "| 120 | 21 [20, 22] | 18 [18, 18] | 19 [19, 19] | 17 [17, 17] |" in text
   capsys.readouterr()
@@ -140,6 +148,6 @@ def test_a_compact_record_gives_the_same_curves_and_groups(tmp_path):
     args = ["--bands", "--runs", run, "--metrics", key, "--md", str(md[name])]
     assert learning_curve.main(args) == 0
   text = md["rec"].read_text()
-  assert "| 200 | 0.25 [0.25, 0.25] |" in text and "ours (1 runs)" in text
+  assert "| 200 | 0.25 [0.25, 0.25] |" in text and "ours (1 run)" in text
   assert text.replace(str(rec), "X") == md["full"].read_text().replace(wd, "X")
   assert learning_curve.curve(str(rec), "train/loss") == {}  # records keep eval/ metrics only

@@ -34,6 +34,23 @@ def test_curves_figure_draws_a_band_only_for_seeds():
   ]
 
 
+def test_a_legend_says_how_few_seeds_remain_where_runs_stopped():
+  """Seeds that stopped before the others (their values NaN at the later points) are not
+  counted in the legend's "mean of" as if they were still there."""
+  x = [0.0, 1.0, 2.0]
+  series = {
+    "stopped": np.array([[1.0, 2.0, np.nan], [3.0, 4.0, 5.0], [2.0, np.nan, np.nan]]),
+    "all": np.array([[1.0, 2.0, 3.0], [2.0, 3.0, 4.0]]),
+  }
+  fig = plots.curves_figure(x, [plots.Panel("t", "y", series, xlabel="x")])
+  (ax,) = fig.axes
+  assert [t.get_text() for t in ax.get_legend().get_texts()] == [
+    "stopped (mean of the 1-3 seeds logged at each step)",
+    "all (mean of 2 seeds)",
+  ]
+  np.testing.assert_allclose(ax.get_lines()[0].get_ydata(), [2.0, 3.0, 5.0])
+
+
 def test_panels_with_the_same_series_share_one_legend_below_them():
   x = [0.0, 0.1]
   series = {"ours": [1.0, 2.0], "quat": np.array([[1.0, 1.5], [2.0, 2.5]])}

@@ -204,3 +204,34 @@ def test_the_protocol_figures_regenerate_from_its_records(tmp_path, monkeypatch,
     drawn.add(os.path.basename(md))
   assert {"noise_gibson.md", "curve_synthesis_gibson.md"} <= drawn
   capsys.readouterr()
+
+
+def test_every_committed_curve_table_regenerates_from_the_records_it_names(tmp_path, capsys):
+  """Each curve_*.md of the record archives, results/converge and results/protocol
+  (experiments/learning_curve.py --bands), names its runs, which are records in the repository:
+  its title, metrics and runs give it back byte for byte. (results/quick's snapshot was drawn
+  from workdirs that are not kept.)"""
+  import glob
+  import re
+
+  from experiments import learning_curve
+
+  tables = sorted(
+    p
+    for archive in ("converge", "protocol")
+    for p in glob.glob(os.path.join(ROOT, "results", archive, "curve_*.md"))
+  )
+  assert len(tables) >= 15
+  for path in tables:
+    with open(path, encoding="utf-8") as f:
+      text = f.read()
+    title = text.split("\n\n")[0].removeprefix("# ")
+    metrics = [line.strip("`").split("`")[0] for line in text.splitlines() if line.startswith("`")]
+    named = re.findall(r"`([^`]+)`", next(x for x in text.splitlines() if x.startswith("Runs: ")))
+    assert not [r for r in named if os.path.isabs(r)], f"{path} names paths outside the repository"
+    runs = [os.path.join(ROOT, r) for r in named]
+    md = tmp_path / "curve.md"
+    argv = ["--bands", "--metrics", ",".join(metrics), "--runs", *runs, "--title", title]
+    assert learning_curve.main([*argv, "--md", str(md)]) == 0, path
+    assert md.read_text().replace(ROOT + os.sep, "") == text, path
+  capsys.readouterr()

@@ -84,6 +84,19 @@ def mean_and_band(values) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
   return mean, low, high, a.shape[0]
 
 
+def _series_name(label: str, values, seeds: int, ok: np.ndarray) -> str:
+  """A series' legend entry: "<label> (mean of <seeds> seeds)", or "(mean of the <lo>-<seeds>
+  seeds logged at each step)" where some seeds have no value at a drawn point (runs that stopped
+  before the others)."""
+  if seeds <= 1:
+    return label
+  logged = np.isfinite(_as_seeds(values)).sum(axis=0)[ok]
+  lo = int(logged.min()) if logged.size else seeds
+  if lo == seeds:
+    return f"{label} (mean of {seeds} seeds)"
+  return f"{label} (mean of the {lo}-{seeds} seeds logged at each step)"
+
+
 def curves_figure(x, panels: Sequence[Panel], *, suptitle: str = "") -> Figure:
   """Panels side by side, one line per series (markers at the points), a band where a series
   has several seeds. Panels that plot the same series share one legend below them, where it
@@ -99,12 +112,14 @@ def curves_figure(x, panels: Sequence[Panel], *, suptitle: str = "") -> Figure:
   for ax, panel in zip(axes, panels, strict=True):
     for i, (label, values) in enumerate(panel.series.items()):
       mean, low, high, seeds = mean_and_band(values)
+      ok = np.isfinite(mean)
       if label in panel.bands:
         low, high, seeds = panel.bands[label]
         low, high = np.asarray(low, np.float64), np.asarray(high, np.float64)
+        name = f"{label} (mean of {seeds} seeds)" if seeds > 1 else label
+      else:
+        name = _series_name(label, values, seeds, ok)
       style = series_style(i)
-      name = f"{label} (mean of {seeds} seeds)" if seeds > 1 else label
-      ok = np.isfinite(mean)
       ax.plot(x[ok], mean[ok], markersize=3.5, linewidth=1.6, label=name or None, **style)
       if seeds > 1:
         ax.fill_between(x[ok], low[ok], high[ok], color=style["color"], alpha=0.2, linewidth=0)
