@@ -14,10 +14,10 @@ quaternion,
 
 With --bands (a figure per setting, one line per representation, bands over seeds), runs are
 grouped by representation (their config; view-synthesis runs by their pose input, rep.kind, or
-as the frozen-generator control, e.g.
-the eval/psnr curves of a converge launch's synthesis seeds): each table cell is "mean [min, max]"
-over the group's runs logged at that step, and the figure draws each group's mean with its min
-and max as a band, e.g. the validation curves (`eval/validation/score`, logged by every
+as the frozen-generator control, e.g. the eval/psnr curves of a converge launch's synthesis
+seeds): each table cell is "mean [min, max]" over the group's runs logged at that step (with
+their number where runs had stopped), and the figure draws each group's mean with its min and
+max as a band, e.g. the validation curves (`eval/validation/score`, logged by every
 regression run with eval_every_steps) of a converge launch's chosen runs:
 
   .venv/bin/python experiments/learning_curve.py --bands --metrics eval/validation/score \
