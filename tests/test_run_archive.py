@@ -276,6 +276,33 @@ def test_the_archives_figures_are_restored_over_older_ones_in_dir(tmp_path):
   assert (archive / "curve_gibson.md").read_text() == "only in DIR\n"
 
 
+def test_an_archived_table_names_the_archived_runs_not_dirs(tmp_path, monkeypatch):
+  """A table the launch wrote in DIR names DIR's runs by their absolute paths; its archived copy
+  names the same runs in the archive, by the archive's path from the working directory (the
+  repository root), so that it is the table the archived records give. Figures are copied as
+  they are."""
+  monkeypatch.chdir(tmp_path)
+  out = tmp_path / "runs" / "protocol"
+  os.makedirs(out)
+  table = f"Runs: gibson_seed0: `{out}/synthesis/gibson_seed0`; `{out}/synthesis/gibson_seed1`\n"
+  (out / "curve_synthesis_gibson.md").write_text(table)
+  (out / "curve_synthesis_gibson.png").write_bytes(str(out).encode())
+  assert archive_lib.sync(str(out), os.path.join("results", "protocol")) == 2
+  archived = tmp_path / "results" / "protocol"
+  assert (archived / "curve_synthesis_gibson.md").read_text() == (
+    "Runs: gibson_seed0: `results/protocol/synthesis/gibson_seed0`; "
+    "`results/protocol/synthesis/gibson_seed1`\n"
+  )
+  assert (archived / "curve_synthesis_gibson.png").read_bytes() == str(out).encode()
+  assert archive_lib.sync(str(out), os.path.join("results", "protocol")) == 0  # unchanged
+  # An archive outside the working directory is named by its absolute path.
+  elsewhere = tmp_path.parent / f"{tmp_path.name}_archive"
+  archive_lib.sync(str(out), str(elsewhere))
+  assert (
+    f"`{elsewhere}/synthesis/gibson_seed0`" in (elsewhere / "curve_synthesis_gibson.md").read_text()
+  )
+
+
 def test_a_raised_cap_resumes_a_synthesis_run_that_reached_the_old_one(rc, tmp_path):
   wd = tmp_path / "syn"
   wd.mkdir()

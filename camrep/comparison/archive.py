@@ -39,10 +39,13 @@ def run_dirs(root: str) -> list[str]:
   return out
 
 
-def _copy_if_changed(src: str, dst: str) -> bool:
-  """Copies src to dst (a temporary file, then a rename) unless dst has the same bytes."""
+def _copy_if_changed(src: str, dst: str, rewrite=None) -> bool:
+  """Copies src to dst (a temporary file, then a rename) unless dst has the same bytes (those of
+  `rewrite(src's bytes)` when given)."""
   with open(src, "rb") as f:
     data = f.read()
+  if rewrite is not None:
+    data = rewrite(data)
   if os.path.exists(dst):
     with open(dst, "rb") as f:
       if f.read() == data:
@@ -57,8 +60,9 @@ def _copy_if_changed(src: str, dst: str) -> bool:
 
 def sync(out: str, archive: str) -> int:
   """Writes into `archive` the record of every finished, readable run of `out` and the launch's
-  tables and figures, where missing or changed; returns how many files it wrote. A run that
-  cannot be read is left out (it is trained again)."""
+  tables and figures (the runs a table names moved into the archive: `_moved_paths`), where
+  missing or changed; returns how many files it wrote. A run that cannot be read is left out (it
+  is trained again)."""
   n = 0
   for rel in run_dirs(out):
     wd = os.path.join(out, rel)
@@ -69,10 +73,23 @@ def sync(out: str, archive: str) -> int:
     except runs.DamagedRun:
       continue
     n += runs.write_record(record, os.path.join(archive, rel, runs.RECORD_FILE))
+  moved = _moved_paths(out, archive)
   for pattern in TOP_PATTERNS:
     for path in sorted(glob.glob(os.path.join(out, pattern))):
-      n += _copy_if_changed(path, os.path.join(archive, os.path.basename(path)))
+      rewrite = moved if path.endswith(".md") else None
+      n += _copy_if_changed(path, os.path.join(archive, os.path.basename(path)), rewrite)
   return n
+
+
+def _moved_paths(out: str, archive: str):
+  """bytes -> bytes: a table of DIR's with the runs it names moved into the archive. DIR's path
+  becomes the archive's, relative to the working directory where it lies below it (a launch run
+  from the repository root with `--archive results/<size>`), so that the archived table is the
+  one its reader makes from the archived records (`tests/test_tables.py` checks that)."""
+  rel = os.path.relpath(archive)
+  to = (os.path.abspath(archive) if rel.startswith("..") else rel) + os.sep
+  src = (os.path.abspath(out) + os.sep).encode()
+  return lambda data: data.replace(src, to.encode())
 
 
 def _complete(workdir: str) -> bool:
