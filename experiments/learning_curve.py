@@ -149,13 +149,7 @@ def group_of(workdir: str) -> str:
   config = _config(workdir) or {}
   if config.get("representation"):
     return config["representation"]
-  if config.get("model", {}).get("kind") == "convdraw":
-    return "convdraw"
-  if isinstance(config.get("rep"), dict) and config["rep"].get("freeze_generators"):
-    return "frozen_gen"
-  if isinstance(config.get("rep"), dict) and config["rep"].get("kind"):
-    return config["rep"]["kind"]
-  return label_of(workdir)
+  return runs_lib.pose_input(config) or label_of(workdir)
 
 
 def bands(groups: Sequence[str], curves: Sequence[dict[int, float]]):

@@ -71,11 +71,7 @@ def load(workdir: str) -> dict:
       f"{path} does not exist: run `python -m camrep.synthesis.evaluate --workdir={workdir} "
       "--what=noise`"
     )
-  kind = config.get("rep", {}).get("kind", "grid")
-  if config.get("model", {}).get("kind", "decoder") == "convdraw":  # GQN itself
-    kind = "convdraw"
-  elif config.get("rep", {}).get("freeze_generators"):  # the control: B at its initial values
-    kind = "frozen_gen"
+  kind = runs_lib.pose_input(config) or "grid"
   return {
     "label": LABELS.get(kind, kind),
     "kind": kind,

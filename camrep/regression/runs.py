@@ -68,6 +68,21 @@ UNSET_FIELDS = {"rep.freeze_generators": False}
 """Fields of `CONFIG_FIELDS` a record leaves out at this value: the control they mark is named,
 and the records of every other run stay as they were before the field was kept."""
 
+
+def pose_input(config: Mapping[str, Any]) -> str | None:
+  """The pose input a view-synthesis run's config (whole, or a record's fields) names: its
+  rep.kind (grid, lowdim, mlp), "convdraw" for GQN's own generator (whose rep.kind is lowdim),
+  "frozen_gen" for the grid with its generators frozen (the control); None without a rep.kind."""
+  rep = config.get("rep")
+  if config.get("model", {}).get("kind") == "convdraw":
+    return "convdraw"
+  if isinstance(rep, Mapping) and rep.get("freeze_generators"):
+    return "frozen_gen"
+  if isinstance(rep, Mapping) and rep.get("kind"):
+    return rep["kind"]
+  return None
+
+
 # Per-view arrays no reader uses (the regressor's predicted poses).
 _DROPPED_ARRAYS = ("pred",)
 
