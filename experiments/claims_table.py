@@ -16,7 +16,11 @@ as `python -m camrep.comparison` names them). Rows:
     the difference with its 95% Welch t interval over seeds (`stats.welch_interval`);
   - view-synthesis quality (Figure 5 at noise 0): "ours is comparable to GQN on the rooms, better
     on the car, and GQN fails on the area"; camrep's held-out PSNR of ours and of GQN's own
-    generator (ConvDRAW) where it ran, the difference with its Welch interval.
+    generator (ConvDRAW) where it ran, the difference with its Welch interval;
+  - the view-synthesis control (not a claim of the paper), per setting where it ran: ours against
+    the same grid with its generators frozen at their initialisation (`rep.freeze_generators`),
+    in held-out PSNR at noise 0 and in PSNR lost by the largest noise magnitude, each difference
+    with its Welch interval: whether learning the generators is what helps.
 
 A claim whose comparison was not run says so ("not run"), naming what is missing. Each row names
 what the data is: a procedural family, a render (NeRF-synthetic) or a real capture. The paper
@@ -93,7 +97,7 @@ def synthesis_runs(synthesis: str) -> dict[tuple[str, str], list[dict]]:
   """{(column, pose input kind): runs} of the view-synthesis records with noise results."""
   out = collections.defaultdict(list)
   for d in sorted(glob.glob(os.path.join(synthesis, "*"))):
-    m = re.fullmatch(r"(.+?)(?:_(mlp|lowdim|convdraw))?_seed\d+", os.path.basename(d))
+    m = re.fullmatch(r"(.+?)(?:_(mlp|lowdim|convdraw|frozen_gen))?_seed\d+", os.path.basename(d))
     if m is None:
       continue
     try:
@@ -200,15 +204,61 @@ def quality_rows(groups, kinds: dict[str, str]) -> list[list[str]]:
   return out
 
 
-NOTE = (
-  "Verdicts: pose regression from the seed-level t interval of ours / best hand-designed "
-  "(chosen on validation), Holm-adjusted over the lead table's comparisons; noise and synthesis "
-  "from the 95% Welch t interval of the difference of per-seed means (ours minus the other; "
-  "independent seeds; unadjusted). Intervals at 3 seeds are wide (t with 2 degrees of freedom): "
-  "a tie says the records cannot tell, not that the two are equal. Capture rows: the "
-  "baseline is chosen on each capture's validation split, the last 10% of its views, which on "
-  "the LLFF captures are extrapolated views (the representations best there are poor on test)."
-)
+def control_rows(groups, kinds: dict[str, str]) -> list[list[str]]:
+  """Per column where the frozen-generator control ran beside ours: its held-out PSNR at noise 0
+  and its PSNR lost by the largest noise magnitude, each against ours'."""
+  out = []
+  for column in sorted({c for c, k in groups if k == "frozen_gen" and (c, "grid") in groups}):
+    ours, frozen = groups[column, "grid"], groups[column, "frozen_gen"]
+    alpha = ours[0]["alphas"][-1]
+    for what, value, words in (
+      ("held-out PSNR at noise 0", lambda r: float(r["psnr"][0]), ("ours higher", "ours lower")),
+      (f"PSNR lost by alpha {alpha:g}", _drop, ("ours loses more", "ours loses less")),
+    ):
+      a, b = np.array([value(r) for r in ours]), np.array([value(r) for r in frozen])
+      diff, side = _fmt_diff(a, b)
+      verdict = {"higher": words[0], "lower": words[1], "": "not shown (tie)"}
+      out.append(
+        [
+          f"control: learned generators against frozen ones, {what}",
+          _name(column),
+          "– (a control; not in the paper)",
+          f"ours {a.mean():.2f}, frozen {b.mean():.2f} dB; difference {diff}",
+          f"{len(a)}/{len(b)}",
+          f"**{verdict.get(side, side)}** (unadjusted)",
+          kinds.get(column, "?"),
+        ]
+      )
+  return out
+
+
+def note(rows: list[list[str]], *, controls: bool, extrapolated: bool) -> str:
+  """The table's note: how each verdict is taken (`controls`: with control rows); the width of
+  intervals where a row rests on fewer than 5 seeds; the captures' extrapolated validation split
+  where a capture's records used it (`extrapolated`)."""
+  text = (
+    "Verdicts: pose regression from the seed-level t interval of ours / best hand-designed "
+    "(chosen on validation), Holm-adjusted over the lead table's comparisons; "
+    + ("noise, synthesis and the control" if controls else "noise and synthesis")
+    + " from the 95% Welch t interval of the difference of per-seed means (ours minus the "
+    "other; independent seeds; unadjusted)."
+  )
+  counts = [int(n) for r in rows for n in re.findall(r"\d+", r[4])]
+  if counts and min(counts) < 5:
+    n = min(counts)
+    text += (
+      f" Intervals at {n} seeds are wide (t with {n - 1} degrees of freedom): a tie says the "
+      "records cannot tell, not that the two are equal."
+    )
+  else:
+    text += " A tie says the records cannot tell, not that the two are equal."
+  if extrapolated:
+    text += (
+      " Capture rows: the baseline is chosen on each capture's validation split, the last 10% of "
+      "its views, which on the LLFF captures are extrapolated views (the representations best "
+      "there are poor on test)."
+    )
+  return text
 
 
 def build(records: str) -> str:
@@ -218,15 +268,20 @@ def build(records: str) -> str:
     FileNotFoundError: RECORDS/regression holds no regression runs.
   """
   regression = os.path.join(records, "regression")
-  kinds = {}
+  kinds, extrapolated = {}, False
   for d in sorted(glob.glob(os.path.join(regression, "*"))):
     runs = C.load_results([os.path.join(d, "ours", "*")])
     if runs:
       kinds[os.path.basename(d)] = lead.data_kind(runs[0])
+      if os.path.basename(d).startswith("car_"):  # a capture's column
+        split = str(runs[0].get("data", {}).get("validation", ""))
+        extrapolated |= split.startswith("last ")
   rows = regression_rows(regression)
   groups = synthesis_runs(os.path.join(records, "synthesis"))
-  rows += noise_rows(groups, kinds) + quality_rows(groups, kinds)
-  return C.markdown_table(HEADER, rows) + "\n\n" + NOTE
+  controls = control_rows(groups, kinds)
+  rows += noise_rows(groups, kinds) + quality_rows(groups, kinds) + controls
+  text = note(rows, controls=bool(controls), extrapolated=extrapolated)
+  return C.markdown_table(HEADER, rows) + "\n\n" + text
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -287,12 +287,13 @@ def test_control_rows_and_holm_over_every_comparison(tmp_path):
   assert "m = 3" in text.splitlines()[0]
 
 
-def _synthesis(root, name, kind, psnr):
-  """A view-synthesis workdir with its noise curve (what experiments/noise_figure.py reads)."""
+def _synthesis(root, name, kind, psnr, frozen=False):
+  """A view-synthesis workdir with its noise curve (what experiments/noise_figure.py reads);
+  `frozen`: the frozen-generator control."""
   wd = os.path.join(root, name)
   os.makedirs(os.path.join(wd, "eval"))
   with open(os.path.join(wd, "config.json"), "w") as f:
-    json.dump({"rep": {"kind": kind}}, f)
+    json.dump({"rep": {"kind": kind, **({"freeze_generators": True} if frozen else {})}}, f)
   noise = dict(setting="gqn", step=10, alphas=[0.0, 0.3], psnr=psnr, ssim=[0.5, 0.4], num_images=4)
   with open(os.path.join(wd, "eval", "noise.json"), "w") as f:
     json.dump(noise, f)
@@ -326,6 +327,54 @@ def test_claims_table_rows_verdicts_and_what_was_not_run(tmp_path, capsys):
   assert by["view synthesis", "rooms"][5] == "**not run**"
   assert claims_table.main(["--records", str(tmp_path / "none")]) == 2
   assert capsys.readouterr().err.startswith("error: ")
+
+
+def _set_validation_split(wd, text):
+  """Writes a capture run's data record with its validation split described as `text`."""
+  path = os.path.join(wd, "results.json")
+  with open(path) as f:
+    r = json.load(f)
+  r["data"] = {"source": "llff", "validation": text}
+  with open(path, "w") as f:
+    json.dump(r, f)
+
+
+def test_claims_table_control_rows_and_a_note_true_to_the_records(tmp_path):
+  """The frozen-generator control's view-synthesis runs (gibson_frozen_gen_seed<k>) are the area
+  column's control, not a column of their own: two rows against ours (PSNR at noise 0, PSNR lost
+  under noise). The note names the control, says nothing of 3-seed intervals at 5 seeds, and
+  speaks of the captures' extrapolated validation split only where a capture's records used it."""
+  from experiments import claims_table
+
+  records = tmp_path / "records"
+  reg, syn = str(records / "regression"), str(records / "synthesis")
+  for seed in range(5):
+    _run(reg, "car_fern", "ours", 1e-3, seed, {"rotation_error_deg": _errors(2.0, seed)})
+    _run(reg, "car_fern", "quat", 1e-3, seed, {"rotation_error_deg": _errors(4.0, seed)})
+    for rep in ("ours", "quat"):
+      _set_validation_split(
+        os.path.join(reg, "car_fern", rep, f"lr1e-03_seed{seed}"), "every 10th view from view 5"
+      )
+    e = 0.05 * seed * (seed % 2)
+    _synthesis(syn, f"gibson_seed{seed}", "grid", [20.0 + e, 19.9 + e])
+    _synthesis(syn, f"gibson_frozen_gen_seed{seed}", "grid", [19.0 + e, 18.97 + e], frozen=True)
+  text = claims_table.build(str(records))
+  rows = [[c.strip() for c in r.split("|")[1:-1]] for r in _rows(text)]
+  control = [r for r in rows if r[0].startswith("control")]
+  assert [r[1] for r in control] == ["area", "area"]
+  assert not any("frozen_gen" in r[1] for r in rows)
+  assert "ours 20.04, frozen 19.04 dB" in control[0][3] and control[0][4] == "5/5"
+  assert control[0][5] == "**ours higher** (unadjusted)"
+  assert control[1][0].endswith("PSNR lost by alpha 0.3")
+  assert control[1][5] == "**ours loses more** (unadjusted)"
+  note = text.split("\n\n")[-1]
+  assert "noise, synthesis and the control" in note
+  assert "Intervals at" not in note and "Capture rows" not in note
+  _set_validation_split(
+    os.path.join(reg, "car_fern", "ours", "lr1e-03_seed0"),
+    "last 0.1 of each training scene's views",
+  )
+  assert "Capture rows" in claims_table.build(str(records)).split("\n\n")[-1]
 
 
 def test_coverage_script_at_smoke_size(tmp_path):
