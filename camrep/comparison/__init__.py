@@ -40,7 +40,9 @@ dry run names them, a launch moves them, in DIR and the archive alike, to
      one program); each run still writes its own workdir. `--no_vectorise`: one process per
      run, seed by seed;
   3. tables: experiments/table1.py -> DIR/table1.md (and DIR/table1_<capture>.md),
-     experiments/table2.py -> DIR/table2.md, experiments/lead_table.py -> DIR/lead_table.md;
+     experiments/table2.py -> DIR/table2.md, experiments/lead_table.py -> DIR/lead_table.md,
+     `python -m experiments.claims_table` -> DIR/claims.md (the paper's claims, from DIR's
+     regression and view-synthesis runs);
   4. figures: `python -m camrep.synthesis.evaluate` of every view-synthesis run (noise curve,
      Gram maps), the noise figure of each column with several pose inputs (DIR/noise_<column>),
      and at sizes with a stopping rule the validation and held-out PSNR curves

@@ -436,7 +436,9 @@ def table_jobs(out: str, py: str, settings: Sequence[str]) -> list[Job]:
   """table1 / table2 of the settings (each read from its own regression/<setting> runs, so that
   capture columns are not pooled with the car's); one table1_<column>.md per capture column.
   table1.md holds every Table 1 column DIR has runs of, not only this launch's settings: a launch
-  of one setting (a chunk, an extension) rewrites it without dropping the others' columns."""
+  of one setting (a chunk, an extension) rewrites it without dropping the others' columns. So do
+  the lead table and the claims table (`experiments/claims_table.py`: DIR's regression and
+  view-synthesis runs)."""
   jobs = []
   for table in ("table1", "table2"):
     # Every column of the table DIR may hold, read from its own regression/<setting> runs.
@@ -453,6 +455,8 @@ def table_jobs(out: str, py: str, settings: Sequence[str]) -> list[Job]:
     )
   lead = [py, "experiments/lead_table.py", "--runs", os.path.join(out, "regression")]
   jobs.append(Job("lead_table", [*lead, "--out", os.path.join(out, "lead_table.md")], "", 3))
+  claims = [py, "-m", "experiments.claims_table", "--records", out]  # imports experiments/
+  jobs.append(Job("claims", [*claims, "--out", os.path.join(out, "claims.md")], "", 3))
   return jobs
 
 
