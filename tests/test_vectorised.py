@@ -186,6 +186,29 @@ def test_resolve_program():
     vectorised.resolve_program("scan")
 
 
+def test_the_cpu_loop_takes_members_with_one_compile_per_group_size(monkeypatch):
+  """The "loop" program takes each member out of the stacked states with one compiled function
+  for every member of a group (a traced index), not one compile per member; what it takes is
+  the member."""
+  traced = []
+  real = vectorised._take
+  monkeypatch.setattr(vectorised, "_take", lambda tree, i: (traced.append(i), real(tree, i))[1])
+
+  def step(state, batch, lr):
+    return jax.tree.map(lambda x: x - lr * batch, state), {"loss": jnp.sum(state["w"])}, 1.0
+
+  fn = vectorised._looped(step)
+  states = {"w": jnp.arange(12.0).reshape(4, 3)}
+  lrs = jnp.asarray([0.1, 0.2, 0.3, 0.4])
+  out, metrics, _ = fn(states, np.ones((4, 3), np.float32), lrs)
+  assert len(traced) == 1
+  want = np.arange(12, dtype=np.float32).reshape(4, 3) - np.asarray(lrs)[:, None]
+  np.testing.assert_array_equal(out["w"], want)
+  np.testing.assert_array_equal(metrics["loss"], [3.0, 12.0, 21.0, 30.0])
+  fn({"w": jnp.zeros((2, 3))}, np.ones((2, 3), np.float32), lrs[:2])  # a smaller group
+  assert len(traced) == 2
+
+
 # --------------------------------------------------------------------------- end to end
 
 
