@@ -9,7 +9,9 @@ as `python -m camrep.comparison` names them). Rows:
   - pose regression, per lead-table row: "ours is a better regression target than the best
     hand-designed representation"; the paper's ours vs its best hand-designed (Tables 1 and 2;
     – where the paper has no such column); camrep's ratio ours / best with its seed-level 95% t
-    interval and seed count; the verdict (Holm-adjusted over the lead table, as there);
+    interval, how many hand-designed representations ran in the column (the best was chosen
+    on validation among them), and the seed count; the verdict (Holm-adjusted over the lead
+    table, as there);
   - robustness to pose noise (the paper's Figure 5 and the supplement's MLP figure), per setting
     and compared pose input: "ours loses less PSNR than <input> as the query pose is noised";
     camrep's PSNR lost by the largest noise magnitude (mean over seeds, ours vs the other) and
@@ -77,6 +79,7 @@ def regression_rows(regression: str) -> list[list[str]]:
     camrep = "–"
     if c is not None:
       camrep = f"ours / {c.baseline} {stats.fmt_interval(c.ratio, digits=2)}"
+      camrep += f" (best of {r.candidates} hand-designed)"
     verdict = c.verdict(adj) if c is not None else "–"
     words = {"better": "holds", "tie": "not shown (tie)", "worse": "reversed (ours worse)"}
     out.append(

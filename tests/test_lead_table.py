@@ -319,6 +319,7 @@ def test_claims_table_rows_verdicts_and_what_was_not_run(tmp_path, capsys):
   by = {(r[0].split(":")[0], r[1]): r for r in rows}
   car = by["pose regression", "car rotation (deg)"]
   assert car[2] == "2.85 vs 4.28 ((x, y, q))" and car[3].startswith("ours / quat 0.50")
+  assert car[3].endswith("(best of 1 hand-designed)")
   assert car[5].startswith("**holds** (Holm") and car[6] == "procedural family (?)"
   rooms = by["noise robustness", "rooms"]
   assert "GQN low-dim pose" in rooms[0] and rooms[5] == "**holds** (unadjusted)"

@@ -270,3 +270,13 @@ def test_the_launchers_table_jobs_run_as_commands(tmp_path, monkeypatch, capsys)
   with open(os.path.join(ROOT, "results", "protocol", "claims.md"), encoding="utf-8") as f:
     assert claims == f.read()
   capsys.readouterr()
+
+
+def test_the_results_readme_leads_with_the_claims_table_as_its_records_give_it():
+  """results/README.md's "The claims" section is results/converge/claims.md (table and note) as
+  committed, so the front page cannot drift from the table the records regenerate."""
+  with open(os.path.join(ROOT, "results", "README.md"), encoding="utf-8") as f:
+    section = f.read().split("## The claims\n\n", 1)[1]
+  with open(os.path.join(ROOT, "results", "converge", "claims.md"), encoding="utf-8") as f:
+    table, note = f.read().strip().split("\n\n")
+  assert section.startswith(table + "\n\n" + note + "\n")

@@ -112,6 +112,7 @@ class Row:
   lr_seeds: str
   edges: str
   capped: str
+  candidates: int = 0  # the hand-designed representations the best was chosen from
 
 
 def rows(
@@ -189,6 +190,7 @@ def rows(
         "; ".join(lr_seeds),
         "; ".join(edges) or "no",
         ", ".join(capped) or "–",
+        sum(1 for r in by_rep if r in stats.HAND_DESIGNED),
       )
     )
   return out
