@@ -112,7 +112,7 @@ class Row:
   lr_seeds: str
   edges: str
   capped: str
-  candidates: int = 0  # the hand-designed representations the best was chosen from
+  candidates: int  # how many hand-designed representations the best was chosen from
 
 
 def rows(
