@@ -202,16 +202,12 @@ def _unrolled(step: Callable) -> Callable:
   return run
 
 
-def _take(tree: Any, i: jax.Array) -> Any:
-  """Member `i` (a traced index) of a stacked pytree: `unstack` compiled once per group size,
-  not once per member and size as a static index would be (a group shrinks as members stop)."""
-  return jax.tree.map(lambda x: jax.lax.dynamic_index_in_dim(x, i, keepdims=False), tree)
-
-
 def _looped(step: Callable) -> Callable:
-  """`step` over stacked members, one jitted call a member (see `resolve_program`)."""
+  """`step` over stacked members, one jitted call a member (see `resolve_program`). The member's
+  index is traced: one compile of `take` per group size, not one per member and size (a group
+  shrinks as members stop)."""
   one = jax.jit(step, donate_argnums=0)
-  take = jax.jit(_take)
+  take = jax.jit(unstack)
   join = jax.jit(lambda outs: tuple(stack([o[j] for o in outs]) for j in range(len(outs[0]))))
 
   def run(states, batch, lrs):
