@@ -8,6 +8,9 @@ regressions of each control through the driver.
 
 from __future__ import annotations
 
+import os
+import shutil
+
 import jax
 import numpy as np
 import pytest
@@ -111,6 +114,19 @@ def test_untrained_reads_the_runs_initial_pose_system(tmp_path, learned):
   ours = _regression("ours", learned, str(tmp_path / "cache"))
   _, trained, _ = pose_system.representation_params(reg_schema.check(ours))
   assert pose_system.params_digest(trained) != pose_system.params_digest(rep)
+  # A workdir an archive restored (config.json and record.json beside its record, no checkpoint)
+  # gives the same initial pose system; "ours" needs the trained one and refuses it.
+  restored = tmp_path / "restored"
+  restored.mkdir()
+  for name in ("config.json", "record.json"):
+    shutil.copy(os.path.join(learned, name), restored / name)
+  config = _regression("untrained", str(restored), str(tmp_path / "cache"))
+  _, again, info = pose_system.representation_params(reg_schema.check(config))
+  assert pose_system.params_digest(again) == pose_system.params_digest(init)
+  assert info["state"] == "initial" and info["step"] is None
+  ours = _regression("ours", str(restored), str(tmp_path / "cache"))
+  with pytest.raises(runconfig.ConfigError, match="has no checkpoint"):
+    pose_system.representation_params(reg_schema.check(ours))
 
 
 def test_controls_train_through_regression(tmp_path, learned, frozen):

@@ -181,14 +181,17 @@ def restore_pose_system(
 
   Restores the latest checkpoint with the synthesis `load_run` (which reads no data); with
   `initial`, the run's pose input as its init gave it (`Synthesizer.init_pose` of its root key),
-  the checkpoint only checked to exist and to match the model.
+  from its config.json and record.json alone (`restore.load_model`): no checkpoint is read, so a
+  workdir an archive restored without one serves (`camrep.comparison.archive`).
 
   Returns:
     {"spec": PoseSystemSpec, "rep": pose-input params, "kind": "grid" / "mlp" / "lowdim",
-     "step": restored step, "workdir": absolute path, "digest": `params_digest` of "rep"}.
+     "step": restored step (`initial`: the latest checkpoint's, None without one), "workdir":
+     absolute path, "digest": `params_digest` of "rep"}.
 
   Raises:
-    ConfigError: the workdir is missing, has no checkpoint, or its setting or data differ.
+    ConfigError: the workdir is missing, has no checkpoint (not `initial`), or its setting or
+      data differ.
   """
   from camrep.runtime import checkpoint as ckpt_lib
 
@@ -213,30 +216,35 @@ def restore_pose_system(
       step = ck.latest_step()
   except ckpt_lib.CheckpointError:
     step = None
-  if step is None:
+  if step is None and not initial:
     raise ConfigError(f"synthesis_workdir {workdir} has no checkpoint (train it first)")
   try:
-    syn_run = restore.load_run(workdir)
+    if initial:
+      _, model = restore.load_model(workdir)
+    else:
+      syn_run = restore.load_run(workdir)
+      model, step = syn_run.model, syn_run.step
   except (FileNotFoundError, ckpt_lib.CheckpointError) as e:
     raise ConfigError(f"synthesis_workdir: {e}") from None
-  if syn_run.model.own_pose_system or not syn_run.model.reads_pose_vectors:
+  if model.own_pose_system or not model.reads_pose_vectors:
     raise ConfigError(
-      f"synthesis_workdir {workdir} is a {type(syn_run.model).__name__} run (task "
+      f"synthesis_workdir {workdir} is a {type(model).__name__} run (task "
       f"{syn_config.task!r}) whose pose input is not the setting's pose system as pose vectors; "
       "representation 'ours' reads the pose system of a decoder run (configs/gqn.py, "
       "configs/shapenet_car.py, ...)"
     )
-  rep = jax.tree.map(jnp.asarray, syn_run.params["rep"])
   if initial:
     from camrep.synthesis import step as step_lib
 
     # Jitted as the run's own init (`step.init_fn`): the same bits (eager differs by 1e-10).
-    rep = jax.jit(syn_run.model.init_pose)(step_lib.root_keys(syn_run.config)[0])
+    rep = jax.jit(model.init_pose)(step_lib.root_keys(syn_config)[0])
+  else:
+    rep = jax.tree.map(jnp.asarray, syn_run.params["rep"])
   return {
-    "spec": syn_run.spec,
+    "spec": model.spec,
     "rep": rep,
     "kind": kind,
-    "step": int(syn_run.step),
+    "step": None if step is None else int(step),
     "workdir": workdir,
     "digest": params_digest(rep),
   }
@@ -309,7 +317,8 @@ def representation_params(run) -> tuple[Any, Any, dict[str, Any]]:
     if pose_encodings.get(system["kind"]) is cls.trained_by():
       info = {k: system[k] for k in ("workdir", "step", "digest")}
       if cls.initial_state:
-        info["state"] = "initial"  # the run's step-0 pose system; "step" names its checkpoint
+        # The run's step-0 pose system; "step" names its latest checkpoint (None: none there).
+        info["state"] = "initial"
       return system["spec"], system["rep"], {"source": "synthesis", **info}
   spec = system["spec"] if system else setting.pose_spec()
   key = jax.random.fold_in(jax.random.key(config.seed), 1)

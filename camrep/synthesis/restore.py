@@ -56,6 +56,26 @@ class Run:
     return components.make_pipeline(self.config, "test", num_devices=1, for_eval=True)
 
 
+def load_model(workdir: str) -> tuple[ml_collections.ConfigDict, Any]:
+  """(config, model) of a run as `train.train_and_evaluate` builds them, from its config.json
+  alone: no checkpoint, data or rendering is read (the per-scene table size comes from
+  `batches.describe`). What a run's initial state needs (`Synthesizer.init_pose` of its root
+  key), e.g. a workdir an archive restored with its config.json and record.json only.
+
+  Raises:
+    FileNotFoundError: no workdir, or no config.json.
+    ConfigError: the data or pose system the config rebuilds today differ from the workdir's
+      record.json (a changed library default).
+  """
+  config = workdir_lib.read_config(workdir)
+  resolved = components.resolve(config)
+  # Today's defaults must rebuild the data and pose system that trained it (record.json; a
+  # workdir written before camrep kept one is not checked).
+  workdir_lib.check_record(workdir, components.run_record(resolved), what="restore")
+  info = batches.describe(config.data, "train")
+  return config, components.make_model(resolved, int(info.scene_ids.max()) + 1)
+
+
 def load_run(workdir: str, *, step: int | None = None) -> Run:
   """Rebuilds a run as `train.train_and_evaluate` does and restores a checkpoint's parameters.
 
@@ -75,11 +95,7 @@ def load_run(workdir: str, *, step: int | None = None) -> Run:
   """
   from camrep.runtime import checkpoint as ckpt_lib
 
-  config = workdir_lib.read_config(workdir)
-  resolved = components.resolve(config)
-  # Today's defaults must rebuild the data and pose system that trained it (record.json; a
-  # workdir written before camrep kept one is not checked).
-  workdir_lib.check_record(workdir, components.run_record(resolved), what="restore")
+  config, model = load_model(workdir)
   try:
     checkpointer = ckpt_lib.Checkpointer(workdir, read_only=True)
   except ckpt_lib.CheckpointError:
@@ -92,10 +108,7 @@ def load_run(workdir: str, *, step: int | None = None) -> Run:
       raise ckpt_lib.CheckpointError(
         f"no checkpoint for step {step} in {checkpointer.directory}; available: {steps}"
       )
-    # As train.train_and_evaluate, with the training layout's shapes from the config alone
-    # (`batches.describe` / `dummy_batch`): a restore reads and renders no data.
-    info = batches.describe(config.data, "train")
-    model = components.make_model(resolved, int(info.scene_ids.max()) + 1)
+    # The training layout's shapes from the config alone (`batches.dummy_batch`).
     init = step_lib.init_fn(config, model, step_lib.make_optimizers(config))
     state, restored = step_lib.restore_state(checkpointer, init, step=step)
   finally:
