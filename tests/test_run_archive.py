@@ -144,7 +144,13 @@ def test_a_launch_goes_seed_by_seed_and_archives_each_run(rc, tmp_path, monkeypa
   )
   assert "synthesis/car_seed1/run.json" in kept
   assert "regression/car/ours/lr1e-3_seed2/run.json" in kept
-  assert all(os.path.basename(p) == "run.json" for p in kept)  # one compact record per run
+  # One compact record per run; beside a view-synthesis run's, its config (what its initial
+  # pose system is made from: test_the_untrained_control_needs_only_the_archived_config).
+  assert {os.path.basename(p) for p in kept if not p.startswith("synthesis/")} == {"run.json"}
+  assert {os.path.basename(p) for p in kept if p.startswith("synthesis/")} == {
+    "run.json",
+    "config.json",
+  }
   record = runs.load(str(archive / "regression" / "car" / "ours" / "lr1e-3_seed2"))
   np.testing.assert_array_equal(record.view_errors()["rotation_error_deg"], np.full(4, 1.0))
   assert record.curves == {"eval/psnr": {1: 15.0}}
@@ -257,6 +263,51 @@ def test_a_new_machine_restores_the_archive_and_trains_only_what_is_missing(
   n = len(list(archive.glob("synthesis/*")) + list(archive.glob("regression/*/*/*")))
   assert first.startswith(f"--archive {archive}: its {n} runs are restored when the launch")
   assert not (tmp_path / "fourth").exists()
+
+
+def test_the_untrained_control_needs_only_the_archived_config_of_its_synthesis_runs(
+  rc, tmp_path, monkeypatch
+):
+  """ "untrained" regresses a view-synthesis run's initial pose system, which its config.json and
+  record.json make (`restore.load_model`): the archive keeps them beside the run's record, so on
+  a new machine the control runs without training those runs again; from an archive that lacks
+  them they are trained again, as for "ours"."""
+  ran = []
+  monkeypatch.setattr(launch, "run_job", fake_run_job(rc, ran))
+  archive = tmp_path / "archive"
+
+  def args(out):
+    return [
+      *("--size", "protocol", "--settings", "car", "--representations", "untrained"),
+      *("--skip_figures", "--out", str(out), "--archive", str(archive)),
+    ]
+
+  def forget_the_regressions():
+    for d in archive.glob("regression/car/untrained/*"):
+      (d / "run.json").unlink()
+      d.rmdir()
+
+  assert rc.execute(rc.make(args(tmp_path / "first"))) == []
+  syn = sorted(n for n in ran if n.startswith("synthesis_"))
+  assert len(syn) == 10 and ran[-1].startswith("regression_car_untrained_")
+  config = archive / "synthesis" / "car_seed3" / "config.json"
+  trained = tmp_path / "first" / "synthesis" / "car_seed3" / "config.json"
+  assert config.read_text() == trained.read_text()
+  forget_the_regressions()
+  ran.clear()
+  assert rc.main(args(tmp_path / "second")) == 0
+  grid = "lr1e-4-lr3e-4-lr1e-3-lr3e-3-lr1e-2"
+  assert [n.rsplit("_", 1)[0] for n in ran] == [f"regression_car_untrained_{grid}"]
+  second = tmp_path / "second" / "synthesis" / "car_seed3"
+  assert rc.archived_only(str(second))
+  assert (second / "config.json").read_text() == config.read_text()
+  # An archive without the configs (kept before they were): the runs are trained again.
+  forget_the_regressions()
+  for path in archive.glob("synthesis/*/config.json"):
+    path.unlink()
+  ran.clear()
+  assert rc.main(args(tmp_path / "third")) == 0
+  assert sorted(n for n in ran if n.startswith("synthesis_")) == syn
 
 
 def test_the_archives_figures_are_restored_over_older_ones_in_dir(tmp_path):

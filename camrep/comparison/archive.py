@@ -3,7 +3,10 @@
 A converge launch takes more hours than a machine is kept. The archive holds, for every finished
 run of a launch's DIR, its record `run.json` (`camrep.regression.runs`: what the tables and
 figures read; never checkpoints), at the run's place (synthesis/<name>, regression/<column>/
-<representation>/<lr>_seed<k>, crossed/<column>/<run>), and the launch's tables and figures. A
+<representation>/<lr>_seed<k>, crossed/<column>/<run>), beside the record of a run under
+synthesis/ its config.json and record.json (3 KB: what its initial pose system is made from, so
+that the "untrained" control regresses it on another machine, `restore.load_model`), and the
+launch's tables and figures. A
 launch copies each run's record in as soon as the run ends (`sync`), and starts by restoring the
 records DIR holds into its own DIR (`restore`): a launch cut short resumes on another machine,
 losing only the runs in flight. An archive of whole run files (config.json, results.json,
@@ -18,6 +21,7 @@ import os
 import shutil
 
 from camrep.regression import runs
+from camrep.runtime import workdir as workdir_lib
 
 # Run workdirs inside a launch's DIR, and the launch's own tables and figures. "lvsm/*/*" are a
 # transformer launch's view-synthesis runs (`camrep.comparison.transformer`).
@@ -25,6 +29,9 @@ RUN_PATTERNS = ("synthesis/*", "lvsm/*/*", "regression/*/*/*", "crossed/*/*")
 # The top folders of view-synthesis runs: restored only where DIR has no workdir of that name.
 SYNTHESIS_ROOTS = ("synthesis", "lvsm")
 TOP_PATTERNS = ("*.md", "*.png", "*.pdf")
+# A view-synthesis run's files kept beside its record (runs under synthesis/, whose pose systems
+# regressions read): its config and data record (`restore.load_model`).
+SYNTHESIS_FILES = (runs.CONFIG_FILE, workdir_lib.RECORD_FILE)
 
 
 def run_dirs(root: str) -> list[str]:
@@ -73,6 +80,8 @@ def sync(out: str, archive: str) -> int:
     except runs.DamagedRun:
       continue
     n += runs.write_record(record, os.path.join(archive, rel, runs.RECORD_FILE))
+    if _keeps_config(rel):
+      n += _copy_files(wd, os.path.join(archive, rel), replace=True)
   moved = _moved_paths(out, archive)
   for pattern in TOP_PATTERNS:
     for path in sorted(glob.glob(os.path.join(out, pattern))):
@@ -92,6 +101,22 @@ def _moved_paths(out: str, archive: str):
   return lambda data: data.replace(src, to.encode())
 
 
+def _keeps_config(rel: str) -> bool:
+  """Whether the run at `rel` keeps its `SYNTHESIS_FILES` in the archive (synthesis/<name>)."""
+  return rel.split(os.sep, 1)[0] == "synthesis"
+
+
+def _copy_files(src: str, dst: str, *, replace: bool) -> int:
+  """Copies a view-synthesis run's `SYNTHESIS_FILES` that src holds into dst (where dst lacks
+  them, or also where they differ with `replace`); returns how many it wrote."""
+  n = 0
+  for name in SYNTHESIS_FILES:
+    path, to = os.path.join(src, name), os.path.join(dst, name)
+    if os.path.isfile(path) and (replace or not os.path.exists(to)):
+      n += _copy_if_changed(path, to)
+  return n
+
+
 def _complete(workdir: str) -> bool:
   """A regression run with its results, or a view-synthesis run whose final record says it
   completed (one stopped or killed mid-way is not archived)."""
@@ -106,16 +131,21 @@ def restore(archive: str, out: str, *, warn=print) -> int:
   """Writes into `out` the record of every archived run that `out` does not hold finished (a
   view-synthesis run only where `out` has no workdir of that name: a partial run there resumes
   from its own checkpoints); returns how many runs it restored. An archived run that cannot be
-  read is named (`warn`) and not restored: the launch trains it again. The archive's tables and
-  figures replace `out`'s where they differ: they are the record, and `sync` would otherwise copy
-  older ones of `out` over them."""
+  read is named (`warn`) and not restored: the launch trains it again. A view-synthesis run's
+  config.json and record.json are written where `out`'s workdir lacks them (never over a run's
+  own). The archive's tables and figures replace `out`'s where they differ: they are the record,
+  and `sync` would otherwise copy older ones of `out` over them."""
   for pattern in TOP_PATTERNS:
     for path in sorted(glob.glob(os.path.join(archive, pattern))):
       _copy_if_changed(path, os.path.join(out, os.path.basename(path)))
   n = 0
   for rel in run_dirs(archive):
     src, dst = os.path.join(archive, rel), os.path.join(out, rel)
-    if not runs.is_finished(src) or runs.is_finished(dst):
+    if not runs.is_finished(src):
+      continue
+    if _keeps_config(rel) and archived_record(dst):
+      _copy_files(src, dst, replace=False)
+    if runs.is_finished(dst):
       continue
     if rel.split(os.sep, 1)[0] in SYNTHESIS_ROOTS and os.path.exists(dst):
       continue
@@ -125,8 +155,18 @@ def restore(archive: str, out: str, *, warn=print) -> int:
       warn(f"warning: the archived run {src} cannot be read ({e}); it is trained again")
       continue
     runs.write_record(record, os.path.join(dst, runs.RECORD_FILE))
+    if _keeps_config(rel):
+      _copy_files(src, dst, replace=False)
     n += 1
   return n
+
+
+def archived_record(workdir: str) -> bool:
+  """Whether a workdir holds a run's record and none of a run's own files (results.json,
+  final_metrics.json): a run an archive restored."""
+  return os.path.isfile(os.path.join(workdir, runs.RECORD_FILE)) and not any(
+    os.path.exists(os.path.join(workdir, f)) for f in (runs.RESULTS_FILE, runs.FINAL_FILE)
+  )
 
 
 def set_aside(damaged: runs.DamagedRun) -> str:

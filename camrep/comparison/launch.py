@@ -351,6 +351,17 @@ def synthesis_reads(job: Job) -> set[str]:
   return {v.replace("{seed}", k) for k in seeds} if "{seed}" in v else {v}
 
 
+def checkpoint_reads(job: Job) -> set[str]:
+  """The view-synthesis workdirs whose checkpoints a regression job reads: `synthesis_reads`,
+  but for a representation read at its initial state ("untrained": `restore.load_model` makes
+  it from config.json and record.json) only those that lack a config.json."""
+  reads = synthesis_reads(job)
+  rep = flag_value(job.argv, "--config.representation")
+  if reads and rep and pose_encodings.get(rep).initial_state:
+    reads = {w for w in reads if not os.path.isfile(os.path.join(w, runs.CONFIG_FILE))}
+  return reads
+
+
 def crossed_job(
   launch: Launch, column: str, lr: float | None, seed: int, synthesis_seed: int
 ) -> Job:
@@ -973,8 +984,9 @@ def synthesis_of_seed(launch: Launch, seed: int) -> list[Job]:
 
 
 def pending_synthesis(launch: Launch) -> set[str]:
-  """The view-synthesis workdirs that a job not yet done reads (its pose system, noise
-  evaluation, crossed runs); a phase-2 run whose lr phase 1 has not chosen yet counts."""
+  """The view-synthesis workdirs whose checkpoints a job not yet done reads (its pose system,
+  noise evaluation, crossed runs: `checkpoint_reads`); a phase-2 run whose lr phase 1 has not
+  chosen yet counts."""
   L = launch
   jobs = list(L.first) + extension_jobs(L) + [job for _, job in phase2_jobs(L)]
   if L.crossed:
@@ -984,7 +996,7 @@ def pending_synthesis(launch: Launch) -> set[str]:
   need = set()
   for j in jobs:
     if not j.done():
-      need |= synthesis_reads(j)
+      need |= checkpoint_reads(j)
   for j in L.figures:
     if j.kind == "evaluate" and not j.done():
       need.add(j.workdir)
