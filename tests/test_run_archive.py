@@ -575,6 +575,27 @@ def test_an_archive_or_out_that_is_a_file_is_an_error_line(rc, tmp_path, capsys)
     assert "error:" in err and f"{f} is a file, not a directory" in err and "Traceback" not in err
 
 
+def test_a_representation_the_sizes_columns_lack_is_an_error_line_not_an_empty_launch(
+  rc, tmp_path, capsys
+):
+  """A misspelt --representations, or a control at a size without controls, would plan no run
+  and exit 0: it is refused, naming what the columns offer."""
+  for wrong in ("qaut", "untrained"):
+    args = _args(tmp_path / "out", tmp_path / "archive")
+    args[args.index("ours,quat")] = f"ours,{wrong}"
+    with pytest.raises(SystemExit) as e:
+      rc.main(args)
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert f"--representations: ['{wrong}'] not in the converge size's columns ['car']" in err
+    assert "choose from ['axis_angle', 'euler'," in err and "Traceback" not in err
+  assert not (tmp_path / "out").exists()
+  args = _args(tmp_path / "out", tmp_path / "archive", "--dry_run")
+  args[args.index("converge")] = "protocol"
+  args[args.index("ours,quat")] = "untrained"
+  assert rc.main(args) == 0  # the protocol size's controls are its columns'
+
+
 def test_a_cut_record_in_the_archive_is_trained_again_not_taken_as_finished(
   rc, tmp_path, monkeypatch, capsys
 ):

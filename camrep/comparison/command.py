@@ -132,6 +132,13 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
       p.error(f"--extend_grid {args.extend_grid}: a count >= 0, at a size with a stopping rule")
     plan = dataclasses.replace(plan, extend_grid=args.extend_grid)
   args.plan = plan
+  offered = {r for s in args.settings for r in plan_lib.settings()[s]["representations"]}
+  offered |= set(plan.controls)
+  if set(args.representations) - offered:
+    p.error(
+      f"--representations: {sorted(set(args.representations) - offered)} not in the "
+      f"{args.size} size's columns {args.settings}; choose from {sorted(offered)}"
+    )
   if args.crossed:
     if not plan.paired_synthesis:
       p.error("--crossed needs a size with one synthesis run per seed (--size converge)")
