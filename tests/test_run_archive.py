@@ -495,7 +495,9 @@ def test_a_launch_of_one_setting_keeps_the_other_columns_of_table1(rc, tmp_path)
   assert not [j for j in rc.table_jobs(str(tmp_path), "py", ["seven_scenes"]) if j.name == "table1"]
 
 
-def test_a_launch_of_one_noise_kind_draws_the_pose_inputs_trained_before(rc, tmp_path, monkeypatch):
+def test_a_launch_of_one_noise_kind_draws_the_pose_inputs_trained_before(
+  rc, tmp_path, monkeypatch, capsys
+):
   """A launch of `--noise_kinds convdraw` on a column whose low-dimensional runs an earlier launch
   trained (or the archive restored) draws its noise figure and synthesis curves from all of them,
   in the order a full launch names them, not from its own runs alone: the archive's figures would
@@ -526,6 +528,15 @@ def test_a_launch_of_one_noise_kind_draws_the_pose_inputs_trained_before(rc, tmp
   args[args.index("ours,quat")] = "ours"
   args.remove("--skip_figures")
   assert rc.main(args) == 0
+  # A dry run lists an evaluation whose noise curve is recorded as done (the stand-in above
+  # evaluates nothing: seed 0's curve is written here).
+  (out / "synthesis" / "gibson_seed0" / "eval").mkdir()
+  (out / "synthesis" / "gibson_seed0" / "eval" / "noise.json").write_text('{"alphas": [0.0]}')
+  capsys.readouterr()
+  assert rc.main([*args, "--dry_run"]) == 0
+  plan = [line for line in capsys.readouterr().out.splitlines() if ".evaluate " in line]
+  state = {os.path.basename(line.split()[-1]): line.split("]")[0] + "]" for line in plan}
+  assert state["gibson_seed0"] == "[done]" and state["gibson_seed1"] == "[~2m00s]"
   noise = argv["noise_figure_gibson"]
   drawn = [os.path.basename(a) for a in noise[noise.index("--runs") + 1 : noise.index("--png")]]
   seeds = ("seed0", "seed1", "seed2")

@@ -1238,5 +1238,5 @@ def print_plan(launch: Launch, *, commands: bool, at_once: int = 1) -> None:
       f"view-synthesis runs -> {L.out}/curve_synthesis_<column>.{{png,md}} (each run's plateau "
       'record: final_metrics.json "stopping")'
     )
-  for j in L.tables + L.figures:
-    print(f"[~{fmt(j.estimate_s)}] {j.command()}")
+  for j in L.tables + L.figures:  # an evaluation is done once its noise curve is recorded
+    print(f"[{'done' if j.done() else '~' + fmt(j.estimate_s)}] {j.command()}")
