@@ -129,6 +129,37 @@ def test_untrained_reads_the_runs_initial_pose_system(tmp_path, learned):
     pose_system.representation_params(reg_schema.check(ours))
 
 
+def test_a_restored_workdir_gives_the_final_pose_system_from_its_pose_file(
+  tmp_path, learned, frozen
+):
+  """A complete run leaves its final pose system in pose_system.npz; a workdir holding only that,
+  config.json and record.json (an archive's) gives "ours" and "frozen_gen" the pose system the
+  final checkpoint holds, bit for bit, and names a file that does not match the config."""
+  cache = str(tmp_path / "cache")
+  for rep, syn in (("ours", learned), ("frozen_gen", frozen)):
+    _, trained, info = pose_system.representation_params(
+      reg_schema.check(_regression(rep, syn, cache))
+    )
+    restored = tmp_path / f"restored_{rep}"
+    restored.mkdir()
+    for name in ("config.json", "record.json", restore.POSE_FILE):
+      shutil.copy(os.path.join(syn, name), restored / name)
+    _, again, again_info = pose_system.representation_params(
+      reg_schema.check(_regression(rep, str(restored), cache))
+    )
+    assert again_info["digest"] == info["digest"] == pose_system.params_digest(trained)
+    assert again_info["step"] == info["step"] == 2
+  with np.load(restored / restore.POSE_FILE) as f:
+    arrays = {k: f[k] for k in f.files}
+  key = next(k for k in arrays if k.endswith("['grid']"))
+  arrays[key] = arrays[key][:-1]
+  np.savez(restored / restore.POSE_FILE, **arrays)
+  with pytest.raises(runconfig.ConfigError, match=r"the run's config makes float32\["):
+    pose_system.representation_params(
+      reg_schema.check(_regression("frozen_gen", str(restored), cache))
+    )
+
+
 def test_controls_train_through_regression(tmp_path, learned, frozen):
   cache = str(tmp_path / "cache")
   for rep, syn in (("untrained", learned), ("frozen_gen", frozen)):

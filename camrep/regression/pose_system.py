@@ -181,8 +181,9 @@ def restore_pose_system(
 
   Restores the latest checkpoint with the synthesis `load_run` (which reads no data); with
   `initial`, the run's pose input as its init gave it (`Synthesizer.init_pose` of its root key),
-  from its config.json and record.json alone (`restore.load_model`): no checkpoint is read, so a
-  workdir an archive restored without one serves (`camrep.comparison.archive`).
+  from its config.json and record.json alone (`restore.load_model`): no checkpoint is read. A
+  workdir without checkpoints (an archive's, `camrep.comparison.archive`) gives its final pose
+  system from its pose_system.npz (`restore.load_pose_file`): the final checkpoint's values.
 
   Returns:
     {"spec": PoseSystemSpec, "rep": pose-input params, "kind": "grid" / "mlp" / "lowdim",
@@ -190,8 +191,8 @@ def restore_pose_system(
      absolute path, "digest": `params_digest` of "rep"}.
 
   Raises:
-    ConfigError: the workdir is missing, has no checkpoint (not `initial`), or its setting or
-      data differ.
+    ConfigError: the workdir is missing, has neither a checkpoint nor a pose_system.npz (not
+      `initial`), or its setting or data differ.
   """
   from camrep.runtime import checkpoint as ckpt_lib
 
@@ -216,10 +217,14 @@ def restore_pose_system(
       step = ck.latest_step()
   except ckpt_lib.CheckpointError:
     step = None
-  if step is None and not initial:
-    raise ConfigError(f"synthesis_workdir {workdir} has no checkpoint (train it first)")
+  # Without a checkpoint: the run's final pose system in its pose_system.npz (an archive's).
+  from_file = step is None and not initial
+  if from_file and not os.path.isfile(os.path.join(workdir, restore.POSE_FILE)):
+    raise ConfigError(
+      f"synthesis_workdir {workdir} has no checkpoint and no {restore.POSE_FILE} (train it first)"
+    )
   try:
-    if initial:
+    if initial or from_file:
       _, model = restore.load_model(workdir)
     else:
       syn_run = restore.load_run(workdir)
@@ -238,6 +243,11 @@ def restore_pose_system(
 
     # Jitted as the run's own init (`step.init_fn`): the same bits (eager differs by 1e-10).
     rep = jax.jit(model.init_pose)(step_lib.root_keys(syn_config)[0])
+  elif from_file:
+    try:
+      rep, step = restore.load_pose_file(workdir, model)
+    except ValueError as e:
+      raise ConfigError(f"synthesis_workdir: {e}") from None
   else:
     rep = jax.tree.map(jnp.asarray, syn_run.params["rep"])
   return {

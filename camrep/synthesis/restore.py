@@ -3,16 +3,26 @@ parameters and pipelines (for evaluation, figures and regression targets).
 
 Restoring reads no data: the state template comes from `batches.dummy_batch` and the per-scene
 table size from `batches.describe`; the pipelines are built when first used.
+
+A complete run whose model reads the setting's pose vectors also leaves its final pose system,
+the regression targets' "rep" parameters, in pose_system.npz (`save_pose_file`, written by
+`train.train_and_evaluate` beside the final checkpoint: the same values; `load_pose_file` reads
+it back with the config's model as the template): a few KB for a 1-D grid per DOF, about 1 MB
+for the 2-D grids of the rooms and the area. An archive keeps the small ones
+(`camrep.comparison.archive`), so that regressions read them on a machine without the run's
+checkpoints.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 from typing import Any
 
 import jax
 import ml_collections
+import numpy as np
 
 from camrep import pose as P
 from camrep.data.feed import batches
@@ -21,6 +31,9 @@ from camrep.synthesis import components
 from camrep.synthesis import step as step_lib
 
 Array = jax.Array
+
+POSE_FILE = "pose_system.npz"
+_STEP_KEY = "__step__"
 
 
 @dataclasses.dataclass
@@ -121,3 +134,53 @@ def load_run(workdir: str, *, step: int | None = None) -> Run:
     params=state.params,
     step=int(restored),
   )
+
+
+def save_pose_file(workdir: str, rep, step: int) -> str:
+  """Writes a run's pose system `rep` (its "rep" parameters at `step`) to workdir/POSE_FILE, one
+  array per leaf named by its path (`jax.tree_util.keystr`), through a temporary file; returns
+  the path."""
+  leaves = jax.tree_util.tree_leaves_with_path(rep)
+  arrays = {jax.tree_util.keystr(p): np.asarray(v) for p, v in leaves}
+  arrays[_STEP_KEY] = np.asarray(int(step))
+  path = os.path.join(workdir, POSE_FILE)
+  tmp = f"{path}.tmp{os.getpid()}.npz"
+  np.savez(tmp, **arrays)
+  os.replace(tmp, path)
+  return path
+
+
+def load_pose_file(workdir: str, model) -> tuple[Any, int]:
+  """(rep, step) of workdir/POSE_FILE, as the pytree of `model.init_pose` (the run's model,
+  `load_model`): every leaf's path, shape and dtype must match.
+
+  Raises:
+    FileNotFoundError: the workdir has no POSE_FILE.
+    ValueError: the file cannot be read, or does not match the model's pose system.
+  """
+  path = os.path.join(workdir, POSE_FILE)
+  template = jax.eval_shape(model.init_pose, jax.random.key(0))
+  if not os.path.isfile(path):
+    raise FileNotFoundError(f"{path} not found")
+  try:
+    with np.load(path) as f:
+      arrays = {k: f[k] for k in f.files}
+  except Exception as e:  # a cut or foreign file: zipfile, pickle and format errors
+    raise ValueError(f"{path} cannot be read ({type(e).__name__}: {e})") from None
+  leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
+  names = [jax.tree_util.keystr(p) for p, _ in leaves]
+  if set(arrays) != {*names, _STEP_KEY}:
+    raise ValueError(
+      f"{path} holds {sorted(set(arrays) - {_STEP_KEY})}, not the pose system {names} of the "
+      "run's config"
+    )
+  out = []
+  for name, (_, leaf) in zip(names, leaves, strict=True):
+    a = arrays[name]
+    if a.shape != leaf.shape or a.dtype != leaf.dtype:
+      raise ValueError(
+        f"{path}: {name} is {a.dtype}{list(a.shape)}, the run's config makes "
+        f"{leaf.dtype}{list(leaf.shape)}"
+      )
+    out.append(jax.numpy.asarray(a))
+  return jax.tree_util.tree_unflatten(treedef, out), int(arrays[_STEP_KEY])

@@ -29,7 +29,7 @@ from camrep.models import layers
 from camrep.runtime import frame as frame_lib
 from camrep.runtime import session as session_lib
 from camrep.runtime import stopping
-from camrep.synthesis import components, config_schema, heldout
+from camrep.synthesis import components, config_schema, heldout, restore
 from camrep.synthesis import step as step_lib
 
 # What the plateau rule's curve holds (final_metrics.json "stopping").
@@ -125,9 +125,10 @@ def train_and_evaluate(
   """Trains and evaluates as the config says; resumes from the workdir's latest checkpoint.
 
   Writes to `workdir`: config.json, record.json (`components.run_record`, checked at resume),
-  config_history.jsonl, metrics.jsonl, checkpoints/, images/, tensorboard/, and
-  final_metrics.json ({"complete": true, "step": total_steps, "num_params": {group: n}, ...})
-  once the run is complete.
+  config_history.jsonl, metrics.jsonl, checkpoints/, images/, tensorboard/, and once the run
+  is complete its final pose system (pose_system.npz, `restore.save_pose_file`; a model that
+  reads the setting's pose vectors) and final_metrics.json ({"complete": true, "step":
+  total_steps, "num_params": {group: n}, ...}).
   The same command on a complete workdir changes nothing; with a larger `total_steps` (named in
   `allow_changes`) it extends the run. With the plateau rule on (`config.stop.min_improvement >
   0`) the run may complete before `total_steps`, and final_metrics.json records why
@@ -201,5 +202,9 @@ def train_and_evaluate(
       record["num_params"] = {g: layers.param_count(p) for g, p in state.params.items()}
       if rule.active:
         record["stopping"] = fit.stopping_record(rule, config.total_steps, score=SCORE)
+      if lead and model.reads_pose_vectors and not model.own_pose_system:
+        # The regression targets' pose system, as the final checkpoint holds it.
+        rep = step_lib.unreplicate(fit.state.params["rep"])
+        restore.save_pose_file(workdir, rep, fit.step)
       frame.finish(fit.step, record)
   return last
