@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import time
 
@@ -72,10 +73,10 @@ def _summary(err):
   return {"all": {"rotation_error_deg": {"mean": err, "median": err / 2}}}
 
 
-def fake_run_job(rc, ran, score=lambda lr: 1.0 + abs(np.log10(lr) + 3)):
+def fake_run_job(rc, ran, score=lambda lr: 1.0 + abs(np.log10(lr) + 3), pose_bytes=0):
   """A `run_job` that writes what a finished run leaves, and records the order of the runs.
   Regression: validation error `score(lr)`, by default lowest at lr 1e-3 (inside the grid: no
-  extension)."""
+  extension). View synthesis: with `pose_bytes`, a final pose system file of that size."""
 
   def run_job(job, logs, *, index, env=None):
     if job.kind in ("table", "evaluate"):  # tables and curves: scripts over the runs, not runs
@@ -94,6 +95,9 @@ def fake_run_job(rc, ran, score=lambda lr: 1.0 + abs(np.log10(lr) + 3)):
       open(os.path.join(wd, "tensorboard", "events.out"), "w").close()
       with open(os.path.join(wd, "final_metrics.json"), "w") as f:
         json.dump({"complete": True, "step": step}, f)
+      if pose_bytes:
+        with open(os.path.join(wd, "pose_system.npz"), "wb") as f:
+          f.write(os.urandom(pose_bytes))
       return True
     if job.members:  # a grid: each member's workdir as its own run writes it
       lrs = [float(x) for x in launch.flag_value(job.argv, "--lrs").split(",")]
@@ -308,6 +312,31 @@ def test_the_untrained_control_needs_only_the_archived_config_of_its_synthesis_r
   ran.clear()
   assert rc.main(args(tmp_path / "third")) == 0
   assert sorted(n for n in ran if n.startswith("synthesis_")) == syn
+
+
+@pytest.mark.parametrize("pose_bytes", [28_278, 1_081_462])  # the car's, the area's (quick)
+def test_a_small_final_pose_system_is_archived_and_read_without_training_its_run_again(
+  rc, tmp_path, monkeypatch, pose_bytes
+):
+  """A view-synthesis run's final pose system (pose_system.npz) up to POSE_FILE_LIMIT bytes is
+  kept in the archive with its config: on a new machine "ours" regresses it without the run
+  being trained again. A larger one stays out of the archive (committed to git), and its run is
+  trained again while a regression still reads it."""
+  ran = []
+  monkeypatch.setattr(launch, "run_job", fake_run_job(rc, ran, pose_bytes=pose_bytes))
+  archive = tmp_path / "archive"
+  assert rc.execute(rc.make(_args(tmp_path / "first", archive))) == []
+  small = pose_bytes <= archive_lib.POSE_FILE_LIMIT
+  assert (archive / "synthesis" / "car_seed2" / "pose_system.npz").exists() == small
+  shutil.rmtree(archive / "regression" / "car" / "ours" / "lr1e-3_seed2")
+  ran.clear()
+  assert rc.main(_args(tmp_path / "second", archive)) == 0
+  again = [] if small else ["synthesis_car_seed2"]
+  assert ran == [*again, "regression_car_ours_lr1e-3_seed2"]
+  second = tmp_path / "second" / "synthesis" / "car_seed2"
+  if small:
+    pose = (second / "pose_system.npz").read_bytes()
+    assert pose == (archive / "synthesis" / "car_seed2" / "pose_system.npz").read_bytes()
 
 
 def test_the_archives_figures_are_restored_over_older_ones_in_dir(tmp_path):

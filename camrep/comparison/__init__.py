@@ -67,9 +67,11 @@ trajectories.
 
 `--archive DIR`: each finished run's compact record (`camrep.comparison.archive`) is written into
 DIR as soon as the run ends, and a launch starts by restoring the records DIR holds; a restored
-view-synthesis run (no checkpoints; its config.json and record.json, which the "untrained"
-control reads, come back with it) is trained again only while a run that reads its checkpoints
-(its seed's ours, frozen_gen or MLP regressions, its noise evaluation, crossed runs) is missing.
+view-synthesis run comes back without checkpoints, with its config.json and record.json (all the
+"untrained" control reads) and a final pose system of up to 64 KB (pose_system.npz, what ours,
+frozen_gen, MLP and crossed regressions read: the car's, 7-Scenes' and captures' 1-D grids), and
+is trained again only while a run that needs its checkpoints (a regression of a larger pose
+system, a noise evaluation) is missing.
 
 `--data SETTING=DIR` runs a setting on real data prepared by `python -m camrep.data.prepare`
 (both stages get `--config.data.source/dir`); `--data car_NAME=SOURCE:DIR` adds a capture column

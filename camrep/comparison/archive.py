@@ -5,8 +5,10 @@ run of a launch's DIR, its record `run.json` (`camrep.regression.runs`: what the
 figures read; never checkpoints), at the run's place (synthesis/<name>, regression/<column>/
 <representation>/<lr>_seed<k>, crossed/<column>/<run>), beside the record of a run under
 synthesis/ its config.json and record.json (3 KB: what its initial pose system is made from, so
-that the "untrained" control regresses it on another machine, `restore.load_model`), and the
-launch's tables and figures. A
+that the "untrained" control regresses it on another machine, `restore.load_model`) and, up to
+`POSE_FILE_LIMIT` bytes, its final pose system (pose_system.npz, `restore.load_pose_file`: the
+car's, 7-Scenes' and the captures' 1-D grids, ~30 KB; not the rooms' and area's 2-D grids,
+0.6-1.1 MB, whose readers run where the run trained), and the launch's tables and figures. A
 launch copies each run's record in as soon as the run ends (`sync`), and starts by restoring the
 records DIR holds into its own DIR (`restore`): a launch cut short resumes on another machine,
 losing only the runs in flight. An archive of whole run files (config.json, results.json,
@@ -22,6 +24,7 @@ import shutil
 
 from camrep.regression import runs
 from camrep.runtime import workdir as workdir_lib
+from camrep.synthesis import restore as restore_lib
 
 # Run workdirs inside a launch's DIR, and the launch's own tables and figures. "lvsm/*/*" are a
 # transformer launch's view-synthesis runs (`camrep.comparison.transformer`).
@@ -30,8 +33,10 @@ RUN_PATTERNS = ("synthesis/*", "lvsm/*/*", "regression/*/*/*", "crossed/*/*")
 SYNTHESIS_ROOTS = ("synthesis", "lvsm")
 TOP_PATTERNS = ("*.md", "*.png", "*.pdf")
 # A view-synthesis run's files kept beside its record (runs under synthesis/, whose pose systems
-# regressions read): its config and data record (`restore.load_model`).
-SYNTHESIS_FILES = (runs.CONFIG_FILE, workdir_lib.RECORD_FILE)
+# regressions read): its config and data record (`restore.load_model`), and its final pose
+# system where it is no larger than POSE_FILE_LIMIT bytes (an archive is committed to git).
+SYNTHESIS_FILES = (runs.CONFIG_FILE, workdir_lib.RECORD_FILE, restore_lib.POSE_FILE)
+POSE_FILE_LIMIT = 64 * 1024
 
 
 def run_dirs(root: str) -> list[str]:
@@ -112,8 +117,11 @@ def _copy_files(src: str, dst: str, *, replace: bool) -> int:
   n = 0
   for name in SYNTHESIS_FILES:
     path, to = os.path.join(src, name), os.path.join(dst, name)
-    if os.path.isfile(path) and (replace or not os.path.exists(to)):
-      n += _copy_if_changed(path, to)
+    if not os.path.isfile(path) or (os.path.exists(to) and not replace):
+      continue
+    if name == restore_lib.POSE_FILE and os.path.getsize(path) > POSE_FILE_LIMIT:
+      continue
+    n += _copy_if_changed(path, to)
   return n
 
 

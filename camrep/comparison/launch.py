@@ -33,6 +33,7 @@ from camrep.comparison import plan as plan_lib
 from camrep.regression import runs
 from camrep.regression import tables as C
 from camrep.runtime import progress as progress_lib
+from camrep.synthesis import restore as restore_lib
 
 ROOT = str(pathlib.Path(__file__).resolve().parents[2])
 SETTINGS = plan_lib.SETTINGS
@@ -352,14 +353,19 @@ def synthesis_reads(job: Job) -> set[str]:
 
 
 def checkpoint_reads(job: Job) -> set[str]:
-  """The view-synthesis workdirs whose checkpoints a regression job reads: `synthesis_reads`,
-  but for a representation read at its initial state ("untrained": `restore.load_model` makes
-  it from config.json and record.json) only those that lack a config.json."""
+  """The view-synthesis workdirs whose checkpoints a regression job reads: `synthesis_reads`, but
+  not those holding what it reads without them (`pose_system.restore_pose_system`): config.json
+  with the run's final pose system (pose_system.npz, an archive's), or for a representation read
+  at its initial state ("untrained") config.json alone."""
   reads = synthesis_reads(job)
   rep = flag_value(job.argv, "--config.representation")
-  if reads and rep and pose_encodings.get(rep).initial_state:
-    reads = {w for w in reads if not os.path.isfile(os.path.join(w, runs.CONFIG_FILE))}
-  return reads
+  initial = bool(reads and rep and pose_encodings.get(rep).initial_state)
+
+  def enough(w: str) -> bool:
+    has = lambda name: os.path.isfile(os.path.join(w, name))
+    return has(runs.CONFIG_FILE) and (initial or has(restore_lib.POSE_FILE))
+
+  return {w for w in reads if not enough(w)}
 
 
 def crossed_job(
