@@ -116,16 +116,30 @@ def _decode_residuals(spec, seed, poses, decoded) -> jax.Array:
   return jnp.stack(cols, -1)
 
 
+def _mlp_decode_residuals(spec, seed, poses, decoded) -> jax.Array:
+  """(N, n_dofs): per DOF, the objective the MLP input's decode minimises over its candidates,
+  ||f(decoded) - f(pose)||^2 (`MlpEncoding.decode`, of the vectors `_spec_outputs` decodes)."""
+  mlp_input = pose_encodings.MlpEncoding(spec)
+  mlp = mlp_input.init(jax.random.fold_in(jax.random.key(seed), 4))
+  target, got = mlp_input.embed(mlp, poses), mlp_input.embed(mlp, decoded)
+  return jnp.stack([jnp.sum((got[d.name] - target[d.name]) ** 2, -1) for d in spec.dofs], -1)
+
+
+DECODES = ("decode_0", "decode_2", "mlp_decode")
+"""The outputs that are an argmin over candidates (`decode_residuals` measures them)."""
+
+
 def decode_residuals(decoded: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-  """{"<system>/decode_<k>": (N, n_dofs) residuals} of the decodes in `decoded` (same keys as
-  `outputs`): two decodes that find equally good candidates have equal residuals, whichever of
-  two near-tied candidates each picked."""
+  """{"<system>/<decode>": (N, n_dofs) residuals} of the decodes in `decoded` (same keys as
+  `outputs`, a decode one of `DECODES`): two decodes that find equally good candidates have
+  equal residuals, whichever of two near-tied candidates each picked."""
   out = {}
   for i, (sname, spec) in enumerate(_specs().items()):
-    fn = jax.jit(lambda seed, p, dec, spec=spec: _decode_residuals(spec, seed, p, dec))
-    for k in ("decode_0", "decode_2"):
+    for k in DECODES:
       name = f"{sname}/{k}"
       if name in decoded:
+        of = _mlp_decode_residuals if k == "mlp_decode" else _decode_residuals
+        fn = jax.jit(lambda seed, p, dec, spec=spec, of=of: of(spec, seed, p, dec))
         res = fn(jnp.uint32(100 + i), _poses(spec), jnp.asarray(decoded[name]))
         out[name] = np.asarray(res)
   return out

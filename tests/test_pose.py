@@ -633,8 +633,9 @@ def test_outputs_match_stored_reference():
   """init, embed, rotate, losses, decode and the other pose inputs give the numbers stored from the
   code before the DOF classes and the pose-input interface (tests/pose_reference.py): integers
   exactly, floats to 1e-6 (the numbers were stored on one CPU; XLA's round-off on another differs
-  by ~1e-7: seen on an AMD EPYC machine, where bit-for-bit equality failed), decodes as good as
-  the stored ones (below). Any change of the maths fails."""
+  by ~1e-7: seen on an AMD EPYC machine, where bit-for-bit equality failed), decodes (the argmins
+  over candidates, `pose_reference.DECODES`) as good as the stored ones (below). Any change of
+  the maths fails."""
   from tests import pose_reference
 
   stored = dict(np.load(pose_reference.PATH))
@@ -649,7 +650,7 @@ def test_outputs_match_stored_reference():
 
   got = {stored_name(k): v for k, v in got.items()}
   assert sorted(got) == sorted(stored)
-  decodes = [n for n in stored if n.endswith(("/decode_0", "/decode_2"))]
+  decodes = [n for n in stored if n.endswith(tuple(f"/{k}" for k in pose_reference.DECODES))]
   for name, ref in stored.items():
     if name in decodes:
       continue
@@ -657,10 +658,11 @@ def test_outputs_match_stored_reference():
       np.testing.assert_allclose(got[name], ref, rtol=1e-6, atol=1e-6, err_msg=name)
     else:
       np.testing.assert_array_equal(got[name], ref, err_msg=name)
-  # Decoding is an argmin over candidates (eq. 12): where candidates tie to round-off, another
-  # CPU may pick another one (seen on an AMD EPYC machine: 9 of 48 yaws of a flat 1-D system, and
-  # a binned yaw exactly half-way between grid points). So each decode must reach the objective it
-  # minimises as well as the stored decode does, measured here, and most values must be the same.
+  # Decoding is an argmin over candidates (eq. 12; the MLP input's alike): where candidates tie to
+  # round-off, another CPU may pick another one (seen on AMD EPYC machines: 9 of 48 yaws of a flat
+  # 1-D system, a binned yaw exactly half-way between grid points, 2 of 48 MLP decodes of a 1-D
+  # system). So each decode must reach the objective it minimises as well as the stored decode
+  # does, measured here, and most values must be the same.
   mine = pose_reference.decode_residuals({n: got[n] for n in decodes})
   theirs = pose_reference.decode_residuals({n: stored[n] for n in decodes})
   for name in decodes:
