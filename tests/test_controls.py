@@ -20,7 +20,7 @@ from camrep.configs import regression as regression_config
 from camrep.configs import shapenet_car
 from camrep.regression import config_schema as reg_schema
 from camrep.regression import driver as R
-from camrep.regression import pose_system
+from camrep.regression import pose_system, runs
 from camrep.regression import targets as T
 from camrep.runtime import runconfig
 from camrep.synthesis import restore, train
@@ -149,6 +149,10 @@ def test_a_restored_workdir_gives_the_final_pose_system_from_its_pose_file(
     )
     assert again_info["digest"] == info["digest"] == pose_system.params_digest(trained)
     assert again_info["step"] == info["step"] == 2
+    # Complete by its record (an archive's run.json; no final_metrics.json there), at that step.
+    assert "no final_metrics.json" in R.synthesis_state(str(restored), 2)
+    runs.write_record(runs.compact(runs.load(syn)), str(restored / runs.RECORD_FILE))
+    assert R.synthesis_state(str(restored), 2) is None
   with np.load(restored / restore.POSE_FILE) as f:
     arrays = {k: f[k] for k in f.files}
   key = next(k for k in arrays if k.endswith("['grid']"))

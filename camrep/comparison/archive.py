@@ -140,8 +140,9 @@ def restore(archive: str, out: str, *, warn=print) -> int:
   view-synthesis run only where `out` has no workdir of that name: a partial run there resumes
   from its own checkpoints); returns how many runs it restored. An archived run that cannot be
   read is named (`warn`) and not restored: the launch trains it again. A synthesis/ run's
-  `SYNTHESIS_FILES` are written where `out`'s workdir lacks them (never over a run's own). The archive's tables and figures replace `out`'s where they differ: they are the record,
-  and `sync` would otherwise copy older ones of `out` over them."""
+  `SYNTHESIS_FILES` are written where `out`'s workdir lacks them (never over a run's own). The
+  archive's tables and figures replace `out`'s where they differ: they are the record, and
+  `sync` would otherwise copy older ones of `out` over them."""
   for pattern in TOP_PATTERNS:
     for path in sorted(glob.glob(os.path.join(archive, pattern))):
       _copy_if_changed(path, os.path.join(out, os.path.basename(path)))

@@ -83,7 +83,7 @@ from typing_extensions import override
 
 from camrep.configs import regression as regression_config
 from camrep.data import records
-from camrep.regression import config_schema, learner, pose_system, scoring
+from camrep.regression import config_schema, learner, pose_system, runs, scoring
 from camrep.regression import views as views_lib
 from camrep.runtime import frame as frame_lib
 from camrep.runtime import session as session_lib
@@ -180,7 +180,8 @@ def synthesis_state(workdir: str, step: int | None = None) -> str | None:
   """None when the view-synthesis run in `workdir` is complete (at checkpoint `step`, when
   given), else what it is: still training (a live process holds its lock), stopped on non-finite
   values, or not complete (no final record, or one that says so: stopped by a signal, killed,
-  or being extended)."""
+  or being extended). A workdir an archive restored (`camrep.comparison.archive`) has its final
+  record in its run.json."""
   holder = workdir_lib.WorkdirLock(workdir).live_holder()
   if holder is not None:
     return (
@@ -188,6 +189,11 @@ def synthesis_state(workdir: str, step: int | None = None) -> str | None:
       f"started {holder.get('started', '?')})"
     )
   final = session_lib.read_final(workdir)
+  if final is None and os.path.isfile(os.path.join(workdir, runs.RECORD_FILE)):
+    try:
+      final = runs.load(workdir).final
+    except runs.DamagedRun:
+      final = None
   if final is None:
     return (
       f"not complete: it has no {session_lib.FINAL_FILE} (stopped by a signal, killed, or "
