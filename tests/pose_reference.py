@@ -135,11 +135,15 @@ def decode_residuals(decoded: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
   equal residuals, whichever of two near-tied candidates each picked."""
   out = {}
   for i, (sname, spec) in enumerate(_specs().items()):
+    # One jitted objective a system (the grid's decodes share theirs: one compile for both).
+    fns = {
+      of: jax.jit(lambda seed, p, dec, spec=spec, of=of: of(spec, seed, p, dec))
+      for of in (_decode_residuals, _mlp_decode_residuals)
+    }
     for k in DECODES:
       name = f"{sname}/{k}"
       if name in decoded:
-        of = _mlp_decode_residuals if k == "mlp_decode" else _decode_residuals
-        fn = jax.jit(lambda seed, p, dec, spec=spec, of=of: of(spec, seed, p, dec))
+        fn = fns[_mlp_decode_residuals if k == "mlp_decode" else _decode_residuals]
         res = fn(jnp.uint32(100 + i), _poses(spec), jnp.asarray(decoded[name]))
         out[name] = np.asarray(res)
   return out
