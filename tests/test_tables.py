@@ -173,9 +173,9 @@ def test_the_committed_tables_regenerate_byte_identical_from_the_committed_recor
 
 def test_the_protocol_figures_regenerate_from_its_records(tmp_path, monkeypatch, capsys):
   """results/protocol keeps one compact record per finished run of the protocol size (and a
-  view-synthesis run's config.json and record.json); the tables
-  of its figures are the launcher's own figure jobs over that directory (paths relative to the
-  repository), byte for byte. (Its tables: `test_the_launchers_table_jobs_run_as_commands`.)"""
+  view-synthesis run's config.json and record.json); the tables of its figures are the
+  launcher's own figure jobs over that directory (paths relative to the repository), byte for
+  byte. (Its tables: `test_the_launchers_table_jobs_run_as_commands`.)"""
   from camrep.comparison import command, launch
   from experiments import learning_curve, noise_figure
 

@@ -151,25 +151,21 @@ def restore(archive: str, out: str, *, warn=print) -> int:
     src, dst = os.path.join(archive, rel), os.path.join(out, rel)
     if not runs.is_finished(src):
       continue
-    if _keeps_config(rel) and archived_record(dst):
+    partial = rel.split(os.sep, 1)[0] in SYNTHESIS_ROOTS and os.path.exists(dst)
+    if not runs.is_finished(dst) and not partial:
+      try:
+        record = runs.compact(runs.load(src, arrays=True))
+      except runs.DamagedRun as e:
+        warn(f"warning: the archived run {src} cannot be read ({e}); it is trained again")
+        continue
+      runs.write_record(record, os.path.join(dst, runs.RECORD_FILE))
+      n += 1
+    if _keeps_config(rel) and _archived_record(dst):  # restored now or by an earlier launch
       _copy_files(src, dst, replace=False)
-    if runs.is_finished(dst):
-      continue
-    if rel.split(os.sep, 1)[0] in SYNTHESIS_ROOTS and os.path.exists(dst):
-      continue
-    try:
-      record = runs.compact(runs.load(src, arrays=True))
-    except runs.DamagedRun as e:
-      warn(f"warning: the archived run {src} cannot be read ({e}); it is trained again")
-      continue
-    runs.write_record(record, os.path.join(dst, runs.RECORD_FILE))
-    if _keeps_config(rel):
-      _copy_files(src, dst, replace=False)
-    n += 1
   return n
 
 
-def archived_record(workdir: str) -> bool:
+def _archived_record(workdir: str) -> bool:
   """Whether a workdir holds a run's record and none of a run's own files (results.json,
   final_metrics.json): a run an archive restored."""
   return os.path.isfile(os.path.join(workdir, runs.RECORD_FILE)) and not any(
