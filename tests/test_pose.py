@@ -661,14 +661,19 @@ def test_outputs_match_stored_reference():
   # Decoding is an argmin over candidates (eq. 12; the MLP input's alike): where candidates tie to
   # round-off, another CPU may pick another one (seen on AMD EPYC machines: 9 of 48 yaws of a flat
   # 1-D system, a binned yaw exactly half-way between grid points, 2 of 48 MLP decodes of a 1-D
-  # system). So each decode must reach the objective it minimises as well as the stored decode
-  # does, measured here, and most values must be the same.
-  mine = pose_reference.decode_residuals({n: got[n] for n in decodes})
-  theirs = pose_reference.decode_residuals({n: stored[n] for n in decodes})
+  # system). So most values must be the same, and a decode that differs anywhere must reach the
+  # objective it minimises as well as the stored decode does, measured here (a decode equal to
+  # the stored one has its residuals: measuring those would compare a number with itself).
+  differ = []
   for name in decodes:
-    assert np.all(mine[name] <= theirs[name] + 1e-5 * (1 + theirs[name])), name
     same = np.isclose(got[name], stored[name], rtol=1e-6, atol=1e-6)
     assert same.mean() >= 0.75, f"{name}: only {same.mean():.0%} of the decoded values agree"
+    if not same.all():
+      differ.append(name)
+  mine = pose_reference.decode_residuals({n: got[n] for n in differ})
+  theirs = pose_reference.decode_residuals({n: stored[n] for n in differ})
+  for name in differ:
+    assert np.all(mine[name] <= theirs[name] + 1e-5 * (1 + theirs[name])), name
 
 
 def test_the_polar_variants_are_two_classes_recorded_as_before():
