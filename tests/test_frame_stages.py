@@ -18,11 +18,16 @@ from camrep.runtime import frame as frame_lib
 from camrep.runtime import workdir as workdir_lib
 from camrep.runtime import writers
 from camrep.synthesis import restore, train
+from camrep.synthesis import step as step_lib
 
 pytestmark = [pytest.mark.usefixtures("fast_compile"), pytest.mark.slow]
 
 # Wall-clock figures differ between any two runs; everything else must be equal.
 TIMINGS = ("train_seconds", "steps_per_sec", "eval_seconds", "machine")
+
+# Traces of the trainer's step in a 7-step run, by steps per dispatch: K = 3 runs two programs,
+# the step scanned over 3 batches and, for the last dispatch (step 7), over 1.
+TRACES = {1: 1, 3: 2}
 
 
 def _rows(workdir):
@@ -40,16 +45,33 @@ def _assert_rows_close(got, want, rtol):
       np.testing.assert_allclose(a[key], b[key], rtol=rtol, err_msg=f"{a['step']} {key}")
 
 
-def test_synthesis_k_steps_per_dispatch_train_as_one(tmp_path):
+def test_synthesis_k_steps_per_dispatch_train_as_one(tmp_path, monkeypatch):
+  """K steps a dispatch train as one step a dispatch; the trainer's pmapped step, counted where
+  it is traced, is traced once a program for the whole run, checkpoints and evaluation included
+  (a state placed unlike the step's output, or a batch of another layout, would trace it again)."""
+  traces = []
+  real = step_lib.train_step
+
+  def counted(*args, **kw):
+    traces.append(1)
+    return real(*args, **kw)
+
+  monkeypatch.setattr(step_lib, "train_step", counted)
   runs = {}
   for k in (1, 3):
     c = gqn.get_config("smoke")
     c.total_steps, c.steps_per_dispatch, c.log_every_steps = 7, k, 1
     c.ckpt_every_steps = c.eval_every_steps = 7  # K = 3: dispatches (1-3), (4-6), (7)
+    if k == 1:
+      c.ckpt_every_steps = 2  # saves at steps 2, 4, 6 and 7 between the steps
     lines = []
+    traces.clear()
     train.train_and_evaluate(c, str(tmp_path / f"k{k}"), log=lines.append)
     assert f"compiling the train step ({k} step{'s' if k > 1 else ''} per dispatch) ..." in lines
+    assert len(traces) == TRACES[k], (k, len(traces))
     runs[k] = tmp_path / f"k{k}"
+  saved = sorted(int(n.name) for n in (runs[1] / "checkpoints").iterdir())
+  assert saved[-2:] == [6, 7], saved  # saved between steps, and at the end
   _assert_rows_close(_rows(runs[3]), _rows(runs[1]), rtol=1e-4)
   # Parameters up to round-off: entries whose true gradient is zero (biases before instance
   # norm) get round-off gradients that Adam normalises to +-lr (tests/test_train.py's two
