@@ -1,7 +1,8 @@
 """notebooks/quickstart.ipynb: well formed, committed with its outputs, and those outputs are
 not stale in kind: a fresh run (tools/run_notebook.py, no Jupyter needed) must produce the
 same kinds of output per code cell (text, images) and no exception. Pixels, timings and printed
-numbers may differ; the numbers the notebook is about are checked on the fresh run's namespace.
+numbers may differ; the numbers the notebook is about are checked on the fresh run's namespace
+(`check_fresh_run`, on the run tests/test_wheel.py makes on camrep installed from its wheel).
 """
 
 from __future__ import annotations
@@ -11,7 +12,6 @@ import json
 import pathlib
 
 import cv2
-import jax
 import numpy as np
 import pytest
 
@@ -92,43 +92,50 @@ def test_install_cell_comes_first_and_finds_its_source(tmp_path, monkeypatch):
   assert ns["camrep_source"]() == "git+https://example.org/camrep"
 
 
-def test_quickstart_runs_and_its_outputs_are_not_stale(tmp_path):
+# The fresh run's namespace values `check_fresh_run` reads ("total_steps": the config's; values
+# of the namespace otherwise).
+NAMESPACE = (
+  "residual_fit",
+  "residual_init",
+  "roundtrip_errors",
+  "decode_errors",
+  "metrics",
+  "total_steps",
+  "last",
+  "gram",
+)
+
+
+def check_fresh_run(fresh: dict, values: dict) -> None:
+  """A fresh run of the quickstart (`run_notebook.execute`'s notebook and `namespace_values` of
+  its namespace) against the committed notebook. tests/test_wheel.py runs it, on camrep installed
+  from its wheel, compiled as a user's session compiles it: the notebook turns XLA's
+  optimisations off itself around its training cell."""
   committed = _load()
-  old_flag = jax.config.read("jax_disable_most_optimizations")
-  # Compiled as a user's session compiles it: the notebook turns XLA's optimisations off itself
-  # around its training cell, and its 300-step fit is bound by its run, not its compile (this test
-  # with a cold compilation cache 32.0 -> 30.1 s, warm 25.6 -> 19.2 s; test_wheel's run is the warm
-  # one). Not `@pytest.mark.optimized`: that also drops the loop emitters for the processes the
-  # notebook's data rendering starts (cold 39.0 s).
-  jax.config.update("jax_disable_most_optimizations", False)
-  try:
-    fresh, ns = run_notebook.execute(committed, cwd=str(tmp_path))
-  finally:
-    jax.config.update("jax_disable_most_optimizations", old_flag)
   assert run_notebook.output_kinds(fresh) == run_notebook.output_kinds(committed), (
     "the committed outputs are stale: refresh them with "
     "`python tools/run_notebook.py notebooks/quickstart.ipynb --write`"
   )
-
   # Section 1: the fitted rotation law holds better than at initialisation, decoding inverts
   # embedding, and decoding rotated vectors finds the shifted poses.
   for name in ("xy", "yaw"):
-    assert np.mean(ns["residual_fit"][name]) < 0.5 * np.mean(ns["residual_init"][name]), name
-  assert ns["roundtrip_errors"].max() < 1e-3
-  errors = ns["decode_errors"]
+    fit, init = values["residual_fit"][name], values["residual_init"][name]
+    assert np.mean(fit) < 0.5 * np.mean(init), name
+  assert values["roundtrip_errors"].max() < 1e-3
+  errors = values["decode_errors"]
   assert errors.shape == (4, 3)
   assert errors[:, :2].max() < 0.1 and errors[:, 2].max() < np.deg2rad(3.0), errors
   # Section 3: training wrote metrics with a held-out-view PSNR, and its image grid was shown.
-  evals = [r for r in ns["metrics"] if "eval/psnr" in r]
-  assert evals and evals[-1]["step"] == ns["config"].total_steps
+  evals = [r for r in values["metrics"] if "eval/psnr" in r]
+  assert evals and evals[-1]["step"] == values["total_steps"]
   assert np.isfinite(evals[-1]["eval/psnr"]) and np.isfinite(evals[-1]["eval/psnr_baseline"])
-  assert ns["last"]["eval/psnr"] == evals[-1]["eval/psnr"]
+  assert values["last"]["eval/psnr"] == evals[-1]["eval/psnr"]
   # Sections 2-4: rendered views, the training grid and the Gram map are displayed as PNGs.
   images = _images(fresh)
   assert len(images) >= 3
   assert all(im is not None and im.ndim == 3 and im.std() > 1.0 for im in images)
-  assert ns["gram"].shape == (360, 360)
-  np.testing.assert_allclose(np.diag(ns["gram"]), 1.0, atol=1e-4)
+  assert values["gram"].shape == (360, 360)
+  np.testing.assert_allclose(np.diag(values["gram"]), 1.0, atol=1e-4)
 
 
 def test_output_kinds_see_a_missing_output_and_an_exception():

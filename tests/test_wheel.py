@@ -1,6 +1,7 @@
 """camrep after a plain (not editable) install: build a wheel from the checkout's files, install it
 into a fresh virtual environment outside the checkout, then, from a directory outside the
-checkout, train `gqn:smoke` by name and execute the quickstart notebook.
+checkout, train `gqn:smoke` by name and execute the quickstart notebook (the suite's one run of
+it: tests/test_notebook.py's checks of a fresh run).
 
 The new environment borrows the running interpreter's site-packages for the third-party
 dependencies (a .pth line, so nothing is downloaded); camrep itself comes only from the wheel.
@@ -11,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import pathlib
+import pickle
 import shutil
 import site
 import subprocess
@@ -19,6 +21,7 @@ import venv
 
 import pytest
 
+from tests import test_notebook
 from tests.utils import one_device_env
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -124,22 +127,45 @@ def test_wheel_installs_and_trains_a_config_by_name(installed):
   assert final["step"] == 4 and "eval/psnr" in final, final
 
 
+# Run by the venv's Python in a directory outside the checkout: the notebook executed with
+# tools/run_notebook.py (its directory alone put on sys.path: camrep comes from the wheel), the
+# executed notebook and its namespace values (tests/test_notebook.py's) written beside it.
+_RUN_NOTEBOOK = """
+import json, pickle, sys
+sys.path.insert(0, sys.argv[1])
+import run_notebook
+names = sys.argv[3].split(",")
+with open(sys.argv[2]) as f:
+  fresh, ns = run_notebook.execute(json.load(f))
+with open("fresh.ipynb", "w") as f:
+  json.dump(fresh, f)
+values = {k: ns["config"].total_steps if k == "total_steps" else ns[k] for k in names}
+with open("namespace.pkl", "wb") as f:
+  pickle.dump(values, f)
+"""
+
+
 def test_the_notebook_runs_on_the_installed_package(installed):
+  """The quickstart, executed on the installed wheel, is fresh: tests/test_notebook.py's checks
+  of its outputs and of the numbers it is about (`check_fresh_run`)."""
   python, away = installed
-  notebook = away / "quickstart.ipynb"
-  shutil.copy(ROOT / "notebooks" / "quickstart.ipynb", notebook)
+  names = ",".join(test_notebook.NAMESPACE)
+  notebook = str(ROOT / "notebooks" / "quickstart.ipynb")
   r = subprocess.run(
-    [python, str(ROOT / "tools" / "run_notebook.py"), str(notebook), "--write"],
+    [python, "-c", _RUN_NOTEBOOK, str(ROOT / "tools"), notebook, names],
     cwd=away,
-    env={**_env(), "JAX_DISABLE_MOST_OPTIMIZATIONS": "0"},  # as test_notebook runs it
+    env={**_env(), "JAX_DISABLE_MOST_OPTIMIZATIONS": "0"},  # as a user's session compiles it
     capture_output=True,
     text=True,
     timeout=600,
   )
   assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-3000:]
-  nb = json.loads(notebook.read_text())
-  code = [c for c in nb["cells"] if c["cell_type"] == "code"]
+  fresh = json.loads((away / "fresh.ipynb").read_text())
+  with open(away / "namespace.pkl", "rb") as f:
+    values = pickle.load(f)
+  code = [c for c in fresh["cells"] if c["cell_type"] == "code"]
   # The install cell found the wheel's camrep (and installed nothing); every cell produced output.
   assert "".join(code[0]["outputs"][0]["text"]).strip() == "camrep installed"
   assert all(c["outputs"] for c in code)
   assert not any(o["output_type"] == "error" for c in code for o in c["outputs"])
+  test_notebook.check_fresh_run(fresh, values)

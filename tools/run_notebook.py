@@ -9,8 +9,8 @@ committed outputs after changing it (the committed run: 165 s on a shared 2-core
 
   .venv/bin/python tools/run_notebook.py notebooks/quickstart.ipynb --write
 
-tests/test_notebook.py runs the notebook the same way and checks the committed outputs are of
-the same kinds as a fresh run's.
+tests/test_wheel.py runs the notebook the same way, on camrep installed from its wheel, and
+tests/test_notebook.py checks the committed outputs are of the same kinds as that fresh run's.
 """
 
 from __future__ import annotations
