@@ -121,34 +121,74 @@ def fast_compile():
   jax.config.update("jax_disable_most_optimizations", old)
 
 
-@pytest.fixture(scope="session")
-def gqn_smoke_run(tmp_path_factory):
-  """A finished `configs/gqn.py:smoke` run (4 steps: checkpoints at 2 and 4, eval at 4), trained
-  once per test session and shared by every xdist worker (the first to ask trains it under a
-  file lock; the others wait and reuse it). Read-only: copy it (shutil.copytree) to change it."""
+def _shared_run(tmp_path_factory, name: str, train) -> str:
+  """A run trained once per test session and shared by every xdist worker: the first to ask
+  calls `train(workdir)` under a file lock; the others wait and reuse its workdir."""
   import fcntl
-  import os
-
-  from camrep.configs import gqn
-  from camrep.synthesis import train
 
   base = tmp_path_factory.getbasetemp()
   if os.environ.get("PYTEST_XDIST_WORKER"):
     base = base.parent  # this session's directory, common to its workers
-  root = base / "shared_gqn_smoke"
+  root = base / f"shared_{name}"
   root.mkdir(exist_ok=True)
   workdir, done = root / "run", root / "done"
   with open(root / "lock", "w") as lock:
     fcntl.flock(lock, fcntl.LOCK_EX)
     try:
       if not done.exists():
-        old = jax.config.read("jax_disable_most_optimizations")
-        jax.config.update("jax_disable_most_optimizations", True)
-        try:
-          train.train_and_evaluate(gqn.get_config("smoke"), str(workdir))
-        finally:
-          jax.config.update("jax_disable_most_optimizations", old)
+        train(workdir)
         done.write_text("ok")
     finally:
       fcntl.flock(lock, fcntl.LOCK_UN)
   return str(workdir)
+
+
+@pytest.fixture(scope="session")
+def gqn_smoke_run(tmp_path_factory):
+  """A finished `configs/gqn.py:smoke` run (4 steps: checkpoints at 2 and 4, eval at 4), trained
+  once per test session and shared by every xdist worker (`_shared_run`). Read-only: copy it
+  (shutil.copytree) to change it."""
+  from camrep.configs import gqn
+  from camrep.synthesis import train
+
+  def run(workdir):
+    old = jax.config.read("jax_disable_most_optimizations")
+    jax.config.update("jax_disable_most_optimizations", True)
+    try:
+      train.train_and_evaluate(gqn.get_config("smoke"), str(workdir))
+    finally:
+      jax.config.update("jax_disable_most_optimizations", old)
+
+  return _shared_run(tmp_path_factory, "gqn_smoke", run)
+
+
+# The car's shared run: `shapenet_car:smoke` for 2 steps, evaluated at step 2 on one scene.
+CAR_SMOKE_FLAGS = (
+  "--config=shapenet_car:smoke",
+  "--config.total_steps=2",
+  "--config.eval_every_steps=2",
+  "--config.evals.num_scenes=1",
+)
+
+
+@pytest.fixture(scope="session")
+def car_smoke_run(tmp_path_factory):
+  """A finished car view-synthesis run (`CAR_SMOKE_FLAGS`), trained once per test session by
+  the command line in a fresh process (`python -m camrep.main`, as a user runs it; an in-process
+  compile of this step, late in a whole-suite run, once died inside XLA: BUILD_NOTES "A crash in
+  the CI rehearsal") and shared by every xdist worker (`_shared_run`). Read-only."""
+  import subprocess
+  import sys
+
+  def run(workdir):
+    r = subprocess.run(
+      [sys.executable, "-m", "camrep.main", *CAR_SMOKE_FLAGS, f"--workdir={workdir}"],
+      capture_output=True,
+      text=True,
+      cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+      env={**os.environ, _FAST_ENV: "1"},
+      timeout=600,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+
+  return _shared_run(tmp_path_factory, "car_smoke", run)

@@ -46,8 +46,9 @@ def _synthesis(tmp_path_factory, name, **rep):
 
 
 @pytest.fixture(scope="module")
-def learned(tmp_path_factory):
-  return _synthesis(tmp_path_factory, "car")
+def learned(car_smoke_run):
+  """The session's shared car run (`conftest.car_smoke_run`: 2 steps, as `_synthesis`'s)."""
+  return car_smoke_run
 
 
 @pytest.fixture(scope="module")

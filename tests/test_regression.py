@@ -25,7 +25,7 @@ from camrep.regression import pose_system
 from camrep.regression import views as views_lib
 from camrep.runtime import runconfig
 from camrep.runtime import workdir as workdir_lib
-from camrep.synthesis import components, train
+from camrep.synthesis import components
 from tests.utils import snapshot
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -145,25 +145,21 @@ def _check_rerun_with_another_config(wd, config):
 
 
 @pytest.fixture(scope="module")
-def car_synthesis(tmp_path_factory):
-  config = shapenet_car.get_config("smoke")
-  config.total_steps = 1
-  config.evals.num_scenes = 1
-  wd = str(tmp_path_factory.mktemp("synthesis") / "car")
-  train.train_and_evaluate(config, wd)
-  return wd
+def car_synthesis(car_smoke_run):
+  """The session's shared car run (`conftest.car_smoke_run`: 2 steps)."""
+  return car_smoke_run
 
 
 def test_ours_from_a_synthesis_workdir(tmp_path, cache, car_synthesis):
   config = _config("car", "ours", synthesis_workdir=car_synthesis, **{"data.cache_dir": cache})
   results = R.run(config, str(tmp_path / "ours"), log=lambda s: None)
   info = results["representation_params"]
-  assert info["source"] == "synthesis" and info["step"] == 1
+  assert info["source"] == "synthesis" and info["step"] == 2
   assert info["workdir"] == os.path.abspath(car_synthesis)
   assert results["lr"] == 1e-3  # the paper's car lr (configs/regression.py hparams.car)
   assert np.isfinite(results["test"]["all"]["rotation_error_deg"]["mean"])
   spec, rep, info = pose_system.representation_params(reg_schema.check(config))
-  assert spec == components.pose_spec(shapenet_car.get_config("smoke")) and info["step"] == 1
+  assert spec == components.pose_spec(shapenet_car.get_config("smoke")) and info["step"] == 2
   # The system it read, by content: the digest of the parameters it regressed.
   assert results["representation_params"]["digest"] == pose_system.params_digest(rep)
   # "mlp" with a learned-grid run: its pose spec, a frozen random MLP embedding.

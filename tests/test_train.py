@@ -140,34 +140,37 @@ def test_prepared_data_with_worker_processes_trains_on_the_same_batches(tmp_path
 
 
 @pytest.mark.parametrize("name", ["shapenet_car", "seven_scenes"])
-def test_table_settings_smoke(name, tmp_path):
+def test_table_settings_smoke(name, tmp_path, request):
   """Pose steps then a decoder step, per-scene tables, rotation losses with data pairs.
 
-  Trained by the CLI in a fresh process: in two whole-suite runs on 2 cores the xdist worker
+  Trained by the CLI in a fresh process (the car: the session's shared run,
+  `conftest.car_smoke_run`, 2 steps too): in two whole-suite runs on 2 cores the xdist worker
   that compiled this step in-process, after ~900 other tests, died inside XLA (an abort while
   serialising the executable for the compilation cache, then a segfault in the compile itself;
   BUILD_NOTES "A crash in the CI rehearsal"), while the test passes alone."""
   config = CONFIGS[name].get_config("smoke")
-  config.total_steps = 2
-  config.eval_every_steps = 2
-  r = subprocess.run(
-    [
-      sys.executable,
-      "-m",
-      "camrep.main",
-      f"--config={name}:smoke",
-      f"--workdir={tmp_path}",
-      "--config.total_steps=2",
-      "--config.eval_every_steps=2",
-    ],
-    capture_output=True,
-    text=True,
-    cwd=ROOT,
-    env={**os.environ, "JAX_DISABLE_MOST_OPTIMIZATIONS": "1"},  # as this module's fast_compile
-    timeout=600,
-  )
-  assert r.returncode == 0, r.stderr[-3000:]
-  with open(tmp_path / "final_metrics.json", encoding="utf-8") as f:
+  if name == "shapenet_car":
+    workdir = pathlib.Path(request.getfixturevalue("car_smoke_run"))
+  else:
+    workdir = tmp_path
+    r = subprocess.run(
+      [
+        sys.executable,
+        "-m",
+        "camrep.main",
+        f"--config={name}:smoke",
+        f"--workdir={workdir}",
+        "--config.total_steps=2",
+        "--config.eval_every_steps=2",
+      ],
+      capture_output=True,
+      text=True,
+      cwd=ROOT,
+      env={**os.environ, "JAX_DISABLE_MOST_OPTIMIZATIONS": "1"},  # as this module's fast_compile
+      timeout=600,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+  with open(workdir / "final_metrics.json", encoding="utf-8") as f:
     last = json.load(f)
   assert last["complete"] is True and last["step"] == 2
   assert last["train/finite"] == 1.0
