@@ -128,14 +128,13 @@ def test_wheel_installs_and_trains_a_config_by_name(installed):
 
 
 # Run by the venv's Python in a directory outside the checkout: the notebook executed with
-# tools/run_notebook.py (its directory alone put on sys.path: camrep comes from the wheel), the
+# tools/run_notebook.py (its directory alone on PYTHONPATH: camrep comes from the wheel), the
 # executed notebook and its namespace values (tests/test_notebook.py's) written beside it.
 _RUN_NOTEBOOK = """
 import json, pickle, sys
-sys.path.insert(0, sys.argv[1])
 import run_notebook
-names = sys.argv[3].split(",")
-with open(sys.argv[2]) as f:
+names = sys.argv[2].split(",")
+with open(sys.argv[1]) as f:
   fresh, ns = run_notebook.execute(json.load(f))
 with open("fresh.ipynb", "w") as f:
   json.dump(fresh, f)
@@ -152,9 +151,10 @@ def test_the_notebook_runs_on_the_installed_package(installed):
   names = ",".join(test_notebook.NAMESPACE)
   notebook = str(ROOT / "notebooks" / "quickstart.ipynb")
   r = subprocess.run(
-    [python, "-c", _RUN_NOTEBOOK, str(ROOT / "tools"), notebook, names],
+    [python, "-c", _RUN_NOTEBOOK, notebook, names],
     cwd=away,
-    env={**_env(), "JAX_DISABLE_MOST_OPTIMIZATIONS": "0"},  # as a user's session compiles it
+    # Compiled as a user's session compiles it.
+    env={**_env(), "JAX_DISABLE_MOST_OPTIMIZATIONS": "0", "PYTHONPATH": str(ROOT / "tools")},
     capture_output=True,
     text=True,
     timeout=600,
