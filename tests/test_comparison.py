@@ -35,6 +35,17 @@ def test_dry_run(tmp_path, capsys):
   _write(reg, "car", "quat", 1e-3, 0, _summary("car", 3.0), _summary("car", 1.0))
   _write(reg, "car", "quat", 3e-3, 0, _summary("car", 2.0), _summary("car", 9.0))
   assert launch.chosen_lr(str(tmp_path), "car", "quat", quick) == 3e-3
+  # A full grid chooses on the validation mean over the seeds (as the tables do), not seed 0's:
+  # seeds 1 and 2 prefer 1e-3 by far.
+  for seed in (1, 2):
+    _write(reg, "car", "quat", 1e-3, seed, _summary("car", 1.0), _summary("car", 1.0))
+    _write(reg, "car", "quat", 3e-3, seed, _summary("car", 9.0), _summary("car", 1.0))
+  protocol = plan.plans()["protocol"]
+  assert protocol.full_grid and launch.chosen_lr(str(tmp_path), "car", "quat", protocol) == 1e-3
+  assert launch.chosen_lr(str(tmp_path), "car", "quat", quick) == 3e-3  # seed 0's choice
+  # --full_grid with a plan of two phases: the launch's plan says so, for its choices.
+  L = launch.make_launch(quick, str(tmp_path), settings=["car"], full_grid=True)
+  assert L.plan.full_grid and not L.later
   assert (
     command.main(["--size", "paper", "--out", str(tmp_path), "--dry_run", "--settings", "car"]) == 0
   )
@@ -153,6 +164,14 @@ def test_converge_plan(tmp_path, capsys):
   assert title.startswith("car: validation score = rotation_error_deg mean / 2.85")
   assert os.path.join(reg, "car", "quat", "lr3e-3_seed0") in curves[0].argv
   assert os.path.join(reg, "car", "quat", "lr1e-3_seed0") not in curves[0].argv
+  # A launch of one representation draws the column's other representations DIR holds too.
+  _write(reg, "car", "euler", 1e-3, 0, _summary("car", 1.0), _summary("car", 1.0))
+  euler = os.path.join(reg, "car", "euler", "lr1e-3_seed0")
+  os.rename(os.path.join(reg, "car", "euler", "lr0.001_seed0"), euler)
+  one = command.make_launch(command.parse_args([*args, "--representations", "quat"]))
+  (curve,) = [j for j in launch.curve_jobs(one) if j.name == "curve_car"]
+  runs = curve.argv[curve.argv.index("--runs") + 1 : curve.argv.index("--title")]
+  assert runs == [euler, os.path.join(reg, "car", "quat", "lr3e-3_seed0")], runs
   assert [launch.half_decade(x, up=u) for x, u in ((1e-3, True), (3e-4, False), (1e-4, False))] == [
     3e-3,
     1e-4,

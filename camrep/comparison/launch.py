@@ -412,8 +412,11 @@ def seed_spread_job(launch: Launch, lr: float) -> Job:
 
 
 def chosen_lr(out: str, column: str, rep: str, plan: plan_lib.Plan) -> float | None:
-  """The lr that the phase-1 (seed 0) validation errors choose, or None without results."""
-  pattern = os.path.join(out, "regression", column, rep, f"*_seed{plan.seeds[0]}")
+  """The lr that the phase-1 (seed 0) validation errors choose; with a full grid
+  (`plan.full_grid`: every seed ran at every lr), the one the validation mean over the seeds
+  chooses, as the tables choose it (`tables.select`). None without results."""
+  seeds = "*" if plan.full_grid else plan.seeds[0]
+  pattern = os.path.join(out, "regression", column, rep, f"*_seed{seeds}")
   grid = plan.lrs[setting_of(column)]
   results = [r for r in _results([pattern]) if plan.extend_grid or float(r["lr"]) in grid]
   sel = C.select(results).get((setting_of(column), rep))
@@ -606,7 +609,12 @@ def curve_jobs(launch: Launch) -> list[Job]:
   groups = [_group(j) for j in L.first]
   for col in sorted({c for c, _ in groups}):
     wds = []
-    for rep in sorted({r for c, r in groups if c == col}):
+    # Every representation DIR has runs of in the column, not only this launch's (a launch of
+    # one representation redraws the column's whole curve): the plan's order, then the rest.
+    ranked = [*plan_lib.settings()[setting_of(col)]["representations"], *L.plan.controls]
+    have = {os.path.basename(d) for d in glob.glob(os.path.join(L.out, "regression", col, "*"))}
+    have |= {r for c, r in groups if c == col}
+    for rep in [*(r for r in ranked if r in have), *sorted(have - set(ranked))]:
       lr = chosen_lr(L.out, col, rep, L.plan)
       if lr is not None:
         pattern = os.path.join(L.out, "regression", col, rep, f"{lr_tag(lr)}_seed*")
@@ -640,6 +648,8 @@ def make_launch(
   False: one process per regression run even where the plan vectorises them)."""
   if not vectorise:
     plan = dataclasses.replace(plan, vectorise={})
+  if full_grid:  # the lr then chosen on every seed's validation (`chosen_lr`)
+    plan = dataclasses.replace(plan, full_grid=True)
   data = dict(data or {})
   captures = [c for c in data if c not in SETTINGS]
   columns = list(settings) + [c for c in captures if setting_of(c) in settings]
