@@ -1,11 +1,13 @@
-"""A pose-regression run killed (SIGKILL) or stopped (SIGTERM, or Ctrl-C's SIGINT) part-way and
-started again with the same command ends as a run left alone: the same results.json (apart from
-its timings and machine) and the same logged metrics at every step. A stop saves a checkpoint,
-says how to resume, exits 0 and leaves no lock; a killed run's lock is taken over.
+"""A pose-regression run killed (SIGKILL), then stopped by SIGTERM, then by Ctrl-C's SIGINT
+part-way, each time started again with the same command, ends as a run left alone: the same
+results.json (apart from its timings and machine) and the same logged metrics at every step. A
+stop saves a checkpoint, says how to resume, exits 0 and leaves no lock; a killed run's lock is
+taken over.
 
 Each run is a separate process (`python -m camrep.regression` through
 tests/regression_resume_script.py, which slows its steps so that the signal lands between two
-checkpoints), as a user would run it.
+checkpoints), as a user would run it; the signals are one chain in one workdir, made once for
+the module's tests, each of which checks its own link.
 """
 
 from __future__ import annotations
@@ -100,36 +102,62 @@ def reference(tmp_path_factory, cache):
   return workdir
 
 
-@pytest.mark.parametrize(
-  "sig", [signal.SIGKILL, signal.SIGTERM, signal.SIGINT], ids=["SIGKILL", "SIGTERM", "SIGINT"]
-)
-def test_a_regression_killed_or_stopped_resumes_to_the_same_results(
-  sig, reference, cache, tmp_path
-):
-  workdir = tmp_path / "w"
-  proc = _start(workdir, cache)
-  _wait_for_step(proc, workdir, 26)  # past checkpoint 20
-  proc.send_signal(sig)
-  out, err = proc.communicate(timeout=300)
-  if sig != signal.SIGKILL:  # SIGTERM, or Ctrl-C (SIGINT): saved and stopped alike
-    assert proc.returncode == 0, err[-3000:]
-    line = [x for x in out.splitlines() if f"on {sig.name}" in x]
-    assert line and "checkpoint saved" in line[0] and "run the same command to resume" in line[0]
-    assert not (workdir / workdir_lib.LOCK_FILE).exists()
-    assert not (workdir / "results.json").exists()
-  else:
-    assert proc.returncode == -signal.SIGKILL
-    assert (workdir / workdir_lib.LOCK_FILE).exists()  # left by the killed process
-  steps = sorted(int(n) for n in os.listdir(workdir / "checkpoints") if n.isdigit())
-  assert steps and 20 <= steps[-1] < TOTAL
+def _checkpoints(workdir) -> list[int]:
+  return sorted(int(n) for n in os.listdir(workdir / "checkpoints") if n.isdigit())
+
+
+@pytest.fixture(scope="module")
+def chain(tmp_path_factory, cache):
+  """One workdir through every signal, each link a process: killed (SIGKILL) at step 26 or
+  later, started again and stopped by SIGTERM at 36 or later, again and stopped by SIGINT at 46
+  or later, again to the end. {link: {"code", "out", "err", "pid", "checkpoints" after it}} and
+  the workdir."""
+  workdir = tmp_path_factory.mktemp("chain") / "w"
+  links = {}
+  for sig, step in ((signal.SIGKILL, 26), (signal.SIGTERM, 36), (signal.SIGINT, 46)):
+    proc = _start(workdir, cache)
+    _wait_for_step(proc, workdir, step)
+    lock = (workdir / workdir_lib.LOCK_FILE).exists()
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=300)
+    links[sig.name] = dict(code=proc.returncode, out=out, err=err, pid=proc.pid)
+    links[sig.name].update(locked=lock and (workdir / workdir_lib.LOCK_FILE).exists())
+    links[sig.name].update(checkpoints=_checkpoints(workdir))
   r = _run(workdir, cache)
-  assert r.returncode == 0, r.stderr[-3000:]
-  assert f"resumed from step {steps[-1]}" in r.stdout
-  if sig == signal.SIGKILL:
-    assert f"taking over the stale lock of {workdir}: PID {proc.pid}" in r.stderr
+  links["end"] = dict(code=r.returncode, out=r.stdout, err=r.stderr, pid=None)
+  return {"workdir": workdir, "links": links}
+
+
+def test_a_killed_regression_leaves_its_lock_and_the_next_start_takes_it_over(chain):
+  kill, after = chain["links"]["SIGKILL"], chain["links"]["SIGTERM"]
+  assert kill["code"] == -signal.SIGKILL, kill["err"][-3000:]
+  assert kill["locked"]  # left by the killed process
+  assert kill["checkpoints"] and 20 <= kill["checkpoints"][-1] < TOTAL
+  assert f"taking over the stale lock of {chain['workdir']}: PID {kill['pid']}" in after["err"]
+  assert f"resumed from step {kill['checkpoints'][-1]}" in after["out"]
+
+
+@pytest.mark.parametrize("sig", ["SIGTERM", "SIGINT"])
+def test_a_stopped_regression_saves_says_how_to_resume_and_the_same_command_resumes(chain, sig):
+  """SIGTERM, or Ctrl-C (SIGINT): saved and stopped alike, exit 0, no lock, no results.json."""
+  names = list(chain["links"])
+  link, after = chain["links"][sig], chain["links"][names[names.index(sig) + 1]]
+  assert link["code"] == 0, link["err"][-3000:]
+  line = [x for x in link["out"].splitlines() if f"on {sig}" in x]
+  assert line and "checkpoint saved" in line[0] and "run the same command to resume" in line[0]
+  assert not link["locked"]
+  stop = link["checkpoints"][-1]
+  assert f"stopping at step {stop} on {sig}" in line[0] and stop < TOTAL
+  assert f"resumed from step {stop}" in after["out"]
+
+
+def test_the_regression_through_every_signal_ends_as_the_run_left_alone(chain, reference):
+  workdir = chain["workdir"]
+  end = chain["links"]["end"]
+  assert end["code"] == 0, end["err"][-3000:]
   assert not (workdir / workdir_lib.LOCK_FILE).exists()
   assert _results(workdir) == _results(reference)
   rows = lambda w: writers.read_metrics(str(w))  # noqa: E731
   assert rows(workdir) == rows(reference)  # every logged value, bit for bit
   history = workdir_lib.read_history(str(workdir))
-  assert [h["event"] for h in history] == ["start", "resume"]
+  assert [h["event"] for h in history] == ["start", "resume", "resume", "resume"]
