@@ -113,6 +113,16 @@ def test_car_output_shapes_and_head_norms():
   )
   lead = batch["pose"].shape[:-1]
   _check_heads(reg, jax.jit(learner.predict_heads)(state, batch), lead)
+  # Another key, an equal regressor at another lr: the compiled initialisation is reused (a
+  # vectorised grid's members share it), and the parameters differ.
+  traced = learner._init_variables._cache_size()
+  other = _make(setting, "ours")
+  other = dataclasses.replace(other, hparams=dataclasses.replace(other.hparams, lr=0.5))
+  rep = _rep_params(setting, "ours", reg.spec)
+  again = learner.init(jax.random.key(2), other, batch, rep_params=rep)
+  assert learner._init_variables._cache_size() == traced
+  a, b = jax.tree.leaves(state.params["net"]), jax.tree.leaves(again.params["net"])
+  assert any(not np.array_equal(x, y) for x, y in zip(a, b, strict=True))
   # Baseline heads: raw outputs of the listed sizes (eval_shape: no compute).
   for rep in ("quat", "sincos"):
     breg = _make(setting, rep)
