@@ -110,19 +110,23 @@ def _checkpoints(workdir) -> list[int]:
 def chain(tmp_path_factory, cache):
   """One workdir through every signal, each link a process: killed (SIGKILL) at step 26 or
   later, started again and stopped by SIGTERM at 36 or later, again and stopped by SIGINT at 46
-  or later, again to the end. {link: {"code", "out", "err", "pid", "checkpoints" after it}} and
-  the workdir."""
+  or later, again to the end. {link: {"code", "out", "err", "pid", "locked" (its lock file left),
+  "checkpoints" after it}} and the workdir."""
   workdir = tmp_path_factory.mktemp("chain") / "w"
   links = {}
   for sig, step in ((signal.SIGKILL, 26), (signal.SIGTERM, 36), (signal.SIGINT, 46)):
     proc = _start(workdir, cache)
     _wait_for_step(proc, workdir, step)
-    lock = (workdir / workdir_lib.LOCK_FILE).exists()
     proc.send_signal(sig)
     out, err = proc.communicate(timeout=300)
-    links[sig.name] = dict(code=proc.returncode, out=out, err=err, pid=proc.pid)
-    links[sig.name].update(locked=lock and (workdir / workdir_lib.LOCK_FILE).exists())
-    links[sig.name].update(checkpoints=_checkpoints(workdir))
+    links[sig.name] = dict(
+      code=proc.returncode,
+      out=out,
+      err=err,
+      pid=proc.pid,
+      locked=(workdir / workdir_lib.LOCK_FILE).exists(),
+      checkpoints=_checkpoints(workdir),
+    )
   r = _run(workdir, cache)
   links["end"] = dict(code=r.returncode, out=r.stdout, err=r.stderr, pid=None)
   return {"workdir": workdir, "links": links}
