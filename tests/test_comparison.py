@@ -3,6 +3,7 @@ job order, on dry runs and fabricated runs (no training)."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import os
 import subprocess
@@ -386,7 +387,8 @@ def test_protocol_plan_capture_columns_hold_out_the_regressions_validation_views
 
 
 def test_protocol_plan(tmp_path, capsys, monkeypatch):
-  """--size protocol: 10 seeds a cell, every seed at every lr, the same lrs for every
+  """--size protocol: 10 seeds a cell on the area, 5 on the other settings (`seed_counts`), and
+  each column's view-synthesis runs at its own seeds; every seed at every lr, the same lrs for every
   representation of a column and no extension, the control targets in every column (capture
   columns too) reading the right view-synthesis runs, 7-Scenes synthesis over all seven scenes,
   every view-synthesis run evaluated on at least 32 held-out targets."""
@@ -401,12 +403,15 @@ def test_protocol_plan(tmp_path, capsys, monkeypatch):
   the_launch = command.make_launch(command.parse_args(args))
   p = the_launch.plan
   assert len(p.seeds) >= 10 and p.full_grid and p.extend_grid == 0 and not the_launch.later
-  cells = {}
+  counts = {s: len(p.seeds_for(s)) for s in plan.SETTINGS}
+  assert counts == {"gqn": 5, "car": 5, "gibson": 10, "seven_scenes": 5}
+  cells, seeds_of = {}, {}
   for j in the_launch.first:  # the full grid: every seed at every lr, one program a group
     col, rep = launch._group(j)
+    seeds_of[col] = p.seeds_for(launch.setting_of(col))
     lrs = tuple(float(x) for x in launch.flag_value(j.argv, "--lrs").split(","))
     assert lrs == p.lrs[launch.setting_of(col)]
-    assert launch.flag_value(j.argv, "--seeds") == ",".join(map(str, p.seeds))
+    assert launch.flag_value(j.argv, "--seeds") == ",".join(map(str, seeds_of[col]))
     cells.setdefault(col, set()).add(rep)
   for col, reps in cells.items():
     assert {"ours", "untrained", "frozen_gen"} <= reps, col
@@ -415,10 +420,14 @@ def test_protocol_plan(tmp_path, capsys, monkeypatch):
     col, rep = launch._group(j)
     reads = {os.path.basename(w) for w in launch.synthesis_reads(j)}
     if rep in ("ours", "untrained"):
-      assert reads == {f"{col}_seed{k}" for k in p.seeds}
+      assert reads == {f"{col}_seed{k}" for k in seeds_of[col]}
     elif rep == "frozen_gen":
-      assert reads == {f"{col}_frozen_gen_seed{k}" for k in p.seeds}
+      assert reads == {f"{col}_frozen_gen_seed{k}" for k in seeds_of[col]}
     assert reads <= set(syn)
+  # No view-synthesis run beyond its column's seeds: the car trains seeds 0-4 of its three kinds.
+  assert sorted(n for n in syn if n.startswith("car_") and not n.startswith("car_chair")) == sorted(
+    f"car{kind}_seed{k}" for kind in ("", "_mlp", "_frozen_gen") for k in range(5)
+  )
   for col in cells:
     frozen = syn[f"{col}_frozen_gen_seed3"].argv
     assert "--config.rep.freeze_generators=True" in frozen and "--config.seed=3" in frozen
@@ -427,8 +436,9 @@ def test_protocol_plan(tmp_path, capsys, monkeypatch):
   noise = {j.name: j.argv for j in the_launch.figures if j.name.startswith("noise_figure_")}
   for col in cells:
     drawn = [os.path.basename(a) for a in noise[f"noise_figure_{col}"] if "_seed" in a]
-    assert drawn[: len(p.seeds)] == [f"{col}_seed{k}" for k in p.seeds], col
-    assert drawn[-len(p.seeds) :] == [f"{col}_frozen_gen_seed{k}" for k in p.seeds], col
+    n = len(seeds_of[col])
+    assert drawn[:n] == [f"{col}_seed{k}" for k in seeds_of[col]], col
+    assert drawn[-n:] == [f"{col}_frozen_gen_seed{k}" for k in seeds_of[col]], col
   seven = syn["seven_scenes_seed0"].argv
   assert any(a.startswith("--config.data.family.scenes=") and "stairs" in a for a in seven)
   assert "--config.data.scenes_per_device=7" in seven and "--config.evals.split=validation" in seven
@@ -476,3 +486,14 @@ def test_plan_refuses_convdraw_where_there_is_no_context(monkeypatch):
       plan.settings()
   finally:
     plan.settings.cache_clear()
+
+
+def test_plan_seed_counts_are_checked():
+  """A size's `seed_counts` names a setting and a count within its seeds; a setting not named
+  runs them all."""
+  p = plan.plans()["protocol"]
+  assert p.seeds_for("gibson") == p.seeds and p.seeds_for("car") == p.seeds[:5]
+  assert dataclasses.replace(p, seed_counts={"car": 1}).seeds_for("car") == p.seeds[:1]
+  for bad in ({"car": 0}, {"car": len(p.seeds) + 1}, {"chair": 2}):
+    with pytest.raises(ValueError, match="seed_counts"):
+      dataclasses.replace(p, seed_counts=bad)

@@ -56,7 +56,8 @@ synthesis before phase 2). `--crossed COLUMN` adds, after phase
 2, every regression seed of ours on every other synthesis seed's pose system (DIR/crossed/,
 never tabled with the paired runs), then experiments/seed_spread.py -> DIR/seed_spread_<column>.md.
 
-`--size protocol`: the converge rules and caps with 10 seeds a cell, every seed at every lr
+`--size protocol`: the converge rules and caps with 10 seeds a cell on the area and 5 on the other
+settings (plans.toml's `seed_counts`, `Plan.seeds_for`), every seed at every lr
 (`full_grid`: the lr chosen on the validation mean over all seeds), the same lrs for every
 representation of a column (no extension), the control targets "untrained" (ours' own
 synthesis run at its initialisation) and "frozen_gen" in every column, view synthesis stopped on

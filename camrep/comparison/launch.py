@@ -391,9 +391,9 @@ def crossed_job(
 def crossed_jobs(launch: Launch, lr: float | None) -> list[Job]:
   """Every (regression seed k, synthesis seed j != k) run of the `--crossed` column at `lr`
   (None: the placeholder of --dry_run); the paired runs (j = k) are the launch's own."""
-  seeds = launch.plan.seeds
   if not launch.crossed:
     return []
+  seeds = launch.plan.seeds_for(setting_of(launch.crossed))
   return [crossed_job(launch, launch.crossed, lr, k, j) for k in seeds for j in seeds if j != k]
 
 
@@ -664,25 +664,26 @@ def make_launch(
   out = os.path.abspath(out)
   # The runs whose pose inputs the regressions read: the learned grid (ours, untrained), the MLP
   # embedding's own (car and each capture column), the grid with frozen generators.
-  names = []
+  names = {}  # each view-synthesis run's name: its column
   for c in columns:
     for rep in reps[c]:
       suffix = plan_lib.synthesis_suffix(rep)
-      if suffix is not None and c + suffix not in names:
-        names.append(c + suffix)
+      if suffix is not None:
+        names.setdefault(c + suffix, c)
   for s in columns if noise_kinds else []:
     inputs = plan_lib.settings().get(s, {}).get("noise_inputs", ())
     kinds = [k for k in noise_kinds if k in inputs and (k != "convdraw" or plan.convdraw_config(s))]
     if inputs:  # the noise figure's other pose inputs of the setting
-      names += [n for n in [s, *(f"{s}_{k}" for k in kinds)] if n not in names]
-  if plan.paired_synthesis:  # one synthesis run per seed, paired with the regression seed
-    names = [f"{n}_seed{k}" for n in names for k in plan.seeds]
+      names.update({n: s for n in [s, *(f"{s}_{k}" for k in kinds)] if n not in names})
+  if plan.paired_synthesis:  # one synthesis run per seed of its column, paired with its regressions'
+    names = {f"{n}_seed{k}": c for n, c in names.items() for k in plan.seeds_for(setting_of(c))}
+  names = list(names)
   data = {c: d for c, d in data.items() if c in columns}
   synth = synthesis_jobs(out, plan, names, python, data)
   first, later = [], []
   for c in columns:
     for rep in reps[c]:
-      seeds = plan.seeds if full_grid else plan.seeds[:1]
+      seeds = plan.seeds_for(setting_of(c)) if full_grid else plan.seeds[:1]
       lrs = plan.lrs[setting_of(c)]
       if plan.vectorise:  # phase 1 (or the full grid) as one program
         first.append(regression_grid_job(out, plan, c, rep, lrs, seeds, python, data))
@@ -691,7 +692,7 @@ def make_launch(
           regression_job(out, plan, c, rep, lr, seed, python, data) for seed in seeds for lr in lrs
         ]
       if not full_grid:
-        later += [(c, rep, seed) for seed in plan.seeds[1:]]
+        later += [(c, rep, seed) for seed in plan.seeds_for(setting_of(c))[1:]]
   tables = table_jobs(out, python, columns)
   figures = [] if skip_figures else figure_jobs(out, plan, synth, python, data)
   if crossed and "ours" not in reps.get(crossed, ()):

@@ -42,7 +42,8 @@ class Plan:
   Attributes:
     name: the size ("quick", "converge", ...).
     variant: the config variant of its runs ("quick", "medium", or "" for paper size).
-    seeds: regression seeds (and synthesis seeds where `paired_synthesis`).
+    seeds: regression seeds (and synthesis seeds where `paired_synthesis`); a setting named in
+      `seed_counts` takes its first that many (`seeds_for`).
     lrs: learning-rate grid per setting.
     synthesis_s: estimated seconds per view-synthesis run, per setting ("capture": a capture
       column's; "<setting>_convdraw": GQN's generator), where given.
@@ -65,6 +66,8 @@ class Plan:
       (the plateau rule on the validation split; 7-Scenes over all seven scenes' trajectories
       where the :quick config learns from two); "capture": those of a capture column's runs
       (`capture_synthesis_flags`).
+    seed_counts: per setting, how many of `seeds` its columns run (plans.toml's `seed_counts`);
+      a setting not named runs them all.
     vectorise: the regression runs of one column and representation trained as one program
       (`camrep.regression.vectorised`: phase 1 one over the lrs, phase 2 one over the later seeds):
       {"step_speedup": member-steps per second of the program over the runs one after another,
@@ -91,6 +94,19 @@ class Plan:
   full_grid: bool = False
   controls: tuple[str, ...] = ()
   synthesis_extra: dict[str, tuple[str, ...]] = dataclasses.field(default_factory=dict)
+  seed_counts: dict[str, int] = dataclasses.field(default_factory=dict)
+
+  def __post_init__(self):
+    for s, n in self.seed_counts.items():
+      if s not in SETTINGS or not 1 <= n <= len(self.seeds):
+        raise ValueError(
+          f"{PLANS_FILE}: size {self.name}: seed_counts {s} = {n}: the setting must be one of "
+          f"{SETTINGS} and the count within 1..{len(self.seeds)} (its seeds)"
+        )
+
+  def seeds_for(self, setting: str) -> tuple[int, ...]:
+    """The seeds of `setting`'s columns: the first `seed_counts[setting]` of `seeds`, else all."""
+    return self.seeds[: self.seed_counts.get(setting, len(self.seeds))]
 
   @property
   def suffix(self) -> str:
@@ -198,6 +214,7 @@ def _plan(name: str, d: Mapping[str, Any]) -> Plan:
     full_grid=bool(d.get("full_grid", False)),
     controls=tuple(_read()["controls"]) if d.get("controls", False) else (),
     synthesis_extra={s: tuple(v) for s, v in d.get("synthesis_extra", {}).items()},
+    seed_counts={s: int(n) for s, n in d.get("seed_counts", {}).items()},
   )
   if "seconds" in d:
     sec = d["seconds"]
