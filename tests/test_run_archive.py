@@ -20,6 +20,7 @@ import pytest
 
 from camrep.comparison import archive as archive_lib
 from camrep.comparison import command, launch
+from camrep.comparison import plan as plan_lib
 from camrep.regression import runs
 
 
@@ -293,7 +294,9 @@ def test_the_untrained_control_needs_only_the_archived_config_of_its_synthesis_r
 
   assert rc.execute(rc.make(args(tmp_path / "first"))) == []
   syn = sorted(n for n in ran if n.startswith("synthesis_"))
-  assert len(syn) == 10 and ran[-1].startswith("regression_car_untrained_")
+  seeds = plan_lib.plans()["protocol"].seeds_for("car")
+  assert syn == sorted(f"synthesis_car_seed{k}" for k in seeds)
+  assert ran[-1].startswith("regression_car_untrained_")
   config = archive / "synthesis" / "car_seed3" / "config.json"
   trained = tmp_path / "first" / "synthesis" / "car_seed3" / "config.json"
   assert config.read_text() == trained.read_text()

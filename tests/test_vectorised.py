@@ -148,25 +148,26 @@ def test_the_group_step_equals_each_members_own_steps(tiny, program, n):
       state, m = jax.jit(learner.train_step)(state, b)
       ms.append(m)
     alone.append((state, ms))
-  group = vectorised.stack(vectorised._unit(states))
-  rates = jnp.asarray(lrs, jnp.float32)
+  unit = vectorised._unit(states)
+  if vectorised.listed(program):  # the members' own states, donated: copies of the fixture's
+    group, rates, pack = [jax.tree.map(jnp.copy, s) for s in unit], list(lrs), list
+  else:
+    group, rates, pack = vectorised.stack(unit), jnp.asarray(lrs, jnp.float32), vectorised.stack
   fn = vectorised.group_step(n, program)
   if n == 1:
     metrics = []
     for k in range(2):
-      chunk = vectorised.stack([bs[k] for bs in batches])
-      group, m, ok = fn(group, chunk, rates)
+      group, m, ok = fn(group, pack([bs[k] for bs in batches]), rates)
       metrics.append(m)
       assert ok.shape == (2,) and np.all(np.asarray(ok) == 1)
     losses = np.stack([np.asarray(m["loss"]) for m in metrics], axis=1)  # (M, steps)
   else:
-    chunk = vectorised.stack([vectorised.stack(bs) for bs in batches])  # (M, n, ...)
-    group, m, ok = fn(group, chunk, rates)
+    group, m, ok = fn(group, pack([vectorised.stack(bs) for bs in batches]), rates)  # (n, ...)
     losses = np.asarray(m["loss"])
     assert ok.shape == (2,) and losses.shape == (2, 2)
   for i, (state, ms) in enumerate(alone):
     np.testing.assert_allclose(losses[i], [float(x["loss"]) for x in ms], rtol=RTOL)
-    member = vectorised.unstack(group, i)
+    member = group[i] if vectorised.listed(program) else vectorised.unstack(group, i)
     assert int(member.step) == 2
     for x, y in zip(jax.tree.leaves(state.params), jax.tree.leaves(member.params), strict=True):
       np.testing.assert_allclose(x, y, rtol=RTOL, atol=ATOL)
@@ -186,33 +187,31 @@ def test_resolve_program():
     vectorised.resolve_program("scan")
 
 
-def test_the_cpu_loop_takes_members_with_one_compile_per_group_size(monkeypatch):
-  """The "loop" program takes each member out of the stacked states with one compiled function
-  for every member of a group (a traced index), not one compile per member; what it takes is
-  the member."""
-  traced = []
-  real = vectorised.unstack
-
-  def spy(tree, i):  # traced with a traced index; the host's batches are sliced eagerly
-    if isinstance(i, jax.core.Tracer):
-      traced.append(i)
-    return real(tree, i)
-
-  monkeypatch.setattr(vectorised, "unstack", spy)
+def test_the_cpu_loop_steps_each_members_own_state_with_one_compile():
+  """The "loop" program steps each member's own state (listed, never stacked; updated in place:
+  donated) with one compiled step for every member and group size; only the metrics are
+  stacked."""
+  traces = []
 
   def step(state, batch, lr):
+    traces.append(1)  # at trace time only
     return jax.tree.map(lambda x: x - lr * batch, state), {"loss": jnp.sum(state["w"])}, 1.0
 
   fn = vectorised._looped(step)
-  states = {"w": jnp.arange(12.0).reshape(4, 3)}
-  lrs = jnp.asarray([0.1, 0.2, 0.3, 0.4])
-  out, metrics, _ = fn(states, np.ones((4, 3), np.float32), lrs)
-  assert len(traced) == 1
-  want = np.arange(12, dtype=np.float32).reshape(4, 3) - np.asarray(lrs)[:, None]
-  np.testing.assert_array_equal(out["w"], want)
+  states = [{"w": jnp.arange(3.0) + 3 * i} for i in range(4)]
+  lrs = [np.float32(x) for x in (0.1, 0.2, 0.3, 0.4)]
+  out, metrics, ok = fn(states, [np.ones(3, np.float32)] * 4, lrs)
+  assert isinstance(out, list) and len(traces) == 1
+  for i, w in enumerate(out):
+    np.testing.assert_allclose(w["w"], np.arange(3.0) + 3 * i - lrs[i])
+  if jax.default_backend() == "cpu":
+    assert states[0]["w"].is_deleted()  # donated: the step reused its buffer
   np.testing.assert_array_equal(metrics["loss"], [3.0, 12.0, 21.0, 30.0])
-  fn({"w": jnp.zeros((2, 3))}, np.ones((2, 3), np.float32), lrs[:2])  # a smaller group
-  assert len(traced) == 2
+  assert ok.shape == (4,)
+  fn(out[:2], [np.ones(3, np.float32)] * 2, lrs[:2])  # a smaller group: no new member step
+  assert len(traces) == 1
+  assert vectorised.listed("loop") and not vectorised.listed("vmap")
+  assert vectorised.group_step(1, "loop") is vectorised.group_step(1, "loop")
 
 
 # --------------------------------------------------------------------------- end to end
@@ -319,3 +318,24 @@ def test_members_equal_runs_trained_alone_and_resume_as_a_group(tmp_path):
     _close({k: a[k] for k in ("validation", "test", "final_train")}, {
       k: b[k] for k in ("validation", "test", "final_train")
     })  # fmt: skip
+
+
+@pytest.mark.parametrize("program", ["loop", "vmap"])
+def test_a_member_gone_non_finite_leaves_and_the_others_complete(tmp_path, program):
+  """A member whose values become non-finite (lr 1e38) leaves the group, its stop recorded; the
+  other trains on to the end and completes as it would alone; the grid then raises. Both forms of
+  the group's states: listed ("loop") and stacked ("vmap")."""
+  config = _config(**{"data.cache_dir": str(tmp_path / "cache"), "total_steps": 6})
+  gdir, lines = str(tmp_path / "grid"), []
+  with pytest.raises(FloatingPointError, match="1 of 2 members stopped on non-finite values"):
+    vectorised.run(config, gdir, lrs=[1e-3, 1e38], seeds=[0], log=lines.append, program=program)
+  assert any("lr1e+38_seed0: non-finite training values at step" in x for x in lines), lines
+  with open(os.path.join(gdir, "lr1e+38_seed0", "final_metrics.json")) as f:
+    bad = json.load(f)
+  assert bad["complete"] is False and bad["stopped"] == "non-finite"
+  good = driver.read_results(os.path.join(gdir, "lr1e-3_seed0"))
+  alone = driver.run(
+    vectorised.member_config(config, 1e-3, 0), str(tmp_path / "alone"), log=lambda s: None
+  )
+  _close(*({k: r[k] for k in ("validation", "test", "final_train")} for r in (good, alone)))
+  assert [r["step"] for r in _metrics(os.path.join(gdir, "lr1e-3_seed0"))][-1] == 6

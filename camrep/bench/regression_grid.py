@@ -66,6 +66,7 @@ class GridTimer:
                steps: int, programs=("loop", "unrolled", "vmap"), cache_dir: str = "",
                log=print):  # fmt: skip
     import jax
+    import numpy as np
 
     from camrep.configs import regression
     from camrep.regression import driver, learner, vectorised
@@ -95,11 +96,24 @@ class GridTimer:
       for s, c in zip(states, configs, strict=True)
     ]
     unit = vectorised._unit(states)
-    self._groups = {p: [vectorised.group_step(1, p), vectorised.stack(unit)] for p in programs}
-    self._rates = jax.numpy.asarray([c.optax.lr for c in configs], jax.numpy.float32)
-    self._batches = [
-      jax.device_put(vectorised.stack([batches[c.seed][i] for c in configs])) for i in range(steps)
-    ]
+    lrs = [c.optax.lr for c in configs]
+    # As the grid's program holds them (`vectorised._Group`): the loop's own states (copies: it
+    # donates them) and each seed's batch once on the device; the others' stacked.
+    self._groups, self._rates, self._batches = {}, {}, {}
+    for p in programs:
+      if vectorised.listed(p):
+        own = [jax.tree.map(jax.numpy.copy, s) for s in unit]
+        self._groups[p] = [vectorised.group_step(1, p), own]
+        self._rates[p] = [np.float32(x) for x in lrs]
+        on_device = {k: [jax.device_put(b) for b in bs] for k, bs in batches.items()}
+        self._batches[p] = [[on_device[c.seed][i] for c in configs] for i in range(steps)]
+      else:
+        self._groups[p] = [vectorised.group_step(1, p), vectorised.stack(unit)]
+        self._rates[p] = jax.numpy.asarray(lrs, jax.numpy.float32)
+        self._batches[p] = [
+          jax.device_put(vectorised.stack([batches[c.seed][i] for c in configs]))
+          for i in range(steps)
+        ]
     self.compile_s = {}
     for p in programs:
       t = time.perf_counter()
@@ -115,9 +129,9 @@ class GridTimer:
 
     fn, states = self._groups[program]
     t = time.perf_counter()
-    for b in self._batches[: steps or self.steps]:
-      states, m, _ = fn(states, b, self._rates)
-    jax.block_until_ready((states.params, m))
+    for b in self._batches[program][: steps or self.steps]:
+      states, m, _ = fn(states, b, self._rates[program])
+    jax.block_until_ready((states, m))
     self._groups[program][1] = states
     return time.perf_counter() - t
 

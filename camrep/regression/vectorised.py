@@ -16,7 +16,8 @@ member's seed (the comparison's paired view-synthesis runs, DIR/synthesis/car_se
 One program: the members' states are stacked on a leading member axis and one group step
 (`group_step`) trains them all: a jitted `jax.vmap` of `learner.train_step` (or `train_steps`, K
 per dispatch) on accelerators; on a CPU one jitted step shared by every member, called member by
-member (`resolve_program`: XLA:CPU runs vmapped convolutions, grouped convolutions, 4-5x slower).
+member on the members' own states, never stacked (`resolve_program`: XLA:CPU runs vmapped
+convolutions, grouped convolutions, 4-5x slower).
 What a single run takes from its seed and lr, each member keeps:
 
   init      its seed's (`driver.RegressionStage.init`), and its frozen representation ("mlp"'s
@@ -180,11 +181,13 @@ def resolve_program(program: str = "auto") -> str:
   """The group step's form: "vmap" (one `jax.vmap` over the member axis, the accelerators'
   choice), "unrolled" (each member's own step side by side in one jitted program) or "loop" (one
   jitted step, the same for every member since they differ only in data, init and lr, called
-  member by member: the CPU's choice, "auto" there). On XLA:CPU, vmapping a conv layer over
-  members with their own kernels makes it a grouped convolution (feature_group_count = M), which
-  runs 4-5x slower than the members' convolutions one by one, and the unrolled program of 12
-  members ran 0.6-1.2x the runs' speed (camrep.bench.regression_grid): on a CPU the group saves
-  the runs' start-ups and compiles, not step time."""
+  member by member on a list of the members' own states: the CPU's choice, "auto" there). On
+  XLA:CPU, vmapping a conv layer over members with their own kernels makes it a grouped
+  convolution (feature_group_count = M), which runs 4-5x slower than the members' convolutions
+  one by one, and the unrolled program of 12 members ran 0.6-1.2x the runs' speed
+  (camrep.bench.regression_grid): on a CPU the group saves the runs' start-ups and compiles, not
+  step time. The loop once took each member out of stacked states and stacked them again every
+  step: 0.80-0.84x the runs' speed on the car's and 7-Scenes' regressors."""
   if program not in PROGRAMS:
     raise ValueError(f"program must be one of {PROGRAMS}, got {program!r}")
   if program == "auto":
@@ -203,25 +206,37 @@ def _unrolled(step: Callable) -> Callable:
 
 
 def _looped(step: Callable) -> Callable:
-  """`step` over stacked members, one jitted call a member (see `resolve_program`). The member's
-  index is traced: one compile of `take` per group size, not one per member and size (a group
-  shrinks as members stop)."""
+  """`step` over listed members, one jitted call a member on its own state, updated in place
+  (donated), and batch (see `resolve_program`): one compile for every member and group size;
+  only the small metrics are stacked (one compile per group size: a group shrinks as members
+  stop)."""
   one = jax.jit(step, donate_argnums=0)
-  take = jax.jit(unstack)
-  join = jax.jit(lambda outs: tuple(stack([o[j] for o in outs]) for j in range(len(outs[0]))))
+  join = jax.jit(lambda outs: jax.tree.map(lambda *xs: jnp.stack(xs), *outs))
 
-  def run(states, batch, lrs):
-    return join([one(take(states, i), unstack(batch, i), lrs[i]) for i in range(len(lrs))])
+  def run(states, batches, lrs):
+    outs = [one(*member) for member in zip(states, batches, lrs, strict=True)]
+    metrics, ok = join([o[1:] for o in outs])
+    return [o[0] for o in outs], metrics, ok
 
   return run
 
 
+def listed(program: str = "auto") -> bool:
+  """Whether `program`'s group step takes the members as lists of their own states, batches and
+  lrs ("loop") rather than stacked on a member axis (`group_step`)."""
+  return resolve_program(program) == "loop"
+
+
+@functools.cache
 def group_step(n: int, program: str = "auto") -> Callable:
   """The group's step over `n` steps per dispatch: fn(states, batches, lrs) -> (states, metrics,
   ok), with states, batches and lrs stacked on the member axis (M, ...) (batches (M, n, ...) for
-  n > 1); metrics (M,) per key (n = 1) or (M, n); ok (M,): 1.0 where every step of the member
-  was finite. Each member's numbers are those of `learner.train_step` (`train_steps`) on it
-  alone; `program` (`resolve_program`) decides only how they are computed."""
+  n > 1), or for the "loop" program (`listed`) lists of M: each member's own state, batch
+  ((n, ...) for n > 1) and lr, no member axis, so nothing is copied; metrics (M,) per key
+  (n = 1) or (M, n); ok (M,): 1.0 where every step of the member was finite. Each member's
+  numbers are those of `learner.train_step` (`train_steps`) on it alone; `program`
+  (`resolve_program`) decides only how they are computed. One function per (n, program): the
+  loop's member step compiles once for every group size."""
   program = resolve_program(program)
   if n == 1:
 
@@ -249,6 +264,7 @@ def run(
   seeds: Sequence[int],
   overridden=(),
   log=print,
+  program: str = "auto",
 ) -> list[dict[str, Any]] | None:
   """Trains and evaluates the grid's members together (see the module docstring).
 
@@ -259,6 +275,7 @@ def run(
     seeds: the seeds.
     overridden: the config fields set on the command line (`config_schema.validate`).
     log: progress printer.
+    program: the group step's form (`resolve_program`).
 
   Returns:
     Each member's results.json content (lr by lr, seed by seed), or None when a signal stopped
@@ -287,7 +304,7 @@ def run(
         member.results = driver.read_results(wd)
       group.append(member)
     todo = [m for m in group if m.results is None]
-    if todo and _train(todo, rule, log=log, lrs=lrs, seeds=seeds):
+    if todo and _train(todo, rule, log=log, lrs=lrs, seeds=seeds, program=program):
       return None
   bad = [m for m in group if m.error is not None]
   if bad:
@@ -369,27 +386,45 @@ def _not_finite(pending, active: Sequence[Member]) -> list[Member]:
 
 
 class _Group:
-  """The members training together: their stacked states and rates (leaving shrinks them)."""
+  """The members training together, their states and rates as `program`'s group step takes them
+  (`group_step`: stacked, or listed for "loop"); leaving shrinks them."""
 
-  def __init__(self, members_: Sequence[Member]):
+  def __init__(self, members_: Sequence[Member], program: str = "auto"):
     self.members = list(members_)
-    self.states = stack(_unit([m.state for m in self.members]))
-    self.rates = jnp.asarray([m.config.optax.lr for m in self.members], jnp.float32)
+    self.program = resolve_program(program)
+    self.listed = listed(self.program)
+    states = _unit([m.state for m in self.members])
+    rates = np.asarray([m.config.optax.lr for m in self.members], np.float32)
+    self.states = states if self.listed else stack(states)
+    self.rates = list(rates) if self.listed else jnp.asarray(rates)
     for m in self.members:
       m.state = None  # the group holds it
 
   def state(self, m: Member) -> learner.RegressionState:
-    return unstack(self.states, self.members.index(m))
+    i = self.members.index(m)
+    return self.states[i] if self.listed else unstack(self.states, i)
+
+  def batches(self, chunks: dict[int, Any]) -> Any:
+    """The group step's batches from each seed's chunk ({seed: chunk}; a seed's members share
+    it): listed (each seed's on the device once) or stacked on the member axis."""
+    if self.listed:
+      on_device = {k: jax.device_put(c) for k, c in chunks.items()}
+      return [on_device[int(m.config.seed)] for m in self.members]
+    per = [chunks[int(m.config.seed)] for m in self.members]
+    return jax.tree.map(lambda *xs: np.stack(xs), *per)
 
   def leave(self, m: Member) -> None:
-    keep = np.asarray([j for j, x in enumerate(self.members) if x is not m])
+    keep = [j for j, x in enumerate(self.members) if x is not m]
     self.members = [self.members[j] for j in keep]
-    if self.members:
-      self.states = jax.tree.map(lambda x: x[keep], self.states)
-      self.rates = self.rates[keep]
+    if self.listed:
+      self.states = [self.states[j] for j in keep]
+      self.rates = [self.rates[j] for j in keep]
+    elif self.members:
+      self.states = jax.tree.map(lambda x: x[np.asarray(keep)], self.states)
+      self.rates = self.rates[np.asarray(keep)]
 
 
-def _train(todo: list[Member], rule: stopping.Rule, *, log, lrs, seeds) -> bool:
+def _train(todo: list[Member], rule: stopping.Rule, *, log, lrs, seeds, program="auto") -> bool:
   """Trains the unfinished members together (see the module docstring); True when a signal
   stopped them."""
   eval_sets, predict_fn = _prepare(todo, log=log)
@@ -417,7 +452,7 @@ def _train(todo: list[Member], rule: stopping.Rule, *, log, lrs, seeds) -> bool:
   log_every, eval_every = int(config.log_every_steps), int(config.eval_every_steps)
   ckpt_every, k = int(config.ckpt_every_steps), frame_lib.steps_per_dispatch(config)
   grid_record = {"lrs": [float(x) for x in lrs], "seeds": [int(x) for x in seeds]}
-  group = _Group(todo)
+  group = _Group(todo, program)
   log(
     f"training {len(todo)} members together from step {start}: " + ", ".join(m.label for m in todo)
   )
@@ -449,16 +484,13 @@ def _train(todo: list[Member], rule: stopping.Rule, *, log, lrs, seeds) -> bool:
   with preemption.install_signal_handlers() as signals:
     try:
       for first, n in plan:
-        chunks = {s: next(b) for s, b in batches.items()}
-        chunk = jax.tree.map(
-          lambda *xs: np.stack(xs), *[chunks[int(m.config.seed)] for m in group.members]
-        )
+        chunk = group.batches({s: next(b) for s, b in batches.items()})
         size = len(group.members)
         fn = compiled.get((n, size))
         if fn is None:
           log(f"compiling the train step of {size} members ({n} step(s) per dispatch) ...")
           t0 = time.perf_counter()
-          fn = compiled[(n, size)] = group_step(n)
+          fn = compiled[(n, size)] = group_step(n, group.program)
           group.states, metrics, ok = fn(group.states, chunk, group.rates)
           log(f"compiled in {time.perf_counter() - t0:.1f} s")
         else:
