@@ -3,8 +3,10 @@
 Usage: python tests/faults_script.py FAULT MODULE FLAGS...
 
 FAULT: "none"; "enospc_checkpoint:N" (the disk fills while checkpoint step N is being written:
-every later write of Orbax's JSON item fails with ENOSPC); "enospc_metrics" (metrics.jsonl
-cannot grow); "enospc_eval" (the evaluation outputs cannot be written: numpy / cv2 writers fail).
+every later write of Orbax's JSON item fails with ENOSPC, and the other item's writer threads are
+slow, as on a loaded machine: each text file of the step waits 1 s before it is written);
+"enospc_metrics" (metrics.jsonl cannot grow); "enospc_eval" (the evaluation outputs cannot be
+written: numpy / cv2 writers fail).
 MODULE: camrep.main, camrep.synthesis.evaluate, ... (its `main` runs under `camrep.runtime.cli`).
 """
 
@@ -34,6 +36,18 @@ if fault.startswith("enospc_checkpoint:"):
     return await _save_fn(self, x, directory, *args, **kwargs)
 
   ocp.handlers.JsonCheckpointHandler._save_fn = save_fn
+  import time
+
+  from etils.epath import abstract_path
+
+  _write_text = abstract_path.Path.write_text
+
+  def slow_write_text(self, *args, **kwargs):
+    if f"/{full_from}.orbax-checkpoint-tmp" in str(self):
+      time.sleep(1.0)
+    return _write_text(self, *args, **kwargs)
+
+  abstract_path.Path.write_text = slow_write_text
 elif fault == "enospc_metrics":
   from camrep.runtime import writers
 

@@ -313,10 +313,10 @@ def test_disk_full_during_checkpoint_save_ends_with_one_error_and_the_next_start
   r = _run("tests/faults_script.py", "enospc_checkpoint:4", *flags_)
   assert r.returncode == 2, r.stderr[-3000:]
   line = _assert_one_error(r.stderr, "Disk full while saving checkpoint step 4")
-  # The output ends with it, no Orbax noise after (the tail shown: once, in a whole-suite run,
-  # something printed a TensorStore spec after it).
+  # The output ends with it, with no traceback of the failed save's writer threads, which the
+  # fault slows as a loaded machine does (they once outlived a fixed pause and printed after it).
   assert r.stderr.rstrip().endswith(line), r.stderr[-3000:]
-  assert "Event loop is closed" not in r.stderr
+  assert "Traceback" not in r.stderr and "Event loop is closed" not in r.stderr, r.stderr[-3000:]
   assert sorted(os.listdir(wd / "checkpoints")) == ["2"]  # no partial step 4
   assert not (wd / workdir_lib.LOCK_FILE).exists()
   r = _run("-m", *flags_)

@@ -190,6 +190,20 @@ class _HeldStderr:
     return self._restore().count(b"\n")
 
 
+SAVE_WRITERS_TIMEOUT_S = 30.0
+"""How long a failed save waits, at most, for the writer threads it started to end."""
+
+
+def _join_threads_since(running: set[threading.Thread], timeout_s: float) -> list[str]:
+  """Waits, `timeout_s` at most in all, for every thread not in `running` (those started since:
+  a save's writers) to end; returns the names of those still alive."""
+  deadline = time.monotonic() + timeout_s
+  for t in threading.enumerate():
+    if t not in running and t is not threading.current_thread():
+      t.join(max(0.0, deadline - time.monotonic()))
+  return [t.name for t in threading.enumerate() if t not in running and t.is_alive()]
+
+
 class _AbandonedSaveTasks(logging.Filter):
   """Drops asyncio's "Task exception was never retrieved" records. After a failed save, Orbax's
   other write tasks of that save fail too (their directory is gone) and are garbage-collected
@@ -384,6 +398,7 @@ class Checkpointer:
     json.dumps(extra)  # Fail before touching the disk.
     step = int(step)
     held = _HeldStderr()
+    running = set(threading.enumerate())  # the threads before this save (and the drain)
     try:
       # Surface errors of a previous async save before deleting anything.
       self._manager.wait_until_finished()
@@ -412,11 +427,14 @@ class Checkpointer:
       try:
         self._raise_save_error(e, step)
       except CheckpointError:
-        # The failed save's writer threads end meanwhile (printing their tracebacks, and
-        # sometimes recreating the tmp directory): remove it again once they are done.
-        time.sleep(0.2)
+        # The failed save's writer threads end meanwhile (printing their tracebacks into the
+        # held stderr, sometimes recreating the tmp directory): wait for them, then remove it
+        # again. (A fixed pause once did, until a loaded machine's writers outlived it.)
+        left = _join_threads_since(running, SAVE_WRITERS_TIMEOUT_S)
         self._remove_tmp_dirs()
         held.drop()
+        if left:
+          logging.warning("The failed save's writer threads %s are still running.", left)
         raise
       finally:
         held.release()  # an unexpected error: its context stays visible
