@@ -70,11 +70,21 @@ def test_dry_run(tmp_path, capsys):
 
 
 def test_jobs_run_at_once(tmp_path, monkeypatch):
-  """--jobs N: N subprocesses at a time, each told its share of GPU memory; failures named."""
+  """--jobs N: N subprocesses at a time, each told its share of GPU memory and to run XLA:CPU on
+  one thread (beside the XLA flags it has; a flag of its own wins); failures named."""
   monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)
-  assert (
-    launch.job_env(1) is None and launch.job_env(3)["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.300"
-  )
+  monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/tmp/x")
+  assert launch.job_env(1) is None
+  env = launch.job_env(3)
+  assert env["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.300"
+  assert env["XLA_FLAGS"] == "--xla_dump_to=/tmp/x --xla_cpu_multi_thread_eigen=false"
+  monkeypatch.setenv("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.2")
+  monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=true")
+  env = launch.job_env(2)
+  assert env["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.2"
+  assert env["XLA_FLAGS"] == "--xla_cpu_multi_thread_eigen=true"
+  monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION")
+  monkeypatch.delenv("XLA_FLAGS")
   marks = tmp_path / "marks"
   marks.mkdir()
   # Each job waits (up to 20 s) until the other has started: only passes if both run at once.
@@ -82,7 +92,8 @@ def test_jobs_run_at_once(tmp_path, monkeypatch):
     "import os, sys, time; m, me, other, frac = sys.argv[1:]; open(os.path.join(m, me), 'w');"
     "t = time.time()\nwhile not os.path.exists(os.path.join(m, other)) and time.time() - t < 20:"
     " time.sleep(0.05)\nassert os.path.exists(os.path.join(m, other));"
-    "assert os.environ['XLA_PYTHON_CLIENT_MEM_FRACTION'] == frac"
+    "assert os.environ['XLA_PYTHON_CLIENT_MEM_FRACTION'] == frac;"
+    "assert os.environ['XLA_FLAGS'] == '--xla_cpu_multi_thread_eigen=false'"
   )
   jobs = [
     launch.Job(me, [sys.executable, "-c", code, str(marks), me, other, "0.450"], "", 1)

@@ -918,12 +918,25 @@ def _stop(proc: subprocess.Popen) -> None:
     proc.wait()
 
 
+CPU_ONE_THREAD = "--xla_cpu_multi_thread_eigen"
+"""The XLA flag whose `=false` runs XLA:CPU's convolutions and matrix products on one thread."""
+
+
 def job_env(jobs: int) -> dict[str, str] | None:
   """The subprocesses' environment: with `jobs` > 1 at once, each JAX process may take 0.9 / jobs
-  of a GPU's memory (XLA_PYTHON_CLIENT_MEM_FRACTION, unless set); None: this one's."""
-  if jobs <= 1 or "XLA_PYTHON_CLIENT_MEM_FRACTION" in os.environ:
+  of a GPU's memory (XLA_PYTHON_CLIENT_MEM_FRACTION, unless set) and runs XLA:CPU on one thread
+  (`CPU_ONE_THREAD`=false added to XLA_FLAGS, unless they name it; GPU programs are unchanged):
+  the jobs share the cores, and on 2 cores two one-thread regression programs did 2.0x (car) and
+  1.33x (7-Scenes) the member-steps per second of one program on both
+  (`camrep.bench.regression_grid`, BUILD_NOTES.md). None: this one's."""
+  if jobs <= 1:
     return None
-  return {**os.environ, "XLA_PYTHON_CLIENT_MEM_FRACTION": f"{0.9 / jobs:.3f}"}
+  env = dict(os.environ)
+  env.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", f"{0.9 / jobs:.3f}")
+  flags = env.get("XLA_FLAGS", "")
+  if CPU_ONE_THREAD not in flags:
+    env["XLA_FLAGS"] = f"{flags} {CPU_ONE_THREAD}=false".strip()
+  return env
 
 
 def set_aside_damaged(jobs: Sequence[Job]) -> None:
