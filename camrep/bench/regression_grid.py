@@ -6,16 +6,16 @@ seed's init and batches, its lr), then times, interleaved in one process `--roun
 machines are shared: compare the ratio of one run):
 
   grid        `vectorised.group_step(1, program)` for each of `--programs`: "loop" (one jitted
-              step shared by the members, called member by member on their own states), "unrolled" (each member's
-              step side by side in one jitted program) and "vmap" (one `jax.vmap` of
-              `learner.train_step` over the members' stacked states and batches), `--steps`
-              steps of all M members;
+              step shared by the members, called member by member on their own states),
+              "unrolled" (each member's step side by side in one jitted program) and "vmap" (one
+              `jax.vmap` of `learner.train_step` over the members' stacked states and batches),
+              `--steps` steps of all M members;
   sequential  each member's own jitted `learner.train_step` (the single run's), `--steps` steps,
               member after member.
 
 Batches are built before the timing (each seed's first `--steps` batches, laid out as each
-program takes them): the figures are the programs', not the host's. Compilation is left out (each side
-warmed up first). Printed per round and as the median over rounds: member-steps per second of
+program takes them): the figures are the programs', not the host's. Compilation is left out (each
+side warmed up first). Printed per round and as the median over rounds: member-steps per second of
 each side, the grid's steps per second per member (every member advances at that rate), the
 single run's own rate, and the speedup (the sequential side's time over the grid's, for the same
 member-steps); the load average (`os.getloadavg`) before and after. The last line reads

@@ -13,11 +13,11 @@ the same files (`driver`'s docstring) and the same config.json: the tables read 
 that command resumes or reruns it alone. A `{seed}` in `--config.synthesis_workdir` is each
 member's seed (the comparison's paired view-synthesis runs, DIR/synthesis/car_seed{seed}).
 
-One program: the members' states are stacked on a leading member axis and one group step
-(`group_step`) trains them all: a jitted `jax.vmap` of `learner.train_step` (or `train_steps`, K
-per dispatch) on accelerators; on a CPU one jitted step shared by every member, called member by
-member on the members' own states, never stacked (`resolve_program`: XLA:CPU runs vmapped
-convolutions, grouped convolutions, 4-5x slower).
+One program: one group step (`group_step`) trains every member: on accelerators a jitted
+`jax.vmap` of `learner.train_step` (or `train_steps`, K per dispatch) over their states stacked on
+a leading member axis; on a CPU one jitted step shared by every member, called member by member on
+the members' own states, never stacked (`resolve_program`: XLA:CPU runs vmapped convolutions,
+grouped convolutions, 4-5x slower).
 What a single run takes from its seed and lr, each member keeps:
 
   init      its seed's (`driver.RegressionStage.init`), and its frozen representation ("mlp"'s
