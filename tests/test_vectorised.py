@@ -1,7 +1,9 @@
 """Tests of the regression grid (camrep.regression.vectorised): seeds x lrs trained as one program.
 
-Fast: member naming and checks, the unit-rate step against Adam(lr)'s, and the group step (both
-programs, 1 and 2 steps per dispatch) against each member's own steps on a tiny car regressor.
+Fast: member naming and checks, the unit-rate step against Adam(lr)'s, the group step (every
+program, 1 and 2 steps per dispatch) against each member's own steps on a tiny car regressor, the
+CPU loop on the members' own states, and a member leaving the group on non-finite values (listed
+and stacked states) while the other completes as it would alone.
 Slow: the grid end to end at configs/regression.py:car,smoke against runs trained alone, its
 resume and its refusals.
 """
