@@ -322,12 +322,25 @@ def test_members_equal_runs_trained_alone_and_resume_as_a_group(tmp_path):
     })  # fmt: skip
 
 
+@pytest.fixture(scope="module")
+def non_finite_case(tmp_path_factory):
+  """A 6-step car smoke config (its data cached once) and the results of its lr 1e-3 seed 0 run
+  trained alone, shared by both group forms."""
+  cache = str(tmp_path_factory.mktemp("cache"))
+  config = _config(**{"data.cache_dir": cache, "total_steps": 6})
+  wd = str(tmp_path_factory.mktemp("alone") / "lr1e-3_seed0")
+  alone = driver.run(vectorised.member_config(config, 1e-3, 0), wd, log=lambda s: None)
+  return config, alone
+
+
 @pytest.mark.parametrize("program", ["loop", "vmap"])
-def test_a_member_gone_non_finite_leaves_and_the_others_complete(tmp_path, program):
+def test_a_member_gone_non_finite_leaves_and_the_others_complete(
+  tmp_path, program, non_finite_case
+):
   """A member whose values become non-finite (lr 1e38) leaves the group, its stop recorded; the
   other trains on to the end and completes as it would alone; the grid then raises. Both forms of
   the group's states: listed ("loop") and stacked ("vmap")."""
-  config = _config(**{"data.cache_dir": str(tmp_path / "cache"), "total_steps": 6})
+  config, alone = non_finite_case
   gdir, lines = str(tmp_path / "grid"), []
   with pytest.raises(FloatingPointError, match="1 of 2 members stopped on non-finite values"):
     vectorised.run(config, gdir, lrs=[1e-3, 1e38], seeds=[0], log=lines.append, program=program)
@@ -336,8 +349,5 @@ def test_a_member_gone_non_finite_leaves_and_the_others_complete(tmp_path, progr
     bad = json.load(f)
   assert bad["complete"] is False and bad["stopped"] == "non-finite"
   good = driver.read_results(os.path.join(gdir, "lr1e-3_seed0"))
-  alone = driver.run(
-    vectorised.member_config(config, 1e-3, 0), str(tmp_path / "alone"), log=lambda s: None
-  )
   _close(*({k: r[k] for k in ("validation", "test", "final_train")} for r in (good, alone)))
   assert [r["step"] for r in _metrics(os.path.join(gdir, "lr1e-3_seed0"))][-1] == 6

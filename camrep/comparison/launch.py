@@ -673,8 +673,8 @@ def make_launch(
   for s in columns if noise_kinds else []:
     inputs = plan_lib.settings().get(s, {}).get("noise_inputs", ())
     kinds = [k for k in noise_kinds if k in inputs and (k != "convdraw" or plan.convdraw_config(s))]
-    if inputs:  # the noise figure's other pose inputs of the setting
-      names.update({n: s for n in [s, *(f"{s}_{k}" for k in kinds)] if n not in names})
+    for n in [s, *(f"{s}_{k}" for k in kinds)] if inputs else ():  # the noise figure's inputs
+      names.setdefault(n, s)
   if plan.paired_synthesis:  # one synthesis run per seed of its column (its regression seed's)
     names = {f"{n}_seed{k}": c for n, c in names.items() for k in plan.seeds_for(setting_of(c))}
   names = list(names)
