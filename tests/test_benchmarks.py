@@ -169,6 +169,28 @@ def test_the_grid_benchmark_times_both_programs_against_the_runs_alone(tmp_path)
     assert out[p]["member_steps_per_s"] == pytest.approx(4 * out[p]["steps_per_s_per_member"])
 
 
+@pytest.mark.slow
+def test_the_grid_benchmark_on_host_devices_times_two_processes_in_turn(tmp_path, capsys):
+  """`camrep.bench.regression_grid --host_devices=2`: the group in a process of two one-thread
+  host devices, the runs alone in one of one device, timed in turn; the summary line."""
+  from camrep.bench import regression_grid
+
+  regression_grid.main([
+    "--setting=car", "--variant=smoke", "--representation=euler", "--seeds=0",
+    "--lrs=1e-3,3e-3", "--steps=1", "--rounds=1", "--programs=loop", "--host_devices=2",
+    f"--cache={tmp_path}",
+  ])  # fmt: skip
+  out = capsys.readouterr().out
+  assert "grid process: devices ['cpu:0', 'cpu:1']" in out
+  assert "sequential process: devices ['cpu:0']" in out
+  assert "the group on 2 host devices" in out
+  last = dict(x.split("=") for x in out.strip().splitlines()[-1].split())
+  assert last["program"] == "loop" and float(last["speedup"]) > 0
+  with pytest.raises(SystemExit):
+    regression_grid.main(["--host_devices=0"])
+  assert "--host_devices must be >= 1" in capsys.readouterr().err
+
+
 def test_the_conditioning_benchmark_times_each_camera_against_the_baseline(capsys):
   """`camrep.bench.conditionings` at :smoke: each conditioning's step built and timed in one
   process, a row per camera and the ratios line; a camera it does not know is a usage error."""

@@ -13,6 +13,7 @@ import pytest
 
 from camrep.comparison import command, launch, plan
 from camrep.runtime import frame as frame_lib
+from camrep.runtime import xla_cpu
 from camrep.synthesis import config_schema
 from tests.test_tables import _summary, _write
 
@@ -71,7 +72,8 @@ def test_dry_run(tmp_path, capsys):
 
 def test_jobs_run_at_once(tmp_path, monkeypatch):
   """--jobs N: N subprocesses at a time, each told its share of GPU memory and to run XLA:CPU on
-  one thread (beside the XLA flags it has; a flag of its own wins); failures named."""
+  one thread (beside the XLA flags it has; a flag of its own wins), a regression grid its share of
+  the cores as host devices; failures named."""
   monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION", raising=False)
   monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/tmp/x")
   assert launch.job_env(1) is None
@@ -83,6 +85,16 @@ def test_jobs_run_at_once(tmp_path, monkeypatch):
   env = launch.job_env(2)
   assert env["XLA_PYTHON_CLIENT_MEM_FRACTION"] == "0.2"
   assert env["XLA_FLAGS"] == "--xla_cpu_multi_thread_eigen=true"
+  # A regression grid beside others: its share of the cores as host devices (at least 1).
+  grid = launch.Job("g", ["python", "-m", "camrep.regression"], "g", 1, "regression", ("g/a",))
+  monkeypatch.setattr(xla_cpu, "usable_cores", lambda: 16)
+  assert launch.sharing_cores(grid, 4).argv[-1] == "--host_devices=4"
+  assert launch.sharing_cores(grid, 32).argv[-1] == "--host_devices=1"
+  assert launch.sharing_cores(grid, 1) is grid  # alone: every core (the command's default)
+  one = launch.Job("r", ["python", "-m", "camrep.regression"], "r", 1, "regression")
+  assert launch.sharing_cores(one, 4) is one
+  mine = dataclasses.replace(grid, argv=[*grid.argv, "--host_devices=2"])
+  assert launch.sharing_cores(mine, 4) is mine
   monkeypatch.delenv("XLA_PYTHON_CLIENT_MEM_FRACTION")
   monkeypatch.delenv("XLA_FLAGS")
   marks = tmp_path / "marks"

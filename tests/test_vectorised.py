@@ -2,10 +2,11 @@
 
 Fast: member naming and checks, the unit-rate step against Adam(lr)'s, the group step (every
 program, 1 and 2 steps per dispatch) against each member's own steps on a tiny car regressor, the
-CPU loop on the members' own states, and a member leaving the group on non-finite values (listed
-and stacked states) while the other completes as it would alone.
+CPU loop on the members' own states, the members' placement over devices, and a member leaving the
+group on non-finite values (stacked states) while the other completes as it would alone.
 Slow: the grid end to end at configs/regression.py:car,smoke against runs trained alone, its
-resume and its refusals.
+resume and its refusals; the command line's grid on two host devices (listed states), a member
+leaving and another moving, against runs alone.
 """
 
 from __future__ import annotations
@@ -216,6 +217,19 @@ def test_the_cpu_loop_steps_each_members_own_state_with_one_compile():
   assert vectorised.group_step(1, "loop") is vectorised.group_step(1, "loop")
 
 
+def test_members_are_placed_in_turn_and_rebalanced_with_the_fewest_moves():
+  """Listed members over several devices (`vectorised.place`, `rebalance`): in turn; after members
+  leave, no device holds 2 or more members more than another, by the fewest moves."""
+  devices = ["a", "b"]
+  assert vectorised.place(5, devices) == ["a", "b", "a", "b", "a"]
+  assert vectorised.place(2, ["a"]) == ["a", "a"]
+  assert vectorised.rebalance(["a", "a"], devices) == ["a", "b"]  # b's member left
+  assert vectorised.rebalance(["a", "a", "a", "b"], devices) == ["a", "a", "b", "b"]
+  assert vectorised.rebalance(["a", "b", "a"], devices) == ["a", "b", "a"]  # unchanged
+  assert vectorised.rebalance(["a", "a", "a", "a"], ["a", "b", "c"]) == ["a", "a", "c", "b"]
+  assert vectorised.rebalance([], devices) == []
+
+
 # --------------------------------------------------------------------------- end to end
 
 
@@ -324,30 +338,68 @@ def test_members_equal_runs_trained_alone_and_resume_as_a_group(tmp_path):
 
 @pytest.fixture(scope="module")
 def non_finite_case(tmp_path_factory):
-  """A 6-step car smoke config (its data cached once) and the results of its lr 1e-3 seed 0 run
-  trained alone, shared by both group forms."""
+  """A 6-step car smoke config (its data cached once) and the results of its lr 1e-3 and 3e-3
+  seed 0 runs trained alone ({lr: results.json}), shared by the group's forms."""
   cache = str(tmp_path_factory.mktemp("cache"))
   config = _config(**{"data.cache_dir": cache, "total_steps": 6})
-  wd = str(tmp_path_factory.mktemp("alone") / "lr1e-3_seed0")
-  alone = driver.run(vectorised.member_config(config, 1e-3, 0), wd, log=lambda s: None)
+  alone = {}
+  for lr in (1e-3, 3e-3):
+    wd = str(tmp_path_factory.mktemp("alone") / vectorised.member_name(lr, 0))
+    alone[lr] = driver.run(vectorised.member_config(config, lr, 0), wd, log=lambda s: None)
   return config, alone
 
 
-@pytest.mark.parametrize("program", ["loop", "vmap"])
-def test_a_member_gone_non_finite_leaves_and_the_others_complete(
-  tmp_path, program, non_finite_case
-):
-  """A member whose values become non-finite (lr 1e38) leaves the group, its stop recorded; the
-  other trains on to the end and completes as it would alone; the grid then raises. Both forms of
-  the group's states: listed ("loop") and stacked ("vmap")."""
-  config, alone = non_finite_case
-  gdir, lines = str(tmp_path / "grid"), []
-  with pytest.raises(FloatingPointError, match="1 of 2 members stopped on non-finite values"):
-    vectorised.run(config, gdir, lrs=[1e-3, 1e38], seeds=[0], log=lines.append, program=program)
-  assert any("lr1e+38_seed0: non-finite training values at step" in x for x in lines), lines
+def _finals(gdir: str, lr: float) -> dict:
+  r = driver.read_results(os.path.join(gdir, vectorised.member_name(lr, 0)))
+  return {k: r[k] for k in ("validation", "test", "final_train")}
+
+
+def _stopped_non_finite(gdir: str) -> None:
   with open(os.path.join(gdir, "lr1e+38_seed0", "final_metrics.json")) as f:
     bad = json.load(f)
   assert bad["complete"] is False and bad["stopped"] == "non-finite"
-  good = driver.read_results(os.path.join(gdir, "lr1e-3_seed0"))
-  _close(*({k: r[k] for k in ("validation", "test", "final_train")} for r in (good, alone)))
+
+
+def test_a_member_gone_non_finite_leaves_and_the_other_completes_from_stacked_states(
+  tmp_path, non_finite_case
+):
+  """A member whose values become non-finite (lr 1e38) leaves the group, its stop recorded; the
+  other trains on to the end and completes as it would alone; the grid then raises. The stacked
+  states ("vmap"; the listed ones: the next test)."""
+  config, alone = non_finite_case
+  gdir, lines = str(tmp_path / "grid"), []
+  with pytest.raises(FloatingPointError, match="1 of 2 members stopped on non-finite values"):
+    vectorised.run(config, gdir, lrs=[1e-3, 1e38], seeds=[0], log=lines.append, program="vmap")
+  assert any("lr1e+38_seed0: non-finite training values at step" in x for x in lines), lines
+  _stopped_non_finite(gdir)
+  _close(_finals(gdir, 1e-3), {k: alone[1e-3][k] for k in ("validation", "test", "final_train")})
   assert [r["step"] for r in _metrics(os.path.join(gdir, "lr1e-3_seed0"))][-1] == 6
+
+
+@pytest.mark.slow
+def test_members_on_two_host_devices_leave_rebalance_and_equal_runs_alone(
+  tmp_path, non_finite_case
+):
+  """The command line's grid on a CPU shown as two one-thread host devices (`--host_devices=2`):
+  the listed members placed in turn (lr 1e-3 and 3e-3 on the first, 1e38 on the second); the
+  non-finite member leaves (exit status 3), the lr 3e-3 member moves to the emptied device, and
+  both others complete as they would alone."""
+  config, alone = non_finite_case
+  gdir = str(tmp_path / "grid")
+  out = subprocess.run(
+    [
+      sys.executable, "-m", "camrep.regression", "--config=configs/regression.py:car,smoke",
+      f"--workdir={gdir}", "--lrs=1e-3,1e38,3e-3", "--seeds=0", "--host_devices=2",
+      "--config.representation=euler", f"--config.data.cache_dir={config.data.cache_dir}",
+      f"--config.total_steps={config.total_steps}",
+    ],
+    cwd=ROOT, capture_output=True, text=True, timeout=600,
+  )  # fmt: skip
+  assert out.returncode == 3, out.stderr[-3000:]
+  assert "their steps spread over 2 devices" in out.stdout, out.stdout
+  assert "lr1e+38_seed0: non-finite training values at step" in out.stdout
+  assert "Traceback" not in out.stderr
+  _stopped_non_finite(gdir)
+  for lr in (1e-3, 3e-3):
+    _close(_finals(gdir, lr), {k: alone[lr][k] for k in ("validation", "test", "final_train")})
+    assert [r["step"] for r in _metrics(os.path.join(gdir, vectorised.member_name(lr, 0)))][-1] == 6

@@ -22,10 +22,17 @@ member-steps); the load average (`os.getloadavg`) before and after. The last lin
 `speedup=<median> program=<the faster> grid_member_steps_per_s=<median>
 sequential_member_steps_per_s=<median>`.
 
-Command (2-core CPU; ~5 min with the car's data rendered once into the cache):
+With `--host_devices=N` (N > 1) the two sides run in two processes, built at once and timed in
+turn (`Children`): the group where the CPU shows N one-thread host devices (its listed members
+placed over them, as `camrep.regression.vectorised` does on a CPU), the runs alone where it shows
+one device on a thread pool of every core, as a single run trains.
+
+Commands (2-core CPU; ~5 min each with the car's data rendered once into the cache):
 
   .venv/bin/python -m camrep.bench.regression_grid --setting=car --variant=quick --steps=10 \\
     --rounds=3
+  .venv/bin/python -m camrep.bench.regression_grid --setting=car --variant=quick --seeds=0,1 \\
+    --lrs=1e-3,1e-2 --steps=20 --rounds=3 --programs=loop --host_devices=2
 """
 
 from __future__ import annotations
@@ -50,7 +57,92 @@ def _parse(argv=None):
     help="group step forms (camrep.regression.vectorised)",
   )
   p.add_argument("--cache", default="/tmp/camrep_bench_regression_cache", help="data cache")
-  return p.parse_args(argv)
+  p.add_argument(
+    "--host_devices",
+    type=int,
+    default=1,
+    help="N > 1: the group in a process whose CPU shows N one-thread host devices "
+    "(camrep.runtime.xla_cpu), the runs alone in another on the default single device",
+  )
+  p.add_argument("--child", choices=("grid", "sequential"), help=argparse.SUPPRESS)
+  args = p.parse_args(argv)
+  if args.host_devices < 1:
+    p.error(f"--host_devices must be >= 1, got {args.host_devices}")
+  return args
+
+
+class Children:
+  """The two sides of `--host_devices` N > 1 in two processes, built at once and timed in turn:
+  the group's programs where the CPU shows N one-thread host devices (the listed members placed
+  over them, as `vectorised._Group`), the runs alone where it shows one device on a thread pool
+  of every core (as a single run trains). `round()` as `GridTimer`'s."""
+
+  def __init__(self, argv: list[str], host_devices: int, *, log=print):
+    import json
+    import subprocess
+    import sys
+
+    from camrep.runtime import xla_cpu
+
+    def start(side: str, env: dict[str, str]) -> subprocess.Popen:
+      cmd = [sys.executable, "-m", "camrep.bench.regression_grid", *argv, f"--child={side}"]
+      return subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env,
+                              text=True)  # fmt: skip
+
+    grid_env = dict(os.environ)
+    xla_cpu.host_devices(host_devices, grid_env)
+    self._procs = {"grid": start("grid", grid_env), "sequential": start("sequential", None)}
+    self.compile_s = {}
+    for side, proc in self._procs.items():
+      ready = json.loads(self._read(proc, side))
+      log(f"{side} process: devices {ready['devices']}")
+      if side == "grid":
+        self.members, self.steps = ready["members"], ready["steps"]
+        self.programs = tuple(ready["programs"])
+      self.compile_s |= ready["compile_s"]
+
+  @staticmethod
+  def _read(proc, side: str) -> str:
+    line = proc.stdout.readline()
+    if not line:
+      raise RuntimeError(f"the {side} process ended (exit {proc.wait()}); its error is above")
+    return line
+
+  def round(self) -> dict[str, float]:
+    import json
+
+    row = {}
+    for side, proc in self._procs.items():  # one side at a time: the other waits
+      proc.stdin.write("round\n")
+      proc.stdin.flush()
+      row |= json.loads(self._read(proc, side))
+    return row
+
+  def close(self) -> None:
+    for proc in self._procs.values():
+      proc.stdin.close()
+      proc.wait()
+
+
+def _child(args, timer_args: dict) -> None:
+  """One side of `Children`: builds its timer, says so (a JSON line), then times a round per
+  "round" line of stdin until it closes."""
+  import json
+  import sys
+
+  import jax
+
+  grid = args.child == "grid"
+  side = {"programs": timer_args["programs"] if grid else (), "sequential": not grid}
+  timer = GridTimer(**(timer_args | side), log=lambda s: print(s, file=sys.stderr, flush=True))
+  ready = {
+    "members": timer.members, "steps": timer.steps, "programs": list(timer.programs),
+    "compile_s": timer.compile_s, "devices": [str(d) for d in jax.local_devices()],
+  }  # fmt: skip
+  print(json.dumps(ready), flush=True)
+  for line in sys.stdin:
+    if line.strip() == "round":
+      print(json.dumps(timer.round()), flush=True)
 
 
 class GridTimer:
@@ -63,8 +155,8 @@ class GridTimer:
   """
 
   def __init__(self, setting: str, *, variant: str, representation: str, seeds, lrs,
-               steps: int, programs=("loop", "unrolled", "vmap"), cache_dir: str = "",
-               log=print):  # fmt: skip
+               steps: int, programs=("loop", "unrolled", "vmap"), sequential: bool = True,
+               cache_dir: str = "", log=print):  # fmt: skip
     import jax
     import numpy as np
 
@@ -90,23 +182,34 @@ class GridTimer:
         ]
     configs = [r.config for _, r in specs]
     self.members, self.steps, self.programs = len(specs), steps, tuple(programs)
+    self.sequential = sequential
     step = lambda: jax.jit(learner.train_step, donate_argnums=0)  # noqa: E731 - one per member
     self._single = [
       (step(), s, [jax.device_put(b) for b in batches[c.seed]])
       for s, c in zip(states, configs, strict=True)
-    ]
+    ] if sequential else []  # fmt: skip
     unit = vectorised._unit(states)
     lrs = [c.optax.lr for c in configs]
     # As the grid's program holds them (`vectorised._Group`): the loop's own states (copies: it
-    # donates them) and each seed's batch once on the device; the others' stacked.
+    # donates them) placed in turn over the local devices, each seed's batch once on each of its
+    # members' devices; the others' stacked.
+    where = vectorised.place(len(configs), jax.local_devices())
     self._groups, self._rates, self._batches = {}, {}, {}
     for p in programs:
       if vectorised.listed(p):
-        own = [jax.tree.map(jax.numpy.copy, s) for s in unit]
+        own = [
+          jax.device_put(jax.tree.map(jax.numpy.copy, s), d)
+          for s, d in zip(unit, where, strict=True)
+        ]
         self._groups[p] = [vectorised.group_step(1, p), own]
         self._rates[p] = [np.float32(x) for x in lrs]
-        on_device = {k: [jax.device_put(b) for b in bs] for k, bs in batches.items()}
-        self._batches[p] = [[on_device[c.seed][i] for c in configs] for i in range(steps)]
+        on = {
+          (c.seed, d): [jax.device_put(b, d) for b in batches[c.seed]]
+          for c, d in zip(configs, where, strict=True)
+        }
+        self._batches[p] = [
+          [on[c.seed, d][i] for c, d in zip(configs, where, strict=True)] for i in range(steps)
+        ]
       else:
         self._groups[p] = [vectorised.group_step(1, p), vectorised.stack(unit)]
         self._rates[p] = jax.numpy.asarray(lrs, jax.numpy.float32)
@@ -119,9 +222,16 @@ class GridTimer:
       t = time.perf_counter()
       self.time_grid(p, 1)
       self.compile_s[p] = time.perf_counter() - t
-    t = time.perf_counter()
-    self.time_sequential(1)
-    self.compile_s["sequential"] = time.perf_counter() - t
+    if sequential:
+      t = time.perf_counter()
+      self.time_sequential(1)
+      self.compile_s["sequential"] = time.perf_counter() - t
+
+  def round(self) -> dict[str, float]:
+    """One round's seconds: {program: `time_grid`, "sequential": `time_sequential`}, those it
+    times."""
+    row = {p: self.time_grid(p) for p in self.programs}
+    return row | ({"sequential": self.time_sequential()} if self.sequential else {})
 
   def time_grid(self, program: str, steps: int | None = None) -> float:
     """Seconds of `steps` (default all) group steps (`program`) of every member."""
@@ -150,7 +260,7 @@ class GridTimer:
     return total
 
 
-def measure(timer: GridTimer, *, rounds: int, log=print) -> dict:
+def measure(timer: GridTimer | Children, *, rounds: int, log=print) -> dict:
   """Times every side `rounds` times, interleaved (each program of the group, then the members
   one after another); returns per-round rows and, per program, the medians over rounds:
   {program: {"member_steps_per_s", "steps_per_s_per_member", "speedup"}, "sequential":
@@ -160,8 +270,7 @@ def measure(timer: GridTimer, *, rounds: int, log=print) -> dict:
   rows = []
   work = timer.members * timer.steps
   for r in range(rounds):
-    row = {p: timer.time_grid(p) for p in timer.programs}
-    row["sequential"] = timer.time_sequential()
+    row = timer.round()
     rows.append(row)
     log(
       f"round {r + 1}: sequential {work / row['sequential']:.1f} member-steps/s; "
@@ -183,23 +292,38 @@ def measure(timer: GridTimer, *, rounds: int, log=print) -> dict:
 
 
 def main(argv=None) -> None:
+  import sys
+
   args = _parse(argv)
   seeds = [int(x) for x in args.seeds.split(",")]
   lrs = [float(x) for x in args.lrs.split(",")]
+  timer_args = dict(
+    setting=args.setting, variant=args.variant, representation=args.representation, seeds=seeds,
+    lrs=lrs, steps=args.steps, programs=args.programs.split(","), cache_dir=args.cache,
+  )  # fmt: skip
+  if args.child:
+    _child(args, timer_args)
+    return
   load0 = os.getloadavg()
   print(f"load average before: {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}", flush=True)
-  timer = GridTimer(
-    args.setting, variant=args.variant, representation=args.representation, seeds=seeds,
-    lrs=lrs, steps=args.steps, programs=args.programs.split(","), cache_dir=args.cache,
-    log=lambda s: print(s, flush=True),
-  )  # fmt: skip
+  if args.host_devices > 1:  # the sides in two processes: XLA_FLAGS are read once per process
+    given = sys.argv[1:] if argv is None else list(argv)
+    timer = Children(given, args.host_devices, log=lambda s: print(s, flush=True))
+  else:
+    timer = GridTimer(**timer_args, log=lambda s: print(s, flush=True))
   print(
     f"{args.setting},{args.variant} {args.representation}: {timer.members} members "
-    f"({len(seeds)} seeds x {len(lrs)} lrs), {args.steps} steps per side per round; first "
-    "calls (compile): " + ", ".join(f"{k} {v:.1f} s" for k, v in timer.compile_s.items()),
+    f"({len(seeds)} seeds x {len(lrs)} lrs), {args.steps} steps per side per round"
+    + (f", the group on {args.host_devices} host devices" if args.host_devices > 1 else "")
+    + "; first calls (compile): "
+    + ", ".join(f"{k} {v:.1f} s" for k, v in timer.compile_s.items()),
     flush=True,
   )
-  out = measure(timer, rounds=args.rounds, log=lambda s: print(s, flush=True))
+  try:
+    out = measure(timer, rounds=args.rounds, log=lambda s: print(s, flush=True))
+  finally:
+    if isinstance(timer, Children):
+      timer.close()
   load1 = os.getloadavg()
   print(f"load average after: {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}", flush=True)
   seq = out["sequential"]["member_steps_per_s"]

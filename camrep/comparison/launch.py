@@ -33,6 +33,7 @@ from camrep.comparison import plan as plan_lib
 from camrep.regression import runs
 from camrep.regression import tables as C
 from camrep.runtime import progress as progress_lib
+from camrep.runtime import xla_cpu
 from camrep.synthesis import restore as restore_lib
 
 ROOT = str(pathlib.Path(__file__).resolve().parents[2])
@@ -918,25 +919,29 @@ def _stop(proc: subprocess.Popen) -> None:
     proc.wait()
 
 
-CPU_ONE_THREAD = "--xla_cpu_multi_thread_eigen"
-"""The XLA flag whose `=false` runs XLA:CPU's convolutions and matrix products on one thread."""
-
-
 def job_env(jobs: int) -> dict[str, str] | None:
   """The subprocesses' environment: with `jobs` > 1 at once, each JAX process may take 0.9 / jobs
   of a GPU's memory (XLA_PYTHON_CLIENT_MEM_FRACTION, unless set) and runs XLA:CPU on one thread
-  (`CPU_ONE_THREAD`=false added to XLA_FLAGS, unless they name it; GPU programs are unchanged):
-  the jobs share the cores, and on 2 cores two one-thread regression programs did 2.0x (car) and
-  1.33x (7-Scenes) the member-steps per second of one program on both
-  (`camrep.bench.regression_grid`, BUILD_NOTES.md). None: this one's."""
+  (`xla_cpu.one_thread`, unless XLA_FLAGS name it; GPU programs are unchanged): the jobs share the
+  cores, and on 2 cores two one-thread regression programs did 2.0x (car) and 1.33x (7-Scenes)
+  the member-steps per second of one program on both (`camrep.bench.regression_grid`,
+  BUILD_NOTES.md). None: this one's."""
   if jobs <= 1:
     return None
   env = dict(os.environ)
   env.setdefault("XLA_PYTHON_CLIENT_MEM_FRACTION", f"{0.9 / jobs:.3f}")
-  flags = env.get("XLA_FLAGS", "")
-  if CPU_ONE_THREAD not in flags:
-    env["XLA_FLAGS"] = f"{flags} {CPU_ONE_THREAD}=false".strip()
+  xla_cpu.one_thread(env)
   return env
+
+
+def sharing_cores(job: Job, jobs: int) -> Job:
+  """`job` as it runs beside `jobs` - 1 others: a regression grid spreads its members over its
+  share of the cores (`--host_devices`, at least 1; alone, the grid takes them all); others
+  unchanged."""
+  if jobs <= 1 or not job.members or flag_value(job.argv, "--host_devices") is not None:
+    return job
+  share = max(1, xla_cpu.usable_cores() // jobs)
+  return dataclasses.replace(job, argv=[*job.argv, f"--host_devices={share}"])
 
 
 def set_aside_damaged(jobs: Sequence[Job]) -> None:
@@ -978,7 +983,7 @@ def run_jobs(
       print(f"[{label}{i + 1}/{len(todo)}] {job.name}: not started (--max_hours)", flush=True)
       return None
     try:
-      ok = run_job(job, logs, index=f"{label}{i + 1}/{len(todo)}", env=env)
+      ok = run_job(sharing_cores(job, at_once), logs, index=f"{label}{i + 1}/{len(todo)}", env=env)
     except KeyboardInterrupt:  # a stop in any job: none other starts
       _STOPPING.set()
       raise

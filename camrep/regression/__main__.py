@@ -2,7 +2,8 @@
 --config=configs/regression.py[:quick|:smoke] --workdir=DIR [--config.FIELD=VALUE ...]`
 (`camrep.regression.driver.run`); with `--lrs=LR,LR,... --seeds=K,K,...` (either or both), a grid
 of such runs trained together as one vectorised program, member (lr, k) into
-DIR/<lr tag>_seed<k> (`camrep.regression.vectorised`).
+DIR/<lr tag>_seed<k> (`camrep.regression.vectorised`); on a CPU its members are spread over
+--host_devices one-thread host devices (default: the usable cores, at most the members).
 
 The config is checked first (`camrep.regression.config_schema`: every field, and the fields the
 chosen setting, representation and data use). The same command resumes a run from its latest
@@ -18,7 +19,7 @@ from absl import flags, logging
 
 from camrep import configs
 from camrep.regression import config_schema, driver, vectorised
-from camrep.runtime import cli
+from camrep.runtime import cli, xla_cpu
 
 _CONFIG = configs.define_config_flag(
   "config", "configs/regression.py[:quick|:smoke], or the installed regression[:quick|:smoke]."
@@ -33,6 +34,14 @@ _SEEDS = flags.DEFINE_list(
   "A grid of runs trained together (camrep.regression.vectorised): its seeds (default: the "
   "config's seed); member (lr, k) writes DIR/lr<lr>_seed<k>. A {seed} in "
   "--config.synthesis_workdir is each member's seed.",
+)
+_HOST_DEVICES = flags.DEFINE_integer(
+  "host_devices",
+  0,
+  "A grid on a CPU: the host devices its members are spread over, each running XLA:CPU on one "
+  "thread (camrep.runtime.xla_cpu.host_devices); 0: the usable cores, at most the members; 1: one "
+  "device on a thread pool of every core. Unless XLA_FLAGS name them; GPU programs unchanged.",
+  lower_bound=0,
 )
 flags.mark_flags_as_required(["config", "workdir"])
 
@@ -74,6 +83,8 @@ def main(argv) -> None:
   log = lambda s: print(s, flush=True)  # noqa: E731
   if axes is not None:
     vectorised.members(_CONFIG.value, _WORKDIR.value, *axes, overridden=overridden)  # checked first
+    n = _HOST_DEVICES.value or min(len(axes[0]) * len(axes[1]), xla_cpu.usable_cores())
+    xla_cpu.host_devices(n)  # before JAX's backend starts (the line below)
     print(f"JAX {jax.__version__}, devices {jax.local_devices()}", flush=True)
     vectorised.run(
       _CONFIG.value, _WORKDIR.value, lrs=axes[0], seeds=axes[1], overridden=overridden, log=log

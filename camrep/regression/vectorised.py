@@ -17,7 +17,9 @@ One program: one group step (`group_step`) trains every member: on accelerators 
 `jax.vmap` of `learner.train_step` (or `train_steps`, K per dispatch) over their states stacked on
 a leading member axis; on a CPU one jitted step shared by every member, called member by member on
 the members' own states, never stacked (`resolve_program`: XLA:CPU runs vmapped convolutions,
-grouped convolutions, 4-5x slower).
+grouped convolutions, 4-5x slower), the members placed in turn over the local devices (`place`):
+the command line shows a CPU as one-thread host devices, one per core (its --host_devices,
+`camrep.runtime.xla_cpu`), whose steps run at once.
 What a single run takes from its seed and lr, each member keeps:
 
   init      its seed's (`driver.RegressionStage.init`), and its frozen representation ("mlp"'s
@@ -207,15 +209,16 @@ def _unrolled(step: Callable) -> Callable:
 
 def _looped(step: Callable) -> Callable:
   """`step` over listed members, one jitted call a member on its own state, updated in place
-  (donated), and batch (see `resolve_program`): one compile for every member and group size;
-  only the small metrics are stacked (one compile per group size: a group shrinks as members
-  stop)."""
+  (donated), and batch, on the member's device (see `resolve_program`): one compile per device
+  for every member and group size; only the small metrics are stacked, on the first member's
+  device (one compile per group size: a group shrinks as members stop)."""
   one = jax.jit(step, donate_argnums=0)
   join = jax.jit(lambda outs: jax.tree.map(lambda *xs: jnp.stack(xs), *outs))
 
   def run(states, batches, lrs):
     outs = [one(*member) for member in zip(states, batches, lrs, strict=True)]
-    metrics, ok = join([o[1:] for o in outs])
+    first = jax.tree.leaves(outs[0][1])[0].sharding  # members on several devices: gathered here
+    metrics, ok = join(jax.device_put([o[1:] for o in outs], first))
     return [o[0] for o in outs], metrics, ok
 
   return run
@@ -385,18 +388,46 @@ def _not_finite(pending, active: Sequence[Member]) -> list[Member]:
   return bad
 
 
+def place(n: int, devices: Sequence[Any]) -> list[Any]:
+  """Where each of `n` members trains: the devices in turn (member i on devices[i % D])."""
+  return [devices[i % len(devices)] for i in range(n)]
+
+
+def rebalance(where: Sequence[Any], devices: Sequence[Any]) -> list[Any]:
+  """`where` (each member's device) after members left: the fewest moves that leave no device
+  with 2 or more members more than another (a member from the fullest to the emptiest, the last
+  of the fullest first)."""
+  where = list(where)
+  if not where:
+    return where
+  while True:
+    count = {d: where.count(d) for d in devices}
+    full, empty = max(devices, key=count.get), min(devices, key=count.get)
+    if count[full] - count[empty] <= 1:
+      return where
+    where[len(where) - 1 - where[::-1].index(full)] = empty
+
+
 class _Group:
   """The members training together, their states and rates as `program`'s group step takes them
-  (`group_step`: stacked, or listed for "loop"); leaving shrinks them."""
+  (`group_step`: stacked, or listed for "loop"); leaving shrinks them. Listed members are placed in
+  turn over `devices` (`place`; default the local devices: a CPU shown as host devices,
+  `camrep.runtime.xla_cpu.host_devices`, runs their steps at once) and rebalanced as members leave
+  (`rebalance`); their metrics are gathered on the first member's device."""
 
-  def __init__(self, members_: Sequence[Member], program: str = "auto"):
+  def __init__(self, members_: Sequence[Member], program: str = "auto", devices=None):
     self.members = list(members_)
     self.program = resolve_program(program)
     self.listed = listed(self.program)
+    self.devices = list(devices or jax.local_devices()) if self.listed else []
     states = _unit([m.state for m in self.members])
     rates = np.asarray([m.config.optax.lr for m in self.members], np.float32)
-    self.states = states if self.listed else stack(states)
-    self.rates = list(rates) if self.listed else jnp.asarray(rates)
+    if self.listed:
+      self.where = place(len(states), self.devices)
+      self.states = [jax.device_put(s, d) for s, d in zip(states, self.where, strict=True)]
+      self.rates = list(rates)
+    else:
+      self.states, self.rates = stack(states), jnp.asarray(rates)
     for m in self.members:
       m.state = None  # the group holds it
 
@@ -406,10 +437,12 @@ class _Group:
 
   def batches(self, chunks: dict[int, Any]) -> Any:
     """The group step's batches from each seed's chunk ({seed: chunk}; a seed's members share
-    it): listed (each seed's on the device once) or stacked on the member axis."""
+    it): listed (each seed's on each of its members' devices once) or stacked on the member
+    axis."""
     if self.listed:
-      on_device = {k: jax.device_put(c) for k, c in chunks.items()}
-      return [on_device[int(m.config.seed)] for m in self.members]
+      seeds = [int(m.config.seed) for m in self.members]
+      on = {(k, d): jax.device_put(chunks[k], d) for k, d in zip(seeds, self.where, strict=True)}
+      return [on[k, d] for k, d in zip(seeds, self.where, strict=True)]
     per = [chunks[int(m.config.seed)] for m in self.members]
     return jax.tree.map(lambda *xs: np.stack(xs), *per)
 
@@ -417,8 +450,13 @@ class _Group:
     keep = [j for j, x in enumerate(self.members) if x is not m]
     self.members = [self.members[j] for j in keep]
     if self.listed:
-      self.states = [self.states[j] for j in keep]
       self.rates = [self.rates[j] for j in keep]
+      was = [self.where[j] for j in keep]
+      self.where = rebalance(was, self.devices)
+      self.states = [
+        s if d == w else jax.device_put(s, d)
+        for s, w, d in zip((self.states[j] for j in keep), was, self.where, strict=True)
+      ]
     elif self.members:
       self.states = jax.tree.map(lambda x: x[np.asarray(keep)], self.states)
       self.rates = self.rates[np.asarray(keep)]
@@ -456,6 +494,10 @@ def _train(todo: list[Member], rule: stopping.Rule, *, log, lrs, seeds, program=
   log(
     f"training {len(todo)} members together from step {start}: " + ", ".join(m.label for m in todo)
   )
+  if len(group.devices) > 1:
+    log(
+      f"their steps spread over {len(group.devices)} devices: {', '.join(map(str, group.devices))}"
+    )
 
   def finish(m: Member, step: int, ended: bool, reason: str) -> None:
     fit = frame_lib.FitResult(group.state(m), step, m.last, m.curve, ended, reason, False)
