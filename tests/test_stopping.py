@@ -85,6 +85,24 @@ def test_driver_stops_a_flat_run_and_runs_an_improving_one_to_the_cap(tmp_path, 
   with open(os.path.join(wd, "results.json")) as f:
     assert json.load(f)["stopping"]["reason"] == s["reason"]
 
+  # Complete at its plateau: the same command does nothing (no step trained, nothing written).
+  def files():  # each file's mtime, and the checkpoints' steps
+    out = {f: os.path.getmtime(os.path.join(wd, f)) for f in os.listdir(wd)}
+    return out | {"checkpoints": sorted(os.listdir(os.path.join(wd, "checkpoints")))}
+
+  before = files()
+  lines_before = open(os.path.join(wd, "metrics.jsonl")).read()
+  logged = []
+  monkeypatch.setattr(type(settings.get("car")), "validation_score", lambda self, summary: 1.0)
+  c = regression_config.get_config("car,smoke")
+  c.representation = "euler"
+  c.total_steps, c.eval_every_steps, c.data.cache_dir = 12, 2, cache
+  c.stop.update(min_improvement=0.05, min_steps=6)
+  assert R.run(c, wd, log=logged.append) == json.loads(json.dumps(results))
+  assert any("complete at step 6, stopped by the plateau rule" in x for x in logged), logged
+  assert open(os.path.join(wd, "metrics.jsonl")).read() == lines_before
+  assert files() == before
+
   improving = [0.8**i for i in range(20)]
   results, _ = _run(tmp_path / "improving", cache, monkeypatch, improving, min_improvement=0.05)
   s = results["stopping"]

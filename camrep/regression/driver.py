@@ -560,7 +560,9 @@ def complete(
   if grid is not None:
     results["grid"] = dict(grid)
   write_results(os.path.join(workdir, RESULTS_FILE), results)
-  frame.finish(fit.step, {**last, "results": RESULTS_FILE})
+  # The stop in final_metrics.json too, where `Frame.already_complete` reads it: a run stopped at
+  # its plateau is complete, and the same command does nothing.
+  frame.finish(fit.step, {**last, "results": RESULTS_FILE, "stopping": stop})
   return results
 
 
