@@ -7,6 +7,8 @@ import os
 import jax
 import pytest
 
+from camrep.runtime import xla_cpu
+
 # Set CAMREP_TEST_JAX_CACHE to a directory to keep the cache between sessions, or to 0 to turn
 # it off; by default it lives in this session's pytest base directory (so a run starts cold,
 # and pytest removes it with its other old base directories).
@@ -51,10 +53,8 @@ def pytest_configure(config):
   os.environ.setdefault(_FAST_ENV, "1")
   fast = os.environ[_FAST_ENV] != "0"
   jax.config.update("jax_disable_most_optimizations", fast)
-  for flag in COMPILE_FLAGS if fast else ():
-    flags = os.environ.get("XLA_FLAGS", "")
-    if flag.split("=")[0] not in flags:  # read when the backend starts
-      os.environ["XLA_FLAGS"] = f"{flags} {flag}".strip()
+  if fast:  # read when the backend starts
+    os.environ["XLA_FLAGS"] = xla_cpu.with_flags(os.environ.get("XLA_FLAGS", ""), *COMPILE_FLAGS)
   where = os.environ.get(_CACHE_ENV)
   if where == "0":
     return

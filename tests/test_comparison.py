@@ -89,6 +89,7 @@ def test_jobs_run_at_once(tmp_path, monkeypatch):
   grid = launch.Job("g", ["python", "-m", "camrep.regression"], "g", 1, "regression", ("g/a",))
   monkeypatch.setattr(xla_cpu, "usable_cores", lambda: 16)
   assert launch.sharing_cores(grid, 4).argv[-1] == "--host_devices=4"
+  assert launch.sharing_cores(grid, 3).argv[-1] == "--host_devices=5"
   assert launch.sharing_cores(grid, 32).argv[-1] == "--host_devices=1"
   assert launch.sharing_cores(grid, 1) is grid  # alone: every core (the command's default)
   one = launch.Job("r", ["python", "-m", "camrep.regression"], "r", 1, "regression")
@@ -101,16 +102,20 @@ def test_jobs_run_at_once(tmp_path, monkeypatch):
   marks.mkdir()
   # Each job waits (up to 20 s) until the other has started: only passes if both run at once.
   code = (
-    "import os, sys, time; m, me, other, frac = sys.argv[1:]; open(os.path.join(m, me), 'w');"
+    "import os, sys, time; m, me, other, frac = sys.argv[1:5]; open(os.path.join(m, me), 'w');"
     "t = time.time()\nwhile not os.path.exists(os.path.join(m, other)) and time.time() - t < 20:"
     " time.sleep(0.05)\nassert os.path.exists(os.path.join(m, other));"
     "assert os.environ['XLA_PYTHON_CLIENT_MEM_FRACTION'] == frac;"
-    "assert os.environ['XLA_FLAGS'] == '--xla_cpu_multi_thread_eigen=false'"
+    "assert os.environ['XLA_FLAGS'] == '--xla_cpu_multi_thread_eigen=false';"
+    "assert sys.argv[5:] == (['--host_devices=1'] if me == 'b' else [])"
   )
+  monkeypatch.setattr(xla_cpu, "usable_cores", lambda: 2)
   jobs = [
     launch.Job(me, [sys.executable, "-c", code, str(marks), me, other, "0.450"], "", 1)
     for me, other in (("a", "b"), ("b", "a"))
   ]
+  # "b" as a regression grid: its share of the 2 cores beside "a", one host device.
+  jobs[1] = dataclasses.replace(jobs[1], members=(str(tmp_path / "b_member"),))
   fail = launch.Job("fails", [sys.executable, "-c", "raise SystemExit(3)"], "", 1)
   assert launch.run_jobs(jobs + [fail], str(tmp_path / "logs"), at_once=2, label="") == ["fails"]
   assert sorted(os.listdir(marks)) == ["a", "b"]

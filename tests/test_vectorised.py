@@ -3,7 +3,8 @@
 Fast: member naming and checks, the unit-rate step against Adam(lr)'s, the group step (every
 program, 1 and 2 steps per dispatch) against each member's own steps on a tiny car regressor, the
 CPU loop on the members' own states, the members' placement over devices, and a member leaving the
-group on non-finite values (stacked states) while the other completes as it would alone.
+group on non-finite values (listed and stacked states) while the other completes as it would
+alone.
 Slow: the grid end to end at configs/regression.py:car,smoke against runs trained alone, its
 resume and its refusals; the command line's grid on two host devices (listed states), a member
 leaving and another moving, against runs alone.
@@ -360,16 +361,18 @@ def _stopped_non_finite(gdir: str) -> None:
   assert bad["complete"] is False and bad["stopped"] == "non-finite"
 
 
-def test_a_member_gone_non_finite_leaves_and_the_other_completes_from_stacked_states(
-  tmp_path, non_finite_case
+@pytest.mark.parametrize("program", ["loop", "vmap"])
+def test_a_member_gone_non_finite_leaves_and_the_other_completes(
+  tmp_path, program, non_finite_case
 ):
   """A member whose values become non-finite (lr 1e38) leaves the group, its stop recorded; the
-  other trains on to the end and completes as it would alone; the grid then raises. The stacked
-  states ("vmap"; the listed ones: the next test)."""
+  other trains on to the end and completes as it would alone; the grid then raises. Both forms of
+  the group's states: listed ("loop", here on one device; on two: the next test) and stacked
+  ("vmap")."""
   config, alone = non_finite_case
   gdir, lines = str(tmp_path / "grid"), []
   with pytest.raises(FloatingPointError, match="1 of 2 members stopped on non-finite values"):
-    vectorised.run(config, gdir, lrs=[1e-3, 1e38], seeds=[0], log=lines.append, program="vmap")
+    vectorised.run(config, gdir, lrs=[1e-3, 1e38], seeds=[0], log=lines.append, program=program)
   assert any("lr1e+38_seed0: non-finite training values at step" in x for x in lines), lines
   _stopped_non_finite(gdir)
   _close(_finals(gdir, 1e-3), {k: alone[1e-3][k] for k in ("validation", "test", "final_train")})
@@ -398,6 +401,7 @@ def test_members_on_two_host_devices_leave_rebalance_and_equal_runs_alone(
   assert out.returncode == 3, out.stderr[-3000:]
   assert "their steps spread over 2 devices" in out.stdout, out.stdout
   assert "lr1e+38_seed0: non-finite training values at step" in out.stdout
+  assert "lr3e-3_seed0: moves to cpu:1, the members rebalanced" in out.stdout, out.stdout
   assert "Traceback" not in out.stderr
   _stopped_non_finite(gdir)
   for lr in (1e-3, 3e-3):

@@ -38,6 +38,17 @@ def test_flags_are_added_unless_named():
   assert 1 <= xla_cpu.usable_cores() <= (os.cpu_count() or 1)
 
 
+def test_usable_cores_follow_the_cgroup_quota(tmp_path):
+  cpu_max = tmp_path / "cpu.max"
+  cores = xla_cpu.usable_cores(str(tmp_path / "none"))  # no cgroup file: the affinity
+  cpu_max.write_text("max 100000\n")
+  assert xla_cpu.usable_cores(str(cpu_max)) == cores
+  cpu_max.write_text("150000 100000\n")  # 1.5 cores
+  assert xla_cpu.usable_cores(str(cpu_max)) == min(cores, 2)
+  cpu_max.write_text("50000 100000\n")
+  assert xla_cpu.usable_cores(str(cpu_max)) == 1
+
+
 def test_a_fresh_process_shows_the_host_devices_asked_for():
   """Set before JAX's backend starts, the options take: two CPU devices."""
   code = (

@@ -22,10 +22,12 @@ member-steps); the load average (`os.getloadavg`) before and after. The last lin
 `speedup=<median> program=<the faster> grid_member_steps_per_s=<median>
 sequential_member_steps_per_s=<median>`.
 
-With `--host_devices=N` (N > 1) the two sides run in two processes, built at once and timed in
-turn (`Children`): the group where the CPU shows N one-thread host devices (its listed members
-placed over them, as `camrep.regression.vectorised` does on a CPU), the runs alone where it shows
-one device on a thread pool of every core, as a single run trains.
+With `--host_devices=N` (N > 1) the two sides run in two processes, built one after the other and
+timed in turn (`Children`): the group's "loop" program where the CPU shows N one-thread host
+devices (its members placed over them, as `camrep.regression.vectorised` does on a CPU), the runs
+alone where it shows one device on a thread pool of every core, as a single run trains. Batches
+are built before the timing: the figures leave out the host's data work and the evaluations,
+which a whole grid command pays (BUILD_NOTES.md has both).
 
 Commands (2-core CPU; ~5 min each with the car's data rendered once into the cache):
 
@@ -68,64 +70,93 @@ def _parse(argv=None):
   args = p.parse_args(argv)
   if args.host_devices < 1:
     p.error(f"--host_devices must be >= 1, got {args.host_devices}")
+  if args.host_devices > 1 and set(args.programs.split(",")) - {"loop"}:
+    p.error("--host_devices > 1 times --programs=loop only (the others' stacked members would run "
+            "on one one-thread device)")  # fmt: skip
   return args
 
 
+RESULT = "RESULT "
+"""The prefix of a child's answers on its stdout (other lines, a library's prints, are skipped)."""
+
+
 class Children:
-  """The two sides of `--host_devices` N > 1 in two processes, built at once and timed in turn:
-  the group's programs where the CPU shows N one-thread host devices (the listed members placed
-  over them, as `vectorised._Group`), the runs alone where it shows one device on a thread pool
-  of every core (as a single run trains). `round()` as `GridTimer`'s."""
+  """The two sides of `--host_devices` N > 1 in two processes, each built alone, then timed in
+  turn: the group's "loop" program where the CPU shows N one-thread host devices (the members
+  placed over them, as `vectorised._Group`), the runs alone where it shows one device on a thread
+  pool of every core (as a single run trains). `round()` as `GridTimer`'s.
+
+  Raises:
+    RuntimeError: a child ended without its answer (its error is on stderr above); both stopped.
+  """
 
   def __init__(self, argv: list[str], host_devices: int, *, log=print):
-    import json
     import subprocess
     import sys
 
     from camrep.runtime import xla_cpu
 
-    def start(side: str, env: dict[str, str]) -> subprocess.Popen:
-      cmd = [sys.executable, "-m", "camrep.bench.regression_grid", *argv, f"--child={side}"]
-      return subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env,
-                              text=True)  # fmt: skip
-
     grid_env = dict(os.environ)
     xla_cpu.host_devices(host_devices, grid_env)
-    self._procs = {"grid": start("grid", grid_env), "sequential": start("sequential", None)}
-    self.compile_s = {}
-    for side, proc in self._procs.items():
-      ready = json.loads(self._read(proc, side))
-      log(f"{side} process: devices {ready['devices']}")
-      if side == "grid":
-        self.members, self.steps = ready["members"], ready["steps"]
-        self.programs = tuple(ready["programs"])
-      self.compile_s |= ready["compile_s"]
+    self._procs, self.compile_s = {}, {}
+    try:
+      for side, env in (("grid", grid_env), ("sequential", None)):
+        cmd = [sys.executable, "-m", "camrep.bench.regression_grid", *argv, f"--child={side}"]
+        self._procs[side] = proc = subprocess.Popen(
+          cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, text=True
+        )
+        ready = self._answer(side, proc)  # built before the other starts: compiles alone
+        log(f"{side} process: devices {ready['devices']}")
+        if side == "grid":
+          self.members, self.steps = ready["members"], ready["steps"]
+          self.programs = tuple(ready["programs"])
+        self.compile_s |= ready["compile_s"]
+    except BaseException:
+      self.kill()
+      raise
 
   @staticmethod
-  def _read(proc, side: str) -> str:
-    line = proc.stdout.readline()
-    if not line:
-      raise RuntimeError(f"the {side} process ended (exit {proc.wait()}); its error is above")
-    return line
-
-  def round(self) -> dict[str, float]:
+  def _answer(side: str, proc) -> dict:
     import json
 
+    for line in proc.stdout:
+      if line.startswith(RESULT):
+        return json.loads(line.removeprefix(RESULT))
+    raise RuntimeError(f"the {side} process ended (exit {proc.wait()}); its error is above")
+
+  def round(self) -> dict[str, float]:
     row = {}
-    for side, proc in self._procs.items():  # one side at a time: the other waits
-      proc.stdin.write("round\n")
-      proc.stdin.flush()
-      row |= json.loads(self._read(proc, side))
+    try:
+      for side, proc in self._procs.items():  # one side at a time: the other waits
+        proc.stdin.write("round\n")
+        proc.stdin.flush()
+        row |= self._answer(side, proc)
+    except BaseException:
+      self.kill()
+      raise
     return row
 
-  def close(self) -> None:
+  def kill(self) -> None:
     for proc in self._procs.values():
-      proc.stdin.close()
+      if proc.poll() is None:
+        proc.kill()
       proc.wait()
+
+  def close(self) -> None:
+    """Ends both children.
+
+    Raises:
+      RuntimeError: one exited with an error."""
+    for proc in self._procs.values():
+      if proc.poll() is None:
+        proc.stdin.close()
+    failed = {side: rc for side, proc in self._procs.items() if (rc := proc.wait()) != 0}
+    if failed:
+      raise RuntimeError(f"benchmark processes exited with errors: {failed}")
 
 
 def _child(args, timer_args: dict) -> None:
-  """One side of `Children`: builds its timer, says so (a JSON line), then times a round per
+  """One side of `Children`: builds its timer, says so (a `RESULT` line), then times a round per
   "round" line of stdin until it closes."""
   import json
   import sys
@@ -139,10 +170,10 @@ def _child(args, timer_args: dict) -> None:
     "members": timer.members, "steps": timer.steps, "programs": list(timer.programs),
     "compile_s": timer.compile_s, "devices": [str(d) for d in jax.local_devices()],
   }  # fmt: skip
-  print(json.dumps(ready), flush=True)
+  print(RESULT + json.dumps(ready), flush=True)
   for line in sys.stdin:
     if line.strip() == "round":
-      print(json.dumps(timer.round()), flush=True)
+      print(RESULT + json.dumps(timer.round()), flush=True)
 
 
 class GridTimer:
@@ -319,11 +350,9 @@ def main(argv=None) -> None:
     + ", ".join(f"{k} {v:.1f} s" for k, v in timer.compile_s.items()),
     flush=True,
   )
-  try:
-    out = measure(timer, rounds=args.rounds, log=lambda s: print(s, flush=True))
-  finally:
-    if isinstance(timer, Children):
-      timer.close()
+  out = measure(timer, rounds=args.rounds, log=lambda s: print(s, flush=True))
+  if isinstance(timer, Children):
+    timer.close()
   load1 = os.getloadavg()
   print(f"load average after: {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}", flush=True)
   seq = out["sequential"]["member_steps_per_s"]

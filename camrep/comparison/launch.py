@@ -973,6 +973,7 @@ def run_jobs(
   for j in jobs:
     if j not in todo:
       print(f"[{label}skipped] {j.name}: done ({j.workdir})", flush=True)
+  at_once = min(at_once, max(1, len(todo)))  # the cores shared by the jobs that can run
   env = job_env(at_once)
 
   def one(i_job: tuple[int, Job]) -> str | None:

@@ -39,8 +39,8 @@ _HOST_DEVICES = flags.DEFINE_integer(
   "host_devices",
   0,
   "A grid on a CPU: the host devices its members are spread over, each running XLA:CPU on one "
-  "thread (camrep.runtime.xla_cpu.host_devices); 0: the usable cores, at most the members; 1: one "
-  "device on a thread pool of every core. Unless XLA_FLAGS name them; GPU programs unchanged.",
+  "thread (camrep.runtime.xla_cpu.host_devices), at most one per member; 0: the usable cores; 1: "
+  "one device on a thread pool of every core. Unless XLA_FLAGS name them; GPU programs unchanged.",
   lower_bound=0,
 )
 flags.mark_flags_as_required(["config", "workdir"])
@@ -83,7 +83,7 @@ def main(argv) -> None:
   log = lambda s: print(s, flush=True)  # noqa: E731
   if axes is not None:
     vectorised.members(_CONFIG.value, _WORKDIR.value, *axes, overridden=overridden)  # checked first
-    n = _HOST_DEVICES.value or min(len(axes[0]) * len(axes[1]), xla_cpu.usable_cores())
+    n = min(_HOST_DEVICES.value or xla_cpu.usable_cores(), len(axes[0]) * len(axes[1]))
     xla_cpu.host_devices(n)  # before JAX's backend starts (the line below)
     print(f"JAX {jax.__version__}, devices {jax.local_devices()}", flush=True)
     vectorised.run(

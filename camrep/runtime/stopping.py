@@ -17,8 +17,8 @@ cap. Nothing is decided before an evaluation lies at or before (1 - window) * t 
 
 Where the rule stops a run, the run saves its checkpoint at that step and completes there; its
 record ("stopping": `stopping_record`) says the rule, where and why it ended and the curve
-[[step, score], ...] (view synthesis: in final_metrics.json, whenever the rule is on;
-regression: in results.json). A rerun of an early-stopped run with the same rule changes
+[[step, score], ...] (in final_metrics.json, whenever the rule is on; a regression's results.json
+holds it too). A rerun of an early-stopped run with the same rule changes
 nothing (`runtime.frame.Frame.already_complete`, `stopped_early_by`); with another rule (`stop`
 named in `allow_changes`) or the rule off it resumes from that step, its curve read back from
 metrics.jsonl, and the rule is checked at once on the recorded curve.

@@ -3,14 +3,15 @@ programs on a thread pool, set through XLA_FLAGS, which XLA reads once, when JAX
 
 On a CPU one process shows one device by default, its programs' operations spread over a thread
 pool of every core. The small convolutions of a pose regressor use that pool poorly: on 2 cores
-two one-thread programs did 2.0x (car) and 1.33x (7-Scenes) the work of one program on both, and
-a regression grid's members spread over two one-thread host devices of one process 1.9x and 1.45x
-(`camrep.bench.regression_grid --host_devices=2`; BUILD_NOTES.md, "Performance"). GPU programs
-are unchanged: the options name the host platform only.
+two one-thread programs did 2.0x (car) and 1.33x (7-Scenes) the steps of one program on both, and
+a regression grid's members spread over two one-thread host devices of one process 1.56x and 1.28x
+its members' steps trained alone (`camrep.bench.regression_grid --host_devices=2`; BUILD_NOTES.md,
+"The comparison"). GPU programs are unchanged: the options name the host platform only.
 """
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import MutableMapping
 
@@ -29,11 +30,21 @@ def with_flags(flags: str, *options: str) -> str:
   return flags
 
 
-def usable_cores() -> int:
-  """The cores this process may run on (its CPU affinity where the OS says; else every core)."""
+def usable_cores(cpu_max: str = "/sys/fs/cgroup/cpu.max") -> int:
+  """The cores this process may run on: its CPU affinity where the OS says (else every core), at
+  most its cgroup's CPU quota (`cpu_max`, "QUOTA PERIOD" or "max PERIOD"; a container's limit)."""
   if hasattr(os, "sched_getaffinity"):
-    return max(1, len(os.sched_getaffinity(0)))
-  return max(1, os.cpu_count() or 1)
+    cores = len(os.sched_getaffinity(0))
+  else:
+    cores = os.cpu_count() or 1
+  try:
+    with open(cpu_max) as f:
+      quota, period = f.read().split()[:2]
+    if quota != "max":
+      cores = min(cores, math.ceil(int(quota) / int(period)))
+  except (OSError, ValueError):
+    pass
+  return max(1, cores)
 
 
 def one_thread(environ: MutableMapping[str, str] = os.environ) -> None:
