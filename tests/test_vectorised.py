@@ -82,6 +82,7 @@ def test_command_line_errors(tmp_path):
   for args, message in (
     (["--lrs=1e-3,abc"], "error: --lrs=1e-3,abc: not a list of floats"),
     (["--lrs=1e-3", "--config.optax.lr=1e-3"], "error: --lrs sets each member's optax.lr"),
+    (["--host_devices=2"], "error: --host_devices spreads a grid's members"),
   ):
     out = subprocess.run([*base, wd, *args], cwd=ROOT, capture_output=True, text=True)
     assert out.returncode == 2 and out.stderr.strip().splitlines()[-1].startswith(message)

@@ -80,6 +80,8 @@ def main(argv) -> None:
     logging.set_verbosity(logging.ERROR)  # orbax warns that a read-only manager saves nothing
   overridden = cli.overridden()
   axes = grid_axes(_CONFIG.value, overridden)
+  if axes is None and flags.FLAGS["host_devices"].present:
+    raise cli.UsageError("--host_devices spreads a grid's members (--lrs, --seeds); a run is one")
   log = lambda s: print(s, flush=True)  # noqa: E731
   if axes is not None:
     vectorised.members(_CONFIG.value, _WORKDIR.value, *axes, overridden=overridden)  # checked first

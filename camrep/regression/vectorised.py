@@ -448,20 +448,19 @@ class _Group:
     per = [chunks[int(m.config.seed)] for m in self.members]
     return jax.tree.map(lambda *xs: np.stack(xs), *per)
 
-  def each(self, fn: Callable[[Member], Any], members_: Sequence[Member] | None = None) -> list:
-    """fn(m) of each member (default all), in their order; the members of different devices at
-    once (a thread per device, each device's members in turn), so that one-thread host devices
-    evaluate side by side. Raises the first member's error."""
-    todo = list(self.members if members_ is None else members_)
+  def each(self, fn: Callable[[Member], Any]) -> list:
+    """fn(m) of each member, in their order; the members of different devices at once (a thread
+    per device, each device's members in turn), so that one-thread host devices evaluate side by
+    side. Raises the first member's error."""
     if len(self.devices) < 2:
-      return [fn(m) for m in todo]
+      return [fn(m) for m in self.members]
     by_device: dict[Any, list[Member]] = {}
-    for m in todo:
-      by_device.setdefault(self.where[self.members.index(m)], []).append(m)
+    for m, d in zip(self.members, self.where, strict=True):
+      by_device.setdefault(d, []).append(m)
     with concurrent.futures.ThreadPoolExecutor(len(by_device)) as pool:
       done = pool.map(lambda ms: [(m, fn(m)) for m in ms], by_device.values())
       out = {id(m): r for pairs in done for m, r in pairs}
-    return [out[id(m)] for m in todo]
+    return [out[id(m)] for m in self.members]
 
   def leave(self, m: Member) -> list[tuple[Member, Any]]:
     """Drops member `m`; returns the members moved to another device (`rebalance`), with it."""
