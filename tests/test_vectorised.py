@@ -26,7 +26,7 @@ import pytest
 
 from camrep import pose_encodings, settings
 from camrep.configs import regression as regression_config
-from camrep.regression import driver, learner, vectorised
+from camrep.regression import driver, learner, runs, vectorised
 from camrep.runtime.runconfig import ConfigError
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -341,14 +341,41 @@ def test_members_equal_runs_trained_alone_and_resume_as_a_group(tmp_path):
 @pytest.fixture(scope="module")
 def non_finite_case(tmp_path_factory):
   """A 6-step car smoke config (its data cached once) and the results of its lr 1e-3 and 3e-3
-  seed 0 runs trained alone ({lr: results.json}), shared by the group's forms."""
+  seed 0 runs trained alone ({lr: results.json}; their workdirs: `_ALONE`), shared by the group's
+  forms."""
   cache = str(tmp_path_factory.mktemp("cache"))
   config = _config(**{"data.cache_dir": cache, "total_steps": 6})
   alone = {}
   for lr in (1e-3, 3e-3):
-    wd = str(tmp_path_factory.mktemp("alone") / vectorised.member_name(lr, 0))
+    wd = _ALONE[lr] = str(tmp_path_factory.mktemp("alone") / vectorised.member_name(lr, 0))
     alone[lr] = driver.run(vectorised.member_config(config, lr, 0), wd, log=lambda s: None)
   return config, alone
+
+
+_ALONE: dict[float, str] = {}
+
+
+def test_a_run_restored_from_an_archive_is_not_trained_again(tmp_path, non_finite_case):
+  """A member whose workdir holds only a finished run's archived record (run.json,
+  `camrep.comparison.archive.restore`) is complete: nothing trained or written; a record of
+  another seed there is refused."""
+  config, alone = non_finite_case
+  record = runs.compact(runs.load(_ALONE[1e-3], arrays=True))
+  for name in ("lr1e-3_seed0", "lr1e-3_seed1"):  # the second: seed 0's record
+    os.makedirs(tmp_path / name)
+    runs.write_record(record, str(tmp_path / name / runs.RECORD_FILE))
+  lines = []
+  (out,) = vectorised.run(config, str(tmp_path), lrs=[1e-3], seeds=[0], log=lines.append)
+  assert out["test"] == json.loads(json.dumps(alone[1e-3]["test"]))
+  assert os.listdir(tmp_path / "lr1e-3_seed0") == [runs.RECORD_FILE]
+  assert any("restored from an archive (run.json); nothing to do" in x for x in lines), lines
+  assert not any(x.startswith("training") for x in lines)
+  alone_run = driver.run(vectorised.member_config(config, 1e-3, 0), str(tmp_path / "lr1e-3_seed0"))
+  assert alone_run["test"] == out["test"]  # the single run's command: nothing to do either
+  assert os.listdir(tmp_path / "lr1e-3_seed0") == [runs.RECORD_FILE]
+  with pytest.raises(ConfigError, match="run.json.* with seed=0, not 1: move it away"):
+    vectorised.run(config, str(tmp_path), lrs=[1e-3], seeds=[1], log=lambda s: None)
+  assert os.listdir(tmp_path / "lr1e-3_seed1") == [runs.RECORD_FILE]
 
 
 def _finals(gdir: str, lr: float) -> dict:

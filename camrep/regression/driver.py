@@ -572,7 +572,8 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
   `workdir`.
 
   A rerun of the same config resumes from the workdir's latest checkpoint (a complete run:
-  nothing to do, its results.json returned). When the workdir holds another config, only the
+  nothing to do, its results.json returned; a finished run an archive restored, `runs.restored`:
+  nothing to do, its record's results returned). When the workdir holds another config, only the
   fields named in `config.allow_changes` may differ: a change of a field that may change on
   resume (`config_schema.SCHEMA`: durations, cadences, evaluations, the stopping rule) resumes,
   any other starts the run over (its checkpoints, results.json and errors files removed first);
@@ -593,6 +594,15 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
     FloatingPointError: the loss became non-finite (the last checkpoint is kept).
   """
   run = config_schema.validate(config)  # the stage's checks; the names resolved once
+  try:
+    archived = runs.restored(workdir, config.to_dict())
+  except ValueError as e:
+    raise ConfigError(str(e)) from None
+  if archived is not None:
+    log(
+      f"{workdir} holds a finished run restored from an archive ({runs.RECORD_FILE}); nothing to do"
+    )
+    return archived.results
   check_stored_layout(workdir)
   rule = frame_lib.stopping_rule(config)
   with frame_lib.Frame(

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import base64
 import dataclasses
+import functools
 import glob
 import json
 import os
@@ -314,6 +315,33 @@ def load(path: str, *, arrays: bool = False) -> Run:
   if os.path.isfile(path):
     return _from_record(path)
   return from_workdir(path, arrays=arrays)
+
+
+RESTORED_FIELDS = ("setting", "representation", "optax.lr", "seed")
+"""The fields a restored run must share with the run a command would train there (`restored`)."""
+
+
+def restored(workdir: str, config: Mapping[str, Any]) -> Run | None:
+  """The finished run an archive restored into `workdir` (its run.json, and none of a run's own
+  results.json or final_metrics.json: `camrep.comparison.archive.restore`), checked to be the
+  run `config` (a config's nested dict) names; None when the workdir holds no such record.
+
+  Raises:
+    ValueError: the record is another run's (`RESTORED_FIELDS` differ; named in the message).
+    DamagedRun: the record cannot be read.
+  """
+  if not os.path.isfile(os.path.join(workdir, RECORD_FILE)) or _kind(workdir) is not None:
+    return None
+  run = _from_record(os.path.join(workdir, RECORD_FILE))
+  have, want = _pick(run.config, RESTORED_FIELDS), _pick(config, RESTORED_FIELDS)
+  for name in RESTORED_FIELDS:
+    a, b = (functools.reduce(lambda d, k: d.get(k, {}), name.split("."), t) for t in (have, want))
+    if a != b:
+      raise ValueError(
+        f"{workdir} holds a finished run restored from an archive ({RECORD_FILE}) with {name}="
+        f"{a!r}, not {b!r}: move it away or use another --workdir"
+      )
+  return run
 
 
 def is_finished(workdir: str) -> bool:

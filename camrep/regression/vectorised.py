@@ -43,7 +43,9 @@ group, and the command exits with status 3 once the others are done.
 
 Resume: the whole group. Every member's checkpoint is saved at the same steps
 (`ckpt_every_steps`, a stop signal: SIGTERM or Ctrl-C saves all and stops), so the same command
-resumes every unfinished member from the same step; complete members are skipped. Unfinished
+resumes every unfinished member from the same step; complete members are skipped, and so are
+finished runs an archive restored (a run.json alone: `camrep.comparison.archive`; refused when it
+is another lr's or seed's). Unfinished
 members at different steps (e.g. one resumed alone) are refused with an `error:` line that says
 how to go on.
 """
@@ -136,7 +138,7 @@ class Member:
   Attributes:
     workdir, config: the single run's.
     run: its config resolved (`config_schema.Resolved`).
-    frame: its entered run frame.
+    frame: its entered run frame (None for a run an archive restored: nothing to do).
     setup, record: its `driver.Setup` and record.json content.
     stage: its `driver.RegressionStage`.
     state: its state (its own regressor and optimiser) until it joins the group.
@@ -150,7 +152,7 @@ class Member:
   workdir: str
   config: ml_collections.ConfigDict
   run: config_schema.Resolved
-  frame: frame_lib.Frame
+  frame: frame_lib.Frame | None
   setup: driver.Setup | None = None
   record: dict[str, Any] = dataclasses.field(default_factory=dict)
   stage: driver.RegressionStage | None = None
@@ -297,6 +299,16 @@ def run(
   group: list[Member] = []
   with contextlib.ExitStack() as frames:
     for wd, run in specs:
+      try:
+        archived = runs.restored(wd, run.config.to_dict())
+      except ValueError as e:
+        raise ConfigError(str(e)) from None
+      if archived is not None:  # no frame: nothing to train or write
+        log(
+          f"{wd} holds a finished run restored from an archive ({runs.RECORD_FILE}); nothing to do"
+        )
+        group.append(Member(wd, run.config, run, None, results=archived.results))
+        continue
       driver.check_stored_layout(wd)
       frame = frame_lib.Frame(
         wd, run.config, schema=config_schema.SCHEMA, log=log, restart=True,
