@@ -454,6 +454,26 @@ def results_record(
   return out
 
 
+def restored_results(workdir: str, config, *, log=print) -> dict[str, Any] | None:
+  """The results of the finished run an archive restored into `workdir` (`runs.restored`: its
+  run.json alone), said by `log`: nothing to train; None without one.
+
+  Raises:
+    ConfigError: the record there is another run's (setting, representation, lr or seed), or
+      cannot be read.
+  """
+  try:
+    archived = runs.restored(workdir, config.to_dict())
+  except ValueError as e:  # runs.DamagedRun too
+    raise ConfigError(str(e)) from None
+  if archived is None:
+    return None
+  log(
+    f"{workdir} holds a finished run restored from an archive ({runs.RECORD_FILE}); nothing to do"
+  )
+  return archived.results
+
+
 def check_stored_layout(workdir: str) -> None:
   """Refuses a workdir whose config.json has the old layout (`configs.regression.check_layout`).
 
@@ -594,15 +614,8 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, log=print) -> dict[s
     FloatingPointError: the loss became non-finite (the last checkpoint is kept).
   """
   run = config_schema.validate(config)  # the stage's checks; the names resolved once
-  try:
-    archived = runs.restored(workdir, config.to_dict())
-  except ValueError as e:
-    raise ConfigError(str(e)) from None
-  if archived is not None:
-    log(
-      f"{workdir} holds a finished run restored from an archive ({runs.RECORD_FILE}); nothing to do"
-    )
-    return archived.results
+  if (archived := restored_results(workdir, config, log=log)) is not None:
+    return archived
   check_stored_layout(workdir)
   rule = frame_lib.stopping_rule(config)
   with frame_lib.Frame(

@@ -299,15 +299,8 @@ def run(
   group: list[Member] = []
   with contextlib.ExitStack() as frames:
     for wd, run in specs:
-      try:
-        archived = runs.restored(wd, run.config.to_dict())
-      except ValueError as e:
-        raise ConfigError(str(e)) from None
-      if archived is not None:  # no frame: nothing to train or write
-        log(
-          f"{wd} holds a finished run restored from an archive ({runs.RECORD_FILE}); nothing to do"
-        )
-        group.append(Member(wd, run.config, run, None, results=archived.results))
+      if (archived := driver.restored_results(wd, run.config, log=log)) is not None:
+        group.append(Member(wd, run.config, run, None, results=archived))  # no frame: no writes
         continue
       driver.check_stored_layout(wd)
       frame = frame_lib.Frame(
