@@ -358,7 +358,7 @@ _ALONE: dict[float, str] = {}
 def test_a_run_restored_from_an_archive_is_not_trained_again(tmp_path, non_finite_case):
   """A member whose workdir holds only a finished run's archived record (run.json,
   `camrep.comparison.archive.restore`) is complete: nothing trained or written; a record of
-  another seed there is refused."""
+  another seed there, or one cut short, is refused."""
   config, alone = non_finite_case
   record = runs.compact(runs.load(_ALONE[1e-3], arrays=True))
   for name in ("lr1e-3_seed0", "lr1e-3_seed1"):  # the second: seed 0's record
@@ -376,6 +376,10 @@ def test_a_run_restored_from_an_archive_is_not_trained_again(tmp_path, non_finit
   with pytest.raises(ConfigError, match="run.json.* with seed=0, not 1: move it away"):
     vectorised.run(config, str(tmp_path), lrs=[1e-3], seeds=[1], log=lambda s: None)
   assert os.listdir(tmp_path / "lr1e-3_seed1") == [runs.RECORD_FILE]
+  os.makedirs(tmp_path / "lr1e-3_seed2")
+  (tmp_path / "lr1e-3_seed2" / runs.RECORD_FILE).write_text('{"format": 1, "ki')  # cut short
+  with pytest.raises(ConfigError, match="lr1e-3_seed2"):
+    vectorised.run(config, str(tmp_path), lrs=[1e-3], seeds=[2], log=lambda s: None)
 
 
 def _finals(gdir: str, lr: float) -> dict:
