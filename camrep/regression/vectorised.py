@@ -221,8 +221,11 @@ def _looped(step: Callable) -> Callable:
 
   def run(states, batches, lrs):
     outs = [one(*member) for member in zip(states, batches, lrs, strict=True)]
-    first = jax.tree.leaves(outs[0][1])[0].sharding  # members on several devices: gathered here
-    metrics, ok = join(jax.device_put([o[1:] for o in outs], first))
+    # Members on several devices: the others' metrics gathered on the first's (only those: a
+    # device_put of all, on one device, cost 7 ms a step for 30 members).
+    first = jax.tree.leaves(outs[0][1])[0].sharding
+    here = lambda o: jax.tree.leaves(o[1])[0].sharding == first  # noqa: E731
+    metrics, ok = join([o[1:] if here(o) else jax.device_put(o[1:], first) for o in outs])
     return [o[0] for o in outs], metrics, ok
 
   return run
