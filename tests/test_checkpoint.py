@@ -3,11 +3,13 @@ resume, and fault handling."""
 
 from __future__ import annotations
 
+import asyncio
 import errno
 import json
 import logging
 import os
 import signal
+import sys
 import threading
 import warnings
 
@@ -313,6 +315,8 @@ def test_disk_full_during_save(tmp_path, monkeypatch, where, async_save):
   asyncio_log = logging.getLogger("asyncio")  # as in a fresh process: no failed save yet
   quiet = [f for f in asyncio_log.filters if f is not ckpt_lib._ABANDONED_SAVE_TASKS]
   monkeypatch.setattr(asyncio_log, "filters", quiet)
+  uncaught = []
+  monkeypatch.setattr(sys, "excepthook", lambda kind, value, tb: uncaught.append(value))
   good = _make_state(1)
   c = ckpt_lib.Checkpointer(tmp_path, async_save=async_save)
   c.save(1, good, extra={"data_step": 1})
@@ -336,6 +340,18 @@ def test_disk_full_during_save(tmp_path, monkeypatch, where, async_save):
   never_retrieved = "Task exception was never retrieved\nfuture: <Task finished ...>"
   assert not asyncio_log.filter(logging.makeLogRecord({"msg": never_retrieved}))
   assert asyncio_log.filter(logging.makeLogRecord({"msg": "Executing <Task> took 0.2 seconds"}))
+  # Nor do its array writes that complete after their event loop was closed: TensorStore calls
+  # `call_soon_threadsafe` from C++ and prints the error through `sys.excepthook`.
+  loop = asyncio.new_event_loop()
+  loop.close()
+  try:
+    loop.call_soon_threadsafe(print)
+  except RuntimeError as e:
+    closed, from_c = e, e.__traceback__.tb_next  # the frames below this test's: as from C++
+  sys.excepthook(RuntimeError, closed, from_c)
+  other = RuntimeError("Event loop is closed")
+  sys.excepthook(RuntimeError, other, closed.__traceback__)  # raised in Python code: shown
+  assert uncaught == [other]
   assert c.all_steps() == [1]
   restored, extra, step = c.restore(_make_state(0))
   _assert_bit_exact(restored, good)
@@ -344,6 +360,70 @@ def test_disk_full_during_save(tmp_path, monkeypatch, where, async_save):
   assert c.save(2, _make_state(2), extra={"data_step": 2})
   c.close()
   assert sorted(os.listdir(c.directory)) == ["1", "2"]
+
+
+class _RaisingOnJoin(threading.Thread):
+  """Like Orbax's writer threads: `join` re-raises the error the thread ended with."""
+
+  error: BaseException | None = None
+
+  def run(self):
+    try:
+      super().run()
+    except BaseException as e:
+      self.error = e
+
+  def join(self, timeout=None):
+    super().join(timeout)
+    if self.error is not None:
+      raise self.error
+
+
+def test_failed_save_waits_for_every_writer_and_raises_none_of_their_errors():
+  running = set(threading.enumerate())
+  late_done = threading.Event()
+
+  def late_writer():
+    late_done.wait(0.3)  # still running when the first writers have ended
+    late_done.set()
+
+  def writer():
+    threading.Thread(target=late_writer, name="late").start()  # started while joined
+    raise FileNotFoundError("tmp/state/_METADATA")  # its directory was removed under it
+
+  first = _RaisingOnJoin(target=writer, name="writer")
+  first.start()
+  assert ckpt_lib._join_threads_since(running, 10.0) == []
+  assert late_done.is_set() and not first.is_alive()
+  assert isinstance(first.error, FileNotFoundError)
+  # A writer that outlives the deadline is named, not waited for.
+  release = threading.Event()
+  stuck = threading.Thread(target=release.wait, name="stuck")
+  stuck.start()
+  try:
+    assert ckpt_lib._join_threads_since(running, 0.05) == ["stuck"]
+  finally:
+    release.set()
+    stuck.join()
+
+
+def test_a_writer_waiting_for_a_signal_the_failed_save_never_sends_is_released():
+  # An item's writer waits for the step directory's creation; when another item's write fails
+  # first, that signal never comes, and it would wait Orbax's coordination timeout (300 s).
+  from orbax.checkpoint._src.futures import future, synchronization
+
+  running = set(threading.enumerate())
+  wrote = threading.Event()
+  writer = future._SignalingThread(
+    target=wrote.set,
+    send_signals=[],
+    receive_signals=[synchronization.HandlerAwaitableSignal.STEP_DIRECTORY_CREATION],
+    operation_id="camrep-test-released",
+    name="json_ch_save",
+  )
+  writer.start()
+  assert ckpt_lib._join_threads_since(running, 10.0) == []
+  assert not writer.is_alive() and not wrote.is_set()  # returned without writing
 
 
 def test_extra_must_be_json(ckpt):

@@ -69,6 +69,7 @@ import sys
 import tempfile
 import threading
 import time
+import types
 import warnings
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -196,12 +197,46 @@ SAVE_WRITERS_TIMEOUT_S = 30.0
 
 def _join_threads_since(running: set[threading.Thread], timeout_s: float) -> list[str]:
   """Waits, `timeout_s` at most in all, for every thread not in `running` (those started since:
-  a save's writers) to end; returns the names of those still alive."""
+  a save's writers, including any a writer starts while others are joined) to end; returns the
+  names of those still alive.
+
+  Joins with `threading.Thread.join` itself: Orbax's writer threads override `join` to re-raise
+  the thread's own error, which after a failed save is the aftermath (a file of the removed tmp
+  directory not found), not the error the save reports."""
   deadline = time.monotonic() + timeout_s
+  me = threading.current_thread()
   for t in threading.enumerate():
-    if t not in running and t is not threading.current_thread():
-      t.join(max(0.0, deadline - time.monotonic()))
-  return [t.name for t in threading.enumerate() if t not in running and t.is_alive()]
+    if t not in running and t is not me:
+      _release_if_waiting_for_signals(t)
+  while True:
+    alive = [t for t in threading.enumerate() if t not in running and t is not me and t.is_alive()]
+    if not alive or time.monotonic() >= deadline:
+      return [t.name for t in alive]
+    for t in alive:
+      threading.Thread.join(t, max(0.0, deadline - time.monotonic()))
+
+
+def _release_if_waiting_for_signals(thread: threading.Thread) -> None:
+  """Ends an Orbax writer thread that waits for a signal its failed save will never send.
+
+  An item's writer (the JSON `extra`'s, the commit thread) waits for the step directory to be
+  created before writing; when another item's write fails first, that signal never comes and the
+  thread would wait Orbax's coordination timeout (300 s), and the process as long at exit.
+  Marking it cancelled and sending the signals it waits for makes it return without writing. A
+  writer already past its wait is not interrupted (Orbax's `cancel` would stop its event loop
+  under its pending file writes, each of which then prints a traceback); the mark only names its
+  end. Threads without Orbax's signalling attributes are left alone."""
+  receive = getattr(thread, "_receive_signals", None)
+  operation_id = getattr(thread, "_operation_id", None)
+  if not receive or operation_id is None or not hasattr(thread, "_cancelled"):
+    return
+  try:
+    from orbax.checkpoint._src.futures import future as ocp_future
+
+    thread._cancelled = True
+    ocp_future.set_signals(receive, operation_id=operation_id)
+  except Exception as e:  # Orbax's internals moved: the thread ends at its own timeout.
+    logging.info("Could not release the failed save's writer %s: %s", thread.name, _short(e))
 
 
 class _AbandonedSaveTasks(logging.Filter):
@@ -217,11 +252,37 @@ class _AbandonedSaveTasks(logging.Filter):
 _ABANDONED_SAVE_TASKS = _AbandonedSaveTasks()
 
 
+def _is_late_write_completion(value: BaseException, tb: types.TracebackType | None) -> bool:
+  """Whether an uncaught error is an abandoned save's array write completing after Orbax closed
+  the event loop that awaited it: TensorStore, from C++, calls the loop's `call_soon_threadsafe`
+  and prints the RuntimeError (one traceback per pending write, under the save's one error)."""
+  return (
+    isinstance(value, RuntimeError)
+    and str(value) == "Event loop is closed"
+    and tb is not None
+    and tb.tb_frame.f_code.co_name == "call_soon_threadsafe"
+  )
+
+
+def _without_late_write_completions(hook: Callable[..., Any]) -> Callable[..., Any]:
+  """`sys.excepthook` that drops `_is_late_write_completion` errors and passes on the rest."""
+
+  def excepthook(kind, value, tb):
+    if not _is_late_write_completion(value, tb):
+      hook(kind, value, tb)
+
+  excepthook.camrep_drops_late_writes = True
+  return excepthook
+
+
 def _quiet_abandoned_save_tasks() -> None:
-  """Installs `_AbandonedSaveTasks` on the asyncio logger for the rest of the process."""
+  """Installs `_AbandonedSaveTasks` on the asyncio logger, and drops the abandoned writes' late
+  completions from `sys.excepthook`, for the rest of the process."""
   log = logging.getLogger("asyncio")
   if _ABANDONED_SAVE_TASKS not in log.filters:
     log.addFilter(_ABANDONED_SAVE_TASKS)
+  if not getattr(sys.excepthook, "camrep_drops_late_writes", False):
+    sys.excepthook = _without_late_write_completions(sys.excepthook)
 
 
 def _to_abstract(x: Any) -> Any:
