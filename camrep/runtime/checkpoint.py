@@ -197,21 +197,30 @@ SAVE_WRITERS_TIMEOUT_S = 30.0
 
 def _join_threads_since(running: set[threading.Thread], timeout_s: float) -> list[str]:
   """Waits, `timeout_s` at most in all, for every thread not in `running` (those started since:
-  a save's writers, including any a writer starts while others are joined) to end; returns the
-  names of those still alive.
+  the failed save's writers, including any a writer starts while others are joined) to end,
+  releasing those that wait for its signals (`_release_if_waiting_for_signals`); returns the
+  names of those still alive. One save at a time per process (the checkpointing of a run or a
+  grid's members is serial): a thread started since belongs to the failed save.
 
   Joins with `threading.Thread.join` itself: Orbax's writer threads override `join` to re-raise
   the thread's own error, which after a failed save is the aftermath (a file of the removed tmp
-  directory not found), not the error the save reports."""
+  directory not found), not the error the save reports. Threads Python made for foreign (C++)
+  threads that called into it are skipped: they cannot be joined."""
   deadline = time.monotonic() + timeout_s
   me = threading.current_thread()
-  for t in threading.enumerate():
-    if t not in running and t is not me:
-      _release_if_waiting_for_signals(t)
   while True:
-    alive = [t for t in threading.enumerate() if t not in running and t is not me and t.is_alive()]
+    alive = [
+      t
+      for t in threading.enumerate()
+      if t not in running
+      and t is not me
+      and not isinstance(t, threading._DummyThread)
+      and t.is_alive()
+    ]
     if not alive or time.monotonic() >= deadline:
       return [t.name for t in alive]
+    for t in alive:
+      _release_if_waiting_for_signals(t)
     for t in alive:
       threading.Thread.join(t, max(0.0, deadline - time.monotonic()))
 
@@ -225,10 +234,14 @@ def _release_if_waiting_for_signals(thread: threading.Thread) -> None:
   Marking it cancelled and sending the signals it waits for makes it return without writing. A
   writer already past its wait is not interrupted (Orbax's `cancel` would stop its event loop
   under its pending file writes, each of which then prints a traceback); the mark only names its
-  end. Threads without Orbax's signalling attributes are left alone."""
+  end. Threads without Orbax's signalling attributes are left alone, and so are all threads of
+  a multi-process save: its signals are shared by every process (only the primary creates the
+  step directory), and those of the other processes' writers must not be sent from here."""
   receive = getattr(thread, "_receive_signals", None)
   operation_id = getattr(thread, "_operation_id", None)
   if not receive or operation_id is None or not hasattr(thread, "_cancelled"):
+    return
+  if jax.process_count() > 1:
     return
   try:
     from orbax.checkpoint._src.futures import future as ocp_future
