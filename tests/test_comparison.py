@@ -201,6 +201,11 @@ def test_converge_plan(tmp_path, capsys):
   (curve,) = [j for j in launch.curve_jobs(one) if j.name == "curve_car"]
   runs = curve.argv[curve.argv.index("--runs") + 1 : curve.argv.index("--title")]
   assert runs == [euler, os.path.join(reg, "car", "quat", "lr3e-3_seed0")], runs
+  # A workdir at the chosen lr that holds no finished run (a launch cut short, a plan with more
+  # seeds) logged no curve: it is left out, not drawn as an error.
+  os.makedirs(os.path.join(reg, "car", "quat", "lr3e-3_seed5", "checkpoints"))
+  (curve,) = [j for j in launch.curve_jobs(one) if j.name == "curve_car"]
+  assert curve.argv[curve.argv.index("--runs") + 1 : curve.argv.index("--title")] == runs
   assert [launch.half_decade(x, up=u) for x, u in ((1e-3, True), (3e-4, False), (1e-4, False))] == [
     3e-3,
     1e-4,
