@@ -248,18 +248,18 @@ def test_the_launchers_table_jobs_run_as_commands(tmp_path, monkeypatch, capsys)
 
   out = tmp_path / "protocol"
   shutil.copytree(os.path.join(ROOT, "results", "protocol"), out)
-  for name in ("claims.md", "lead_table.md", "table1.md"):
+  for name in ("claims.md", "lead_table.md", "table1.md", "table2.md"):
     (out / name).unlink(missing_ok=True)
   monkeypatch.chdir(ROOT)
-  args = ["--size", "protocol", "--out", str(out), "--settings", "gibson", "--dry_run"]
+  args = ["--size", "protocol", "--out", str(out), "--settings", "gibson,seven_scenes", "--dry_run"]
   tables = command.make_launch(command.parse_args(args)).tables
   assert {"lead_table", "claims"} <= {j.name for j in tables}
   failed = launch.run_jobs(tables, str(tmp_path / "logs"), at_once=2, label="")
   logs = {j.name: (tmp_path / "logs" / f"{j.name}.log").read_text() for j in tables}
   assert failed == [], {n: logs[n] for n in failed}
-  assert (out / "lead_table.md").is_file() and (out / "table1.md").is_file()
+  assert all((out / f).is_file() for f in ("lead_table.md", "table1.md", "table2.md"))
   compared = set()
-  for name in ("claims.md", "lead_table.md", "table1.md"):
+  for name in ("claims.md", "lead_table.md", "table1.md", "table2.md"):
     committed = os.path.join(ROOT, "results", "protocol", name)
     if os.path.isfile(committed):
       with open(committed, encoding="utf-8") as f:
