@@ -619,7 +619,7 @@ def curve_jobs(launch: Launch) -> list[Job]:
       lr = chosen_lr(L.out, col, rep, L.plan)
       if lr is not None:
         pattern = os.path.join(L.out, "regression", col, rep, f"{lr_tag(lr)}_seed*")
-        wds += sorted(d for d in glob.glob(pattern) if _finished_run(d))
+        wds += sorted(d for d in glob.glob(pattern) if runs.is_finished(d))
     if not wds:
       continue
     argv = [L.python, "experiments/learning_curve.py", "--bands", "--metrics"]
@@ -628,15 +628,6 @@ def curve_jobs(launch: Launch) -> list[Job]:
     argv += ["--md", os.path.join(L.out, f"curve_{col}.md")]
     jobs.append(Job(f"curve_{col}", argv, "", 5))
   return jobs
-
-
-def _finished_run(workdir: str) -> bool:
-  """A regression workdir that holds a finished run (its results.json, or the record an archive
-  keeps): an unfinished one (of a launch cut short, or of a plan with more seeds) logged no
-  validation curve to draw."""
-  return any(
-    os.path.isfile(os.path.join(workdir, f)) for f in (runs.RESULTS_FILE, runs.RECORD_FILE)
-  )
 
 
 def make_launch(

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import base64
 import dataclasses
-import functools
 import glob
 import json
 import os
@@ -173,23 +172,32 @@ def read_errors(path: str) -> dict[str, np.ndarray]:
     raise DamagedRun(path, f"cannot be read as per-view errors ({type(e).__name__}: {e})") from e
 
 
+_ABSENT = object()
+
+
+def _lookup(tree: Mapping[str, Any], name: str, default: Any = _ABSENT) -> Any:
+  """The value of the dotted field `name` in a nested dict; `default` when it has none."""
+  node = tree
+  for p in name.split("."):
+    if not isinstance(node, Mapping) or p not in node:
+      return default
+    node = node[p]
+  return node
+
+
 def _pick(tree: Mapping[str, Any], fields=CONFIG_FIELDS) -> dict[str, Any]:
   """The dotted `fields` of a nested dict that it has (but `UNSET_FIELDS` at their value),
   nested again."""
   out: dict[str, Any] = {}
   for name in fields:
-    node, parts = tree, name.split(".")
-    for p in parts:
-      if not isinstance(node, Mapping) or p not in node:
-        break
-      node = node[p]
-    else:
-      if name in UNSET_FIELDS and node == UNSET_FIELDS[name]:
-        continue
-      dst = out
-      for p in parts[:-1]:
-        dst = dst.setdefault(p, {})
-      dst[parts[-1]] = node
+    node = _lookup(tree, name)
+    if node is _ABSENT or (name in UNSET_FIELDS and node == UNSET_FIELDS[name]):
+      continue
+    *parents, last = name.split(".")
+    dst = out
+    for p in parents:
+      dst = dst.setdefault(p, {})
+    dst[last] = node
   return out
 
 
@@ -333,9 +341,8 @@ def restored(workdir: str, config: Mapping[str, Any]) -> Run | None:
   if not os.path.isfile(os.path.join(workdir, RECORD_FILE)) or _kind(workdir) is not None:
     return None
   run = _from_record(os.path.join(workdir, RECORD_FILE))
-  have, want = _pick(run.config, RESTORED_FIELDS), _pick(config, RESTORED_FIELDS)
   for name in RESTORED_FIELDS:
-    a, b = (functools.reduce(lambda d, k: d.get(k, {}), name.split("."), t) for t in (have, want))
+    a, b = _lookup(run.config, name, None), _lookup(config, name, None)
     if a != b:
       raise ValueError(
         f"{workdir} holds a finished run restored from an archive ({RECORD_FILE}) with {name}="
