@@ -110,7 +110,6 @@ def build(results: Sequence[dict]) -> str:
     cells = [f"{paper[k]:g}" if k in paper else "–" for k, _, _, _ in columns]
     paper_rows.append([C.row_label(rep, settings), *cells])
   seeds = sorted({len(s.runs) for s in selections.values()})
-  variants = sorted({str(r.get("variant", "?")) for s in selections.values() for r in s.runs})
   runs = [r for s in selections.values() for r in s.runs]
   real = [C.is_real(r) for r in runs]
   kind = "real data" if real and all(real) else "mixed data" if any(real) else "procedural data"
@@ -119,7 +118,7 @@ def build(results: Sequence[dict]) -> str:
   text = [
     f"# Table 1: pose regression on {title}",
     "",
-    f"Measured on {kind} ({', '.join(variants) or 'no'} size; "
+    f"Measured on {kind} ({C.width_text(runs)}; "
     f"{len(results)} runs read): mean test errors over "
     f"{'/'.join(map(str, seeds)) or '0'} seeds at the learning rate chosen on the validation "
     "split; "

@@ -137,20 +137,19 @@ def build(results: Sequence[dict]) -> str:
   rows.append(avg)
   if intervals:
     rows.append(["ours / best hand-designed", *comparison_cells(selections, reps), ""])
-  variants = sorted({str(r.get("variant", "?")) for s in selections.values() for r in s.runs})
   runs = [r for s in selections.values() for r in s.runs]
   real = bool(runs) and all(C.is_real(r) for r in runs)
   if real:
     title = "# Table 2: 6-DOF regression on 7-Scenes (prepared real images)"
     what = (
-      f"Measured on a prepared 7-Scenes dataset ({', '.join(variants) or 'no'} size): the real "
+      f"Measured on a prepared 7-Scenes dataset ({C.width_text(runs)}): the real "
       "7-Scenes images and poses; train = the TrainSplit sequences, test = the TestSplit "
       "sequences."
     )
   else:
     title = "# Table 2: 6-DOF regression on the scene6dof family (7-Scenes trajectories)"
     what = (
-      f"Measured on camrep's `scene6dof` family ({', '.join(variants) or 'no'} size): the real "
+      f"Measured on camrep's `scene6dof` family ({C.width_text(runs)}): the real "
       "7-Scenes camera trajectories rendered inside procedural furnished rooms; test = the "
       "7-Scenes test trajectories."
     )

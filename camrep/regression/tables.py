@@ -61,6 +61,10 @@ ROW_LABELS = {
   "svd9d": "(x, y, 9-D SVD) [Levinson 2020; not in the paper]",
   "mlp": "MLP embedding",
   "ours": "ours",
+  # The protocol's controls (`camrep.pose_encodings`): ours' grid at its random initialisation,
+  # and the grid of a view-synthesis run whose generators stayed at their initial values.
+  "untrained": "untrained pose system (control)",
+  "frozen_gen": "ours, generators frozen (control)",
 }
 
 # Row labels of a table whose columns are all of one rotation-only setting (the car's view sphere,
@@ -315,6 +319,14 @@ def is_real(run: Mapping[str, Any]) -> bool:
   return bool(run.get("data", {}).get("source"))
 
 
+def width_text(runs: Iterable[Mapping[str, Any]]) -> str:
+  """The networks' width of `runs` for a table's caption, from their configs' variants: "quick-width
+  models" (`:quick` configs: eighth-width networks, whatever the launch size that set their
+  steps), "medium/quick-width models" for a mix."""
+  variants = sorted({str(r.get("variant", "?")) for r in runs})
+  return f"{'/'.join(variants) or 'no'}-width models"
+
+
 def data_label(run: Mapping[str, Any]) -> str:
   """Which data a run used, in words: the procedural family and preset, or the prepared
   dataset's name, directory and test split (with its number of test views)."""
@@ -446,6 +458,6 @@ def selection_table(
     "test seeds",
     "steps",
     "params",
-    "size",
+    "width",
   ]
   return markdown_table(header, rows)
