@@ -73,6 +73,24 @@ def test_regression_timer_builds_and_times_the_learners_step(tmp_path):
   assert default.weight_grad == "by_channels"
 
 
+@pytest.mark.slow
+@pytest.mark.usefixtures("fast_compile")
+def test_the_regression_steps_are_compared_across_strided_input_gradients(tmp_path, capsys):
+  """`--skip_synthesis --regression car --regression_strided s2d,xla`: one regression step of
+  each mode, traced under it, timed in turn and printed with its mode."""
+  bench_train_step.main(
+    ["--skip_synthesis", "--regression", "car", "--regression_variant", "smoke"]
+    + ["--regression_strided", "s2d,xla", "--regression_cache", str(tmp_path)]
+    + ["--steps", "1", "--repeats", "1"]
+  )
+  out = capsys.readouterr().out
+  for mode in ("s2d", "xla"):
+    assert (
+      f"regression step, car (smoke, quat, 4 images/step, weight grad by_channels, "
+      f"strided input grad {mode}): s/step" in out
+    ), out
+
+
 class _Flag:
   """A metric that counts how often the host reads it."""
 

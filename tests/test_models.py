@@ -333,9 +333,12 @@ def test_init_is_deterministic_by_key():
     (4, 2, ((1, 2), (0, 1))),
   ],
 )
-def test_fastconv_gradients_match_xla(kernel, stride, padding):
-  """The matmul kernel gradient (and the untouched forward / input gradient) equal XLA's own,
-  in float64, for every kernel / stride / padding the models use, and odd spatial sizes."""
+@pytest.mark.parametrize("cin", [3, 5])
+def test_fastconv_gradients_match_xla(kernel, stride, padding, cin):
+  """The matmul kernel gradient and the space-to-depth forward and input gradient of strided
+  convs, alone and together, equal XLA's own in float64, for every kernel / stride / padding the
+  models use, odd spatial sizes, and inputs of few channels (3: the space-to-depth forward) and
+  more (5)."""
   from camrep.models import fastconv
 
   def loss(x, w):
@@ -344,18 +347,50 @@ def test_fastconv_gradients_match_xla(kernel, stride, padding):
     )
     return jnp.sum(jnp.sin(y)), y
 
+  def outputs(kernel_grad, strided):
+    with fastconv.weight_grad(kernel_grad), fastconv.strided_input_grad(strided):
+      (_, y), (dx, dw) = jax.jit(jax.value_and_grad(loss, argnums=(0, 1), has_aux=True))(x, w)
+    return {"y": y, "dx": dx, "dw": dw}
+
   with x64():
-    rng = np.random.default_rng(kernel * 10 + stride)
-    x = jnp.asarray(rng.normal(size=(3, 11, 10, 5)))
-    w = jnp.asarray(rng.normal(size=(kernel, kernel, 5, 7)))
-    got, want = {}, {}
-    for mode, out in (("matmul", got), ("xla", want)):
-      with fastconv.weight_grad(mode):
-        (_, out["y"]), (out["dx"], out["dw"]) = jax.jit(
-          jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)
-        )(x, w)
-    for k in ("y", "dx", "dw"):
-      assert_close(got[k], want[k], atol=1e-10, rtol=1e-10)
+    rng = np.random.default_rng(kernel * 10 + stride + cin)
+    x = jnp.asarray(rng.normal(size=(3, 11, 10, cin)))
+    w = jnp.asarray(rng.normal(size=(kernel, kernel, cin, 7)))
+    want = outputs("xla", "xla")
+    for kernel_grad, strided in (("matmul", "xla"), ("xla", "s2d"), ("matmul", "s2d")):
+      got = outputs(kernel_grad, strided)
+      for k in ("y", "dx", "dw"):
+        assert_close(got[k], want[k], atol=1e-10, rtol=1e-10)
+
+
+def test_fastconv_strided_input_gradient_reads_no_dilated_cotangent():
+  """In "s2d" mode a stride-2 conv's input gradient is a stride-1 transposed conv (no product
+  with the zeros of a dilated cotangent), and an RGB input's forward pass is one stride-1 conv
+  over 12 channels; in "xla" mode both are XLA's own (a dilated cotangent)."""
+  from camrep.models import fastconv
+
+  x, w = jnp.ones((2, 8, 8, 3)), jnp.ones((4, 4, 3, 6))
+
+  def jaxpr(mode):
+    def loss(x_, w_):
+      y = fastconv.conv_general_dilated(
+        x_, w_, (2, 2), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+      )
+      return jnp.sum(y**2)
+
+    with fastconv.weight_grad("xla"), fastconv.strided_input_grad(mode):
+      return str(jax.make_jaxpr(jax.grad(loss, argnums=(0, 1)))(x, w))
+
+  assert "lhs_dilation=(2, 2)" in jaxpr("xla")
+  s2d = jaxpr("s2d")
+  assert "lhs_dilation=(2, 2)" not in s2d and "window_strides=(2, 2)" not in s2d
+  assert fastconv.get_strided_input_grad() == "s2d"  # "auto" on the CPU backend
+  with pytest.raises(ValueError, match="strided_input_grad must be one of"):
+    with fastconv.strided_input_grad("fast"):
+      pass
+  assert not fastconv.s2d_applies((3, 3), (2, 2), ((1, 1), (1, 1)))  # 3 is not a multiple of 2
+  assert not fastconv.s2d_applies((4, 4), (1, 1), ((1, 2), (1, 2)))  # stride 1: nothing to gain
+  assert fastconv.s2d_applies((4, 4), (2, 2), ((1, 1), (1, 1)))
 
 
 def test_fastconv_by_channels_chooses_per_layer():

@@ -43,6 +43,8 @@ Commands (2-core CPU):
     --end_to_end=configs/gqn.py:quick                                        # ~4 min
   .venv/bin/python -m camrep.bench.train_step --skip_synthesis --regression gqn,car \
     --regression_grad_modes matmul,by_channels --steps 5 --repeats 4         # ~3 min + data
+  .venv/bin/python -m camrep.bench.train_step --skip_synthesis --regression car,gqn \
+    --regression_strided s2d,xla --steps 5 --repeats 4  # strided convs' input gradients
 
 On a GPU (mixed precision is meant for it; conv weight gradients from XLA / cuDNN):
 
@@ -100,6 +102,12 @@ def _parse(argv=None):
     default="",
     help="conv weight gradients of the regression steps to compare (e.g. matmul,by_channels; "
     "fastconv modes); empty: the regressor's own (learner.Regressor.weight_grad)",
+  )
+  p.add_argument(
+    "--regression_strided",
+    default="",
+    help="strided convs' input gradients of the regression steps to compare (e.g. s2d,xla; "
+    "fastconv.strided_input_grad modes); empty: the default",
   )
   p.add_argument(
     "--regression_width", type=float, default=None, help="model.width of the regression steps"
@@ -586,19 +594,25 @@ def main(argv=None) -> None:
         timers[f"{dtype} weight grad {mode}" + _rewrites_label(on, rewrites)] = (timer, dtype)
   settings = [x for x in args.regression.split(",") if x]
   reg_modes = [x for x in args.regression_grad_modes.split(",") if x] or [""]
+  strided = [x for x in args.regression_strided.split(",") if x] or [""]
   regression_rows = []
   for setting in settings:
     for mode in reg_modes:
-      timer = RegressionTimer(
-        setting,
-        variant=args.regression_variant,
-        cache_dir=args.regression_cache,
-        weight_grad=mode,
-        width=args.regression_width,
-      )
-      name = f"regression {setting}" + (f" weight grad {mode}" if mode else "")
-      timers[name] = (timer, "float32")
-      regression_rows.append((setting, name, timer.weight_grad))
+      for how in strided:
+        # The step is traced (and compiled) when the timer is built: the mode holds then.
+        with fastconv.strided_input_grad(how) if how else contextlib.nullcontext():
+          timer = RegressionTimer(
+            setting,
+            variant=args.regression_variant,
+            cache_dir=args.regression_cache,
+            weight_grad=mode,
+            width=args.regression_width,
+          )
+        name = f"regression {setting}" + (f" weight grad {mode}" if mode else "")
+        name += f" strided input grad {how}" if how else ""
+        timers[name] = (timer, "float32")
+        label = timer.weight_grad + (f", strided input grad {how}" if how else "")
+        regression_rows.append((setting, name, label))
   # Peaks and steps timed in turn, --repeats rounds: MFU per round against that round's peak.
   inter = interleaved(timers, rounds=args.repeats, steps=args.steps)
   for dtype in dtypes:
